@@ -1,0 +1,1 @@
+"""DrawAnything-Sim: draw an unseen drawing on a rotated board from one demonstration of it."""

@@ -1,0 +1,182 @@
+"""A scripted demonstrator that draws any :class:`Drawing` like a person with a mouse, at 10 Hz.
+
+It is closed-loop on the cursor, like a person watching the screen: it travels pen-up to each stroke's start
+along a gently bent path, waits for the cursor to arrive, lowers the pen, traces the stroke at its own speed
+(a per-demonstration base speed with slow variation), slows down at sharp corners, waits at the stroke's end
+for the cursor to catch up, and lifts the pen. After the last stroke it lifts the pen and rests. Small
+Gaussian noise on the commanded targets imitates an unsteady hand (never on stroke ends and corners).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bpp.envs.draw import physics
+from bpp.envs.draw.drawing import Drawing
+from bpp.envs.draw.geometry import unit_to_canvas
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Demonstrator parameters, in canvas px and control steps."""
+
+    speed_range: tuple[float, float] = (10.0, 30.0)
+    """Base drawing speed, px per control step (100-300 px/s), drawn once per demonstration."""
+    speed_wobble: float = 0.2
+    """Relative amplitude of the slow speed variation along the drawing."""
+    noise_std: float = 2.0
+    """Std of the Gaussian noise on commanded targets, px (clipped at 3 std)."""
+    corner_angle_deg: float = 50.0
+    """Turns sharper than this count as corners, where the hand pauses for 1-3 steps."""
+    arrive_tol: float = 4.0
+    """The hand waits until the cursor is this close (px) to a stroke's start or end."""
+    max_wait_steps: int = 12
+    end_rest_steps: int = 5
+    """Pen-up rest after the last stroke."""
+    max_steps: int = 400
+    """The base speed is raised if needed so a demonstration fits this many steps."""
+
+    def __post_init__(self):
+        lo, hi = self.speed_range
+        if not 0 < lo <= hi:
+            raise ValueError(f"speed_range must satisfy 0 < lo <= hi, got {self.speed_range}")
+
+
+@dataclass
+class Demonstration:
+    """One recorded demonstration: T steps of (state before the step, action)."""
+
+    states: np.ndarray  # (T, 5) float64 [x, y, vx, vy, pen]
+    actions: np.ndarray  # (T, 3) float64 [target_x, target_y, pen]
+    board_angle: float
+    speed: float  # base speed used, px per step
+
+    def __len__(self) -> int:
+        return len(self.actions)
+
+
+def _resample(points: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Points along `points` at cumulative arc lengths given by cumsum(spacing), ending exactly at the end."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    t = np.cumsum(spacing)
+    t = np.concatenate([t[t < s[-1]], [s[-1]]])
+    return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
+
+
+def _corner_arclengths(points: np.ndarray, angle_deg: float, scale: float) -> np.ndarray:
+    """Arc lengths of sharp turns, measuring direction over `scale` px so dense curves are not corners."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    keep = np.concatenate([[True], seg > 1e-9])
+    points = points[keep]
+    if len(points) < 3:
+        return np.zeros(0)
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    corners = []
+    for i in range(1, len(points) - 1):
+        back = points[i] - np.array([np.interp(s[i] - scale, s, points[:, k]) for k in range(2)])
+        ahead = np.array([np.interp(s[i] + scale, s, points[:, k]) for k in range(2)]) - points[i]
+        nb, na = np.linalg.norm(back), np.linalg.norm(ahead)
+        if nb < 1e-9 or na < 1e-9:
+            continue
+        cos = np.clip(back @ ahead / (nb * na), -1.0, 1.0)
+        if np.degrees(np.arccos(cos)) > angle_deg and (not corners or s[i] - corners[-1] > scale):
+            corners.append(s[i])
+    return np.asarray(corners)
+
+
+class _Recorder:
+    def __init__(self, state: np.ndarray, noise: float, rng: np.random.Generator):
+        self.state = state
+        self.states: list[np.ndarray] = []
+        self.actions: list[np.ndarray] = []
+        self.noise = noise
+        self.rng = rng
+
+    def command(self, target: np.ndarray, pen: float, noisy: bool = False) -> None:
+        target = np.asarray(target, dtype=np.float64)
+        if noisy and self.noise > 0:
+            target = target + np.clip(self.rng.normal(0.0, self.noise, 2), -3 * self.noise, 3 * self.noise)
+        action = np.array([target[0], target[1], pen])
+        self.states.append(self.state)
+        self.actions.append(action)
+        self.state, _ = physics.control_step(self.state, action)
+
+    def wait_until_near(self, target: np.ndarray, pen: float, tol: float, max_steps: int) -> None:
+        for _ in range(max_steps):
+            if np.linalg.norm(self.state[:2] - target) <= tol and np.linalg.norm(self.state[2:4]) < 10 * tol:
+                return
+            self.command(target, pen)
+
+
+def demonstrate(
+    drawing: Drawing,
+    board_angle: float,
+    cursor_start: np.ndarray,
+    rng: np.random.Generator,
+    cfg: DemoConfig = DemoConfig(),
+) -> Demonstration:
+    """Draw `drawing` on a board at `board_angle` starting from a resting cursor at `cursor_start`."""
+    strokes = [unit_to_canvas(s, board_angle) for s in drawing.strokes]
+    ink_px = sum(float(np.linalg.norm(np.diff(s, axis=0), axis=1).sum()) for s in strokes)
+    speed = float(rng.uniform(*cfg.speed_range))
+    # Rough step budget: ink + travel at `speed`, plus waits; raise the speed if the demo would not fit.
+    ends = [np.asarray(cursor_start, dtype=np.float64)] + [p for st in strokes for p in (st[0], st[-1])]
+    travel = sum(float(np.linalg.norm(ends[2 * i + 1] - ends[2 * i])) for i in range(len(strokes)))
+    overhead = len(strokes) * 10 + cfg.end_rest_steps + 10
+    budget = cfg.max_steps - overhead
+    if budget > 0 and (ink_px + travel) / speed > budget:
+        speed = (ink_px + travel) / budget
+    phase = rng.uniform(0, 2 * np.pi)
+    wobble_period = rng.uniform(15.0, 40.0)
+
+    def spacings(n_steps_guess: int) -> np.ndarray:
+        k = np.arange(n_steps_guess)
+        return speed * (1.0 + cfg.speed_wobble * np.sin(phase + 2 * np.pi * k / wobble_period))
+
+    rec = _Recorder(physics.initial_state(np.asarray(cursor_start, dtype=np.float64)), cfg.noise_std, rng)
+    for stroke in strokes:
+        start = stroke[0]
+        # Pen-up travel along a quadratic Bézier bent sideways by up to 30% of the distance (at most 100 px).
+        here = rec.state[:2].copy()
+        dist = float(np.linalg.norm(start - here))
+        if dist > cfg.arrive_tol:
+            normal = np.array([-(start - here)[1], (start - here)[0]]) / dist
+            bend = rng.uniform(-1.0, 1.0) * min(0.3 * dist, 100.0)
+            ctrl = (here + start) / 2 + bend * normal
+            t = np.linspace(0.0, 1.0, 64)[:, None]
+            travel_path = (1 - t) ** 2 * here + 2 * (1 - t) * t * ctrl + t**2 * start
+            n_guess = int(dist / speed * 2) + 8
+            for target in _resample(travel_path, spacings(n_guess))[:-1]:
+                rec.command(target, 0.0, noisy=True)
+        rec.wait_until_near(start, 0.0, cfg.arrive_tol, cfg.max_wait_steps)
+        # Trace the stroke, pausing at corners.
+        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(stroke, axis=0), axis=1))])
+        corners = list(_corner_arclengths(stroke, cfg.corner_angle_deg, scale=max(speed, 8.0)))
+        targets = _resample(stroke, spacings(int(cum[-1] / speed * 2) + 8)) if cum[-1] > 0 else stroke[:1]
+        arc = np.cumsum(np.linalg.norm(np.diff(np.vstack([stroke[:1], targets]), axis=0), axis=1))
+        for target, s in zip(targets[:-1], arc[:-1], strict=True):
+            if corners and s >= corners[0] - speed / 2:
+                s_corner = corners.pop(0)
+                corner = np.array([np.interp(s_corner, cum, stroke[:, k]) for k in range(2)])
+                for _ in range(int(rng.integers(1, 4))):
+                    rec.command(corner, 1.0)
+            else:
+                rec.command(target, 1.0, noisy=True)
+        rec.command(stroke[-1], 1.0)
+        rec.wait_until_near(stroke[-1], 1.0, cfg.arrive_tol, cfg.max_wait_steps)
+    for _ in range(cfg.end_rest_steps):
+        rec.command(rec.actions[-1][:2], 0.0)
+    return Demonstration(np.array(rec.states), np.array(rec.actions), float(board_angle), speed)
+
+
+def replay_paths(states: np.ndarray, actions: np.ndarray) -> list[np.ndarray]:
+    """The canvas polylines inked by each pen-down step of a recorded episode (exact replay of the physics)."""
+    paths = []
+    for state, action in zip(states, actions, strict=True):
+        _, path = physics.control_step(state, action)
+        if action[2] > physics.PEN_THRESHOLD:
+            paths.append(path)
+    return paths

@@ -1,0 +1,112 @@
+"""The DrawAnything Chamfer metric, in pixels of the 512x512 canvas.
+
+score(target, rollout) = mean over target ink pixels of the distance to the nearest rollout ink pixel
+                       + mean over rollout ink pixels of the distance to the nearest target ink pixel
+
+(a *sum* of the two directions, as in the paper). Both inks are rasterised **upright** — their geometry is
+un-rotated about the board centre before rasterising, not the images — so identical drawings score exactly 0
+at every board angle. Pixels are inked the way the authors' pen inks them (:func:`pen_band`), which
+reproduces their parity values (see tests).
+
+Empty ink: the authors' implementation returns infinity when either canvas has no ink, which makes every mean
+over episodes infinite. Here a direction whose *source* set is empty contributes 0 and a direction whose
+*target* set is empty contributes :data:`EMPTY_DISTANCE` (the canvas diagonal, the largest possible
+distance). So an empty rollout against a non-empty target scores ``EMPTY_DISTANCE`` (worse than any rollout
+that inks anything inside the canvas), and two empty canvases score 0.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+from bpp.envs.draw.geometry import CANVAS_SIZE
+from bpp.envs.draw.render import INK_WIDTH, pixel_centers, polyline_segments
+
+EMPTY_DISTANCE = float(np.hypot(CANVAS_SIZE, CANVAS_SIZE))
+
+
+def _bbox_of(mask: np.ndarray):
+    rows = np.flatnonzero(mask.any(axis=1))
+    cols = np.flatnonzero(mask.any(axis=0))
+    return rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+
+
+def chamfer_distance(target: np.ndarray, rollout: np.ndarray) -> float:
+    """Symmetric Chamfer score between two boolean (H, W) ink masks of the same shape, in pixels."""
+    if target.shape != rollout.shape:
+        raise ValueError(f"masks differ in shape: {target.shape} vs {rollout.shape}")
+    has_t, has_r = bool(target.any()), bool(rollout.any())
+    if not has_t and not has_r:
+        return 0.0
+    if not has_t or not has_r:
+        return EMPTY_DISTANCE
+    # Both point sets lie inside their joint bounding box, so distance fields computed on that crop are exact
+    # for every pixel of either set.
+    r0, r1, c0, c1 = np.array([_bbox_of(target), _bbox_of(rollout)]).T
+    crop = (slice(r0.min(), r1.max()), slice(c0.min(), c1.max()))
+    t, r = target[crop], rollout[crop]
+    to_rollout = ndimage.distance_transform_edt(~r)
+    to_target = ndimage.distance_transform_edt(~t)
+    return float(to_rollout[t].mean() + to_target[r].mean())
+
+
+PEN_DOT_RADIUS = 4.0
+"""The authors' pen also stamps a disc of this radius at every path point."""
+
+
+def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Boolean: which pixel centres (x, y) the authors' pen inks for (M, 4) segments [x0, y0, x1, y1].
+
+    The authors draw ink with pygame's thick lines, whose 12 px are measured along the *minor* axis of each
+    segment (a horizontal stroke is 12 px tall, a 45-degree stroke only 12/sqrt(2) px wide) with flat ends,
+    plus a 4 px disc at each point. Reproducing that pen, rather than an ideal round one, is what makes our
+    numbers comparable: it reproduces both of the authors' parity values (a line 10 px apart -> 9.18, circles
+    of radius 100 and 110 -> 9.69).
+    """
+    inked = np.zeros(x.shape, dtype=bool)
+    half = INK_WIDTH / 2
+    for x0, y0, x1, y1 in np.asarray(segments, dtype=np.float64):
+        inked |= np.hypot(x - x1, y - y1) <= PEN_DOT_RADIUS
+        if x0 == x1 and y0 == y1:
+            inked |= np.hypot(x - x0, y - y0) <= PEN_DOT_RADIUS
+            continue
+        # Work in (major, minor) coordinates so one code path serves shallow and steep segments.
+        if abs(x1 - x0) >= abs(y1 - y0):
+            a, b, a0, b0, a1, b1 = x, y, x0, y0, x1, y1
+        else:
+            a, b, a0, b0, a1, b1 = y, x, y0, x0, y1, x1
+        if a1 < a0:
+            a0, b0, a1, b1 = a1, b1, a0, b0
+        lo, hi = a0 - 0.5, a1 + 0.5
+        offset = b - (b0 + (b1 - b0) * (np.clip(a, a0, a1) - a0) / max(a1 - a0, 1e-12))
+        inked |= (a >= lo) & (a < hi) & (offset >= -half) & (offset < half)
+    return inked
+
+
+class InkMask:
+    """A boolean ink mask at canvas resolution that grows as paths are added (used for the metric)."""
+
+    def __init__(self, size: int = CANVAS_SIZE):
+        self.mask = np.zeros((size, size), dtype=bool)
+
+    def add(self, path: np.ndarray) -> None:
+        """Ink a (N, 2) polyline given in this mask's pixel coordinates."""
+        path = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        size = self.mask.shape[0]
+        reach = INK_WIDTH / 2 + 1.0
+        lo = np.maximum(np.floor(path.min(axis=0) - reach).astype(int), 0)
+        hi = np.minimum(np.ceil(path.max(axis=0) + reach).astype(int), size)
+        if np.any(hi <= lo):
+            return
+        rows, cols = slice(lo[1], hi[1]), slice(lo[0], hi[0])
+        x, y = pixel_centers(size, rows, cols)
+        self.mask[rows, cols] |= pen_band(x, y, polyline_segments(path))
+
+
+def ink_mask(paths, size: int = CANVAS_SIZE) -> np.ndarray:
+    """Boolean ink mask of several (N, 2) canvas polylines."""
+    mask = InkMask(size)
+    for path in paths:
+        mask.add(path)
+    return mask.mask

@@ -1,0 +1,118 @@
+"""Procedural drawing tasks: 1-6 parts among lines, Bézier curves, (partial) ovals and pen-up moves.
+
+Follows the authors' published recipe (parameter ranges converted from their pixels to the board's unit
+square, 1 unit = 350 px): each part starts where the previous one ended; with probability ``connect_prob`` it
+ends at an earlier endpoint, otherwise at a fresh point at least 50 px away; ovals have a semi-axis of
+30-200 px, an aspect ratio of 0.2-3, a random orientation and direction, and are partial (π/8 to 2π of arc)
+half of the time. A pen-up move starts a new stroke and is never followed by another move.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from bpp.envs.draw.drawing import Drawing
+from bpp.envs.draw.geometry import BOARD_SIZE
+
+PART_TYPES = ("line", "curve", "oval", "move")
+_PX = 1.0 / BOARD_SIZE  # one canvas pixel in unit-square units
+_SAMPLE_SPACING = 2.0 * _PX  # dense polyline resolution of generated parts
+
+
+@dataclass(frozen=True)
+class ProceduralConfig:
+    """Parameters of the procedural generator (defaults: the paper's training distribution)."""
+
+    min_parts: int = 1
+    max_parts: int = 6
+    connect_prob: float = 0.5
+    min_new_point_dist: float = 50 * _PX
+    oval_axis_range: tuple[float, float] = (30 * _PX, 200 * _PX)
+    oval_aspect_range: tuple[float, float] = (0.2, 3.0)
+    partial_oval_prob: float = 0.5
+    partial_arc_range: tuple[float, float] = (np.pi / 8, 2 * np.pi)
+
+    def __post_init__(self):
+        if not 1 <= self.min_parts <= self.max_parts:
+            raise ValueError(f"need 1 <= min_parts <= max_parts, got {self.min_parts}..{self.max_parts}")
+        if not 0.0 <= self.connect_prob <= 1.0:
+            raise ValueError(f"connect_prob must be in [0, 1], got {self.connect_prob}")
+
+
+def _dense(points: np.ndarray) -> np.ndarray:
+    """Resample a polyline so consecutive points are about _SAMPLE_SPACING apart (keeps the ends)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    if s[-1] == 0.0:
+        return points[:1]
+    n = max(int(np.ceil(s[-1] / _SAMPLE_SPACING)), 1) + 1
+    t = np.linspace(0.0, s[-1], n)
+    return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
+
+
+def _bezier(p0, p1, p2, p3, n: int = 200) -> np.ndarray:
+    t = np.linspace(0.0, 1.0, n)[:, None]
+    return (1 - t) ** 3 * p0 + 3 * (1 - t) ** 2 * t * p1 + 3 * (1 - t) * t**2 * p2 + t**3 * p3
+
+
+def _oval(rng: np.random.Generator, start: np.ndarray, cfg: ProceduralConfig) -> np.ndarray | None:
+    """An (partial) ellipse through `start` at parameter 0, inside the unit square; None after 100 misses."""
+    for _ in range(100):
+        a = rng.uniform(*cfg.oval_axis_range)
+        b = a * rng.uniform(*cfg.oval_aspect_range)
+        phi = rng.uniform(0.0, 2 * np.pi)
+        sweep = rng.uniform(*cfg.partial_arc_range) if rng.random() < cfg.partial_oval_prob else 2 * np.pi
+        direction = rng.choice([-1.0, 1.0])
+        n = max(int(np.ceil(sweep * max(a, b) / _SAMPLE_SPACING)), 8)
+        t = direction * np.linspace(0.0, sweep, n)
+        rot = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+        local = np.stack([a * (np.cos(t) - 1.0), b * np.sin(t)], axis=1) @ rot.T
+        pts = start + local
+        if pts.min() >= 0.0 and pts.max() <= 1.0:
+            return pts
+    return None
+
+
+def generate_drawing(rng: np.random.Generator, cfg: ProceduralConfig, drawing_id: str) -> tuple[Drawing, list]:
+    """One random drawing and its list of part types (in drawing order)."""
+    current = rng.uniform(0.0, 1.0, size=2)
+    endpoints = [current]
+    strokes: list[list[np.ndarray]] = [[current[None]]]
+    kinds: list[str] = []
+    n_parts = int(rng.integers(cfg.min_parts, cfg.max_parts + 1))
+    while len(kinds) < n_parts:
+        options = ("line", "curve", "oval") if not kinds or kinds[-1] == "move" else PART_TYPES
+        kind = str(rng.choice(options))
+        if kind == "oval":
+            pts = _oval(rng, current, cfg)
+            if pts is None:
+                kind, pts = "line", None
+        if kind != "oval":
+            earlier = [p for p in endpoints if np.linalg.norm(p - current) > 1e-9]
+            if earlier and rng.random() < cfg.connect_prob:
+                end = earlier[int(rng.integers(len(earlier)))]
+            else:
+                end = current
+                for _ in range(100):
+                    cand = rng.uniform(0.0, 1.0, size=2)
+                    if np.linalg.norm(cand - current) >= cfg.min_new_point_dist:
+                        end = cand
+                        break
+            if kind == "curve":
+                pts = _bezier(current, rng.uniform(0, 1, 2), rng.uniform(0, 1, 2), end)
+            else:
+                pts = np.stack([current, end])
+        if kind == "move":
+            strokes.append([pts[-1:]])
+        else:
+            strokes[-1].append(_dense(pts)[1:])
+        current = pts[-1]
+        endpoints.append(current)
+        kinds.append(kind)
+    polylines = [np.concatenate(s) for s in strokes]
+    polylines = [np.clip(p, 0.0, 1.0) for p in polylines if len(p) > 1]
+    if not polylines:  # only degenerate parts: retry deterministically with the same generator
+        return generate_drawing(rng, cfg, drawing_id)
+    return Drawing.from_strokes(drawing_id, polylines, source="procedural generator"), kinds
