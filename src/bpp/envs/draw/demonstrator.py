@@ -29,14 +29,17 @@ class DemoConfig:
     noise_std: float = 2.0
     """Std of the Gaussian noise on commanded targets, px (clipped at 3 std)."""
     corner_angle_deg: float = 50.0
-    """Turns sharper than this count as corners, where the hand pauses for 1-3 steps."""
+    """Turns sharper than this count as corners, where the hand pauses until the cursor has nearly arrived."""
+    corner_tol: float = 0.25
+    """At a corner the hand waits until the cursor is within this fraction of a step's travel."""
+    corner_max_steps: int = 4
     arrive_tol: float = 4.0
     """The hand waits until the cursor is this close (px) to a stroke's start or end."""
     max_wait_steps: int = 12
     end_rest_steps: int = 5
     """Pen-up rest after the last stroke."""
     max_steps: int = 400
-    """The base speed is raised if needed so a demonstration fits this many steps."""
+    """The hand draws faster if needed so a demonstration fits this many steps (the episode limit)."""
 
     def __post_init__(self):
         lo, hi = self.speed_range
@@ -99,7 +102,8 @@ class _Recorder:
         target = np.asarray(target, dtype=np.float64)
         if noisy and self.noise > 0:
             target = target + np.clip(self.rng.normal(0.0, self.noise, 2), -3 * self.noise, 3 * self.noise)
-        action = np.array([target[0], target[1], pen])
+        # Commands are float32-representable so a store holding float32 actions replays them exactly.
+        action = np.array([target[0], target[1], pen], dtype=np.float32).astype(np.float64)
         self.states.append(self.state)
         self.actions.append(action)
         self.state, _ = physics.control_step(self.state, action)
@@ -111,6 +115,38 @@ class _Recorder:
             self.command(target, pen)
 
 
+def _plan(points: np.ndarray, stops: list[float], step_len, ramp: float, min_factor: float = 0.25):
+    """Targets along a polyline, one per control step, slowing into each stop (an arc length) and landing on it.
+
+    `step_len(k)` is the unhurried travel of step k in px; within `ramp` px of a stop (ahead or behind) the
+    travel shrinks like sqrt(distance), as a hand decelerates into a corner and accelerates out of it.
+    Returns (targets (K, 2), is_stop (K,) bool).
+    """
+    cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+    total = cum[-1]
+
+    def at(s: float) -> np.ndarray:
+        return np.array([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])])
+
+    targets, is_stop = [], []
+    s, behind, k = 0.0, 0.0, 0
+    for stop in sorted({*(float(x) for x in stops if 0.0 < x < total), total}):
+        while True:
+            near = max(min(stop - s, s - behind), 0.0)
+            travel = max(step_len(k) * float(np.clip(np.sqrt(near / ramp), min_factor, 1.0)), 0.5)
+            k += 1
+            if s + travel >= stop:
+                s = stop
+                targets.append(at(stop))
+                is_stop.append(True)
+                break
+            s += travel
+            targets.append(at(s))
+            is_stop.append(False)
+        behind = stop
+    return np.array(targets).reshape(-1, 2), np.array(is_stop, dtype=bool)
+
+
 def demonstrate(
     drawing: Drawing,
     board_angle: float,
@@ -118,24 +154,29 @@ def demonstrate(
     rng: np.random.Generator,
     cfg: DemoConfig = DemoConfig(),
 ) -> Demonstration:
-    """Draw `drawing` on a board at `board_angle` starting from a resting cursor at `cursor_start`."""
-    strokes = [unit_to_canvas(s, board_angle) for s in drawing.strokes]
-    ink_px = sum(float(np.linalg.norm(np.diff(s, axis=0), axis=1).sum()) for s in strokes)
+    """Draw `drawing` on a board at `board_angle` starting from a resting cursor at `cursor_start`.
+
+    If the demonstration would exceed ``cfg.max_steps`` the hand draws faster (up to 8 tries, x1.3 each).
+    """
     speed = float(rng.uniform(*cfg.speed_range))
-    # Rough step budget: ink + travel at `speed`, plus waits; raise the speed if the demo would not fit.
-    ends = [np.asarray(cursor_start, dtype=np.float64)] + [p for st in strokes for p in (st[0], st[-1])]
-    travel = sum(float(np.linalg.norm(ends[2 * i + 1] - ends[2 * i])) for i in range(len(strokes)))
-    overhead = len(strokes) * 10 + cfg.end_rest_steps + 10
-    budget = cfg.max_steps - overhead
-    if budget > 0 and (ink_px + travel) / speed > budget:
-        speed = (ink_px + travel) / budget
+    seed = int(rng.integers(2**63))
+    for _ in range(8):
+        demo = _demonstrate_at(drawing, board_angle, cursor_start, np.random.default_rng(seed), cfg, speed)
+        if len(demo) <= cfg.max_steps:
+            break
+        speed *= 1.3
+    return demo
+
+
+def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, speed: float) -> Demonstration:
+    strokes = [unit_to_canvas(s, board_angle) for s in drawing.strokes]
     phase = rng.uniform(0, 2 * np.pi)
     wobble_period = rng.uniform(15.0, 40.0)
 
-    def spacings(n_steps_guess: int) -> np.ndarray:
-        k = np.arange(n_steps_guess)
+    def step_len(k: int) -> float:
         return speed * (1.0 + cfg.speed_wobble * np.sin(phase + 2 * np.pi * k / wobble_period))
 
+    ramp = 2.0 * speed
     rec = _Recorder(physics.initial_state(np.asarray(cursor_start, dtype=np.float64)), cfg.noise_std, rng)
     for stroke in strokes:
         start = stroke[0]
@@ -144,25 +185,21 @@ def demonstrate(
         dist = float(np.linalg.norm(start - here))
         if dist > cfg.arrive_tol:
             normal = np.array([-(start - here)[1], (start - here)[0]]) / dist
-            bend = rng.uniform(-1.0, 1.0) * min(0.3 * dist, 100.0)
-            ctrl = (here + start) / 2 + bend * normal
+            ctrl = (here + start) / 2 + rng.uniform(-1.0, 1.0) * min(0.3 * dist, 100.0) * normal
             t = np.linspace(0.0, 1.0, 64)[:, None]
             travel_path = (1 - t) ** 2 * here + 2 * (1 - t) * t * ctrl + t**2 * start
-            n_guess = int(dist / speed * 2) + 8
-            for target in _resample(travel_path, spacings(n_guess))[:-1]:
+            targets, _ = _plan(travel_path, [], step_len, ramp)
+            for target in targets[:-1]:
                 rec.command(target, 0.0, noisy=True)
+        rec.command(start, 0.0)  # always at least one pen-up step, so consecutive strokes stay separate
         rec.wait_until_near(start, 0.0, cfg.arrive_tol, cfg.max_wait_steps)
-        # Trace the stroke, pausing at corners.
-        cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(stroke, axis=0), axis=1))])
+        # Trace the stroke, decelerating into corners and waiting there for the cursor.
         corners = list(_corner_arclengths(stroke, cfg.corner_angle_deg, scale=max(speed, 8.0)))
-        targets = _resample(stroke, spacings(int(cum[-1] / speed * 2) + 8)) if cum[-1] > 0 else stroke[:1]
-        arc = np.cumsum(np.linalg.norm(np.diff(np.vstack([stroke[:1], targets]), axis=0), axis=1))
-        for target, s in zip(targets[:-1], arc[:-1], strict=True):
-            if corners and s >= corners[0] - speed / 2:
-                s_corner = corners.pop(0)
-                corner = np.array([np.interp(s_corner, cum, stroke[:, k]) for k in range(2)])
-                for _ in range(int(rng.integers(1, 4))):
-                    rec.command(corner, 1.0)
+        targets, is_stop = _plan(stroke, corners, step_len, ramp)
+        for target, stop in zip(targets[:-1], is_stop[:-1], strict=True):
+            if stop:
+                rec.command(target, 1.0)
+                rec.wait_until_near(target, 1.0, max(cfg.arrive_tol, cfg.corner_tol * speed), cfg.corner_max_steps)
             else:
                 rec.command(target, 1.0, noisy=True)
         rec.command(stroke[-1], 1.0)

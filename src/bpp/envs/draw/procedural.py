@@ -26,13 +26,21 @@ class ProceduralConfig:
     """Parameters of the procedural generator (defaults: the paper's training distribution)."""
 
     min_parts: int = 1
+    """Fewest parts per drawing (lines, curves, ovals, pen-up moves)."""
     max_parts: int = 6
+    """Most parts per drawing (the paper's ablations use 1-3 and 4-6)."""
     connect_prob: float = 0.5
-    min_new_point_dist: float = 50 * _PX
-    oval_axis_range: tuple[float, float] = (30 * _PX, 200 * _PX)
-    oval_aspect_range: tuple[float, float] = (0.2, 3.0)
+    """Probability that a part ends at an earlier endpoint instead of a fresh point."""
+    min_new_point_px: float = 50.0
+    """A fresh endpoint lies at least this far from the part's start."""
+    oval_axis_px: tuple[float, float] = (30.0, 200.0)
+    """Range of an oval's first semi-axis."""
+    oval_aspect: tuple[float, float] = (0.2, 3.0)
+    """Range of the ratio of an oval's second semi-axis to its first."""
     partial_oval_prob: float = 0.5
-    partial_arc_range: tuple[float, float] = (np.pi / 8, 2 * np.pi)
+    """Probability that an oval is partial."""
+    partial_arc_deg: tuple[float, float] = (22.5, 360.0)
+    """Range of a partial oval's arc."""
 
     def __post_init__(self):
         if not 1 <= self.min_parts <= self.max_parts:
@@ -60,10 +68,10 @@ def _bezier(p0, p1, p2, p3, n: int = 200) -> np.ndarray:
 def _oval(rng: np.random.Generator, start: np.ndarray, cfg: ProceduralConfig) -> np.ndarray | None:
     """An (partial) ellipse through `start` at parameter 0, inside the unit square; None after 100 misses."""
     for _ in range(100):
-        a = rng.uniform(*cfg.oval_axis_range)
-        b = a * rng.uniform(*cfg.oval_aspect_range)
+        a = rng.uniform(*cfg.oval_axis_px) * _PX
+        b = a * rng.uniform(*cfg.oval_aspect)
         phi = rng.uniform(0.0, 2 * np.pi)
-        sweep = rng.uniform(*cfg.partial_arc_range) if rng.random() < cfg.partial_oval_prob else 2 * np.pi
+        sweep = np.radians(rng.uniform(*cfg.partial_arc_deg)) if rng.random() < cfg.partial_oval_prob else 2 * np.pi
         direction = rng.choice([-1.0, 1.0])
         n = max(int(np.ceil(sweep * max(a, b) / _SAMPLE_SPACING)), 8)
         t = direction * np.linspace(0.0, sweep, n)
@@ -97,7 +105,7 @@ def generate_drawing(rng: np.random.Generator, cfg: ProceduralConfig, drawing_id
                 end = current
                 for _ in range(100):
                     cand = rng.uniform(0.0, 1.0, size=2)
-                    if np.linalg.norm(cand - current) >= cfg.min_new_point_dist:
+                    if np.linalg.norm(cand - current) >= cfg.min_new_point_px * _PX:
                         end = cand
                         break
             if kind == "curve":

@@ -1,0 +1,341 @@
+"""The episode store: one on-disk format for every benchmark.
+
+Layout (a zarr v3 directory)::
+
+    <name>.zarr/
+      zarr.json          attributes: format, version, complete, benchmark, config, tasks, stats, created
+      data/<key>         (N, ...) per-step arrays, episodes concatenated in time, chunked and zstd-compressed
+      meta/episode_ends  (E,) int64, exclusive end step of each episode
+      meta/<column>      (E,) the episode table: task_index and any per-episode parameters
+      tasks/<key>        ragged per-task arrays (e.g. a drawing's strokes), with tasks/<key>__ends (K,)
+
+Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
+and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
+as complete. Reading is safe from many data-loader processes: the store is read-only once written, and each
+process opens its own handles lazily (a pickled store carries only its path).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import shutil
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMAT = "bpp-episodes"
+VERSION = 1
+
+
+class StoreError(RuntimeError):
+    """A store is missing, incomplete, of another format/version, or used wrongly."""
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+class _RunningStats:
+    """Per-feature min/max/mean/std over all steps, accumulated in float64."""
+
+    def __init__(self):
+        self.n = 0
+        self.sum = self.sumsq = self.min = self.max = None
+
+    def update(self, x: np.ndarray) -> None:
+        x = x.reshape(len(x), -1).astype(np.float64)
+        if self.sum is None:
+            self.sum = np.zeros(x.shape[1])
+            self.sumsq = np.zeros(x.shape[1])
+            self.min = np.full(x.shape[1], np.inf)
+            self.max = np.full(x.shape[1], -np.inf)
+        self.n += len(x)
+        self.sum += x.sum(axis=0)
+        self.sumsq += (x * x).sum(axis=0)
+        self.min = np.minimum(self.min, x.min(axis=0))
+        self.max = np.maximum(self.max, x.max(axis=0))
+
+    def result(self) -> dict[str, list[float]]:
+        mean = self.sum / self.n
+        std = np.sqrt(np.maximum(self.sumsq / self.n - mean * mean, 0.0))
+        return {"min": self.min.tolist(), "max": self.max.tolist(), "mean": mean.tolist(), "std": std.tolist()}
+
+
+class EpisodeWriter:
+    """Builds a store episode by episode; use as a context manager (or call :meth:`close`).
+
+    Args:
+        path: the final store path (conventionally ``*.zarr``).
+        benchmark: name of the benchmark that produced the data (e.g. ``"drawanything"``).
+        config: the generator's resolved configuration, saved for provenance.
+        overwrite: replace an existing store (atomically) instead of refusing.
+        chunk_steps: time-chunk length of per-step arrays.
+        stats_keys: per-step keys to compute normalisation statistics for (default: all numeric keys).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        benchmark: str,
+        config: dict | None = None,
+        overwrite: bool = False,
+        chunk_steps: int = 16384,
+        stats_keys: Iterable[str] | None = None,
+    ):
+        import zarr
+
+        self.path = Path(path)
+        if self.path.exists() and not overwrite:
+            raise StoreError(f"{self.path} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = self.path.parent / f".{self.path.name}.partial-{uuid.uuid4().hex[:8]}"
+        self.root = zarr.open_group(str(self.tmp), mode="w")
+        self.root.attrs.update(
+            {"format": FORMAT, "version": VERSION, "complete": False, "benchmark": benchmark,
+             "config": _json_safe(config or {})}
+        )
+        self.overwrite = overwrite
+        self.chunk_steps = chunk_steps
+        self.stats_keys = None if stats_keys is None else set(stats_keys)
+        self._buffer: dict[str, list[np.ndarray]] = {}
+        self._buffered = 0
+        self._step_spec: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None
+        self._stats: dict[str, _RunningStats] = {}
+        self._ends: list[int] = []
+        self._columns: dict[str, list] = {}
+        self._tasks: list[dict] = []
+        self._task_ragged: dict[str, list[np.ndarray]] = {}
+        self._closed = False
+
+    # ------------------------------------------------------------------ tasks
+    def add_task(self, task_id: str, info: dict | None = None, **ragged: np.ndarray) -> int:
+        """Register a task; returns its index. `ragged` arrays (one (n_i, ...) array per key) are stored per task."""
+        if self._tasks and set(ragged) != set(self._task_ragged):
+            raise StoreError(f"task {task_id!r} has ragged keys {sorted(ragged)}, others {sorted(self._task_ragged)}")
+        if any(t["id"] == task_id for t in self._tasks):
+            raise StoreError(f"duplicate task id {task_id!r}")
+        for key, value in ragged.items():
+            self._task_ragged.setdefault(key, []).append(np.asarray(value))
+        self._tasks.append({"id": task_id, "info": _json_safe(info or {})})
+        return len(self._tasks) - 1
+
+    # --------------------------------------------------------------- episodes
+    def add_episode(self, steps: dict[str, np.ndarray], task_index: int, **columns: Any) -> None:
+        """Append one episode: `steps` maps each per-step key to a (T, ...) array (same T and keys every time)."""
+        lengths = {k: len(v) for k, v in steps.items()}
+        if len(set(lengths.values())) != 1 or 0 in lengths.values():
+            raise StoreError(f"episode arrays must share one non-zero length, got {lengths}")
+        if not 0 <= task_index < len(self._tasks):
+            raise StoreError(f"task_index {task_index} out of range (have {len(self._tasks)} tasks)")
+        spec = {k: (np.asarray(v).shape[1:], np.asarray(v).dtype) for k, v in steps.items()}
+        if self._step_spec is None:
+            self._step_spec = spec
+        elif spec != self._step_spec:
+            raise StoreError(f"episode keys/shapes/dtypes {spec} differ from the first episode's {self._step_spec}")
+        if self._columns and set(columns) | {"task_index"} != set(self._columns):
+            raise StoreError(f"episode columns {sorted(columns)} differ from earlier {sorted(self._columns)}")
+        n = next(iter(lengths.values()))
+        for key, value in steps.items():
+            value = np.asarray(value)
+            self._buffer.setdefault(key, []).append(value)
+            if np.issubdtype(value.dtype, np.number) and (self.stats_keys is None or key in self.stats_keys):
+                self._stats.setdefault(key, _RunningStats()).update(value)
+        self._ends.append((self._ends[-1] if self._ends else 0) + n)
+        for key, value in {"task_index": task_index, **columns}.items():
+            self._columns.setdefault(key, []).append(value)
+        self._buffered += n
+        if self._buffered >= self.chunk_steps:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._buffered:
+            return
+        for key, parts in self._buffer.items():
+            data = np.concatenate(parts)
+            name = f"data/{key}"
+            if name not in self.root:
+                self._create(name, data, self.chunk_steps)
+            self.root[name].append(data)
+        self._buffer = {}
+        self._buffered = 0
+
+    def _create(self, name: str, example: np.ndarray, chunk_len: int):
+        from zarr.codecs import ZstdCodec
+
+        item_bytes = max(int(np.prod(example.shape[1:])) * example.dtype.itemsize, 1)
+        rows = int(max(1, min(chunk_len, (8 << 20) // item_bytes)))  # chunks of at most ~8 MB
+        return self.root.create_array(
+            name, shape=(0, *example.shape[1:]), chunks=(rows, *example.shape[1:]), dtype=example.dtype,
+            compressors=ZstdCodec(level=5),
+        )
+
+    # --------------------------------------------------------------- finishing
+    def close(self) -> EpisodeStore:
+        """Write tables and statistics, mark complete, and move the store into place."""
+        if self._closed:
+            raise StoreError("writer already closed")
+        if not self._ends:
+            raise StoreError(f"{self.path}: no episodes were added; refusing to write an empty store")
+        self._flush()
+        self.root.create_array("meta/episode_ends", data=np.asarray(self._ends, dtype=np.int64))
+        for key, values in self._columns.items():
+            self.root.create_array(f"meta/{key}", data=np.asarray(values))
+        for key, parts in self._task_ragged.items():
+            self.root.create_array(f"tasks/{key}", data=np.concatenate(parts))
+            self.root.create_array(f"tasks/{key}__ends", data=np.cumsum([len(p) for p in parts]).astype(np.int64))
+        self.root.attrs.update(
+            {
+                "tasks": self._tasks,
+                "stats": {k: s.result() for k, s in self._stats.items()},
+                "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "complete": True,
+            }
+        )
+        old = None
+        if self.path.exists():
+            old = self.path.parent / f".{self.path.name}.old-{uuid.uuid4().hex[:8]}"
+            os.replace(self.path, old)
+        os.replace(self.tmp, self.path)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+        self._closed = True
+        return EpisodeStore(self.path)
+
+    def abort(self) -> None:
+        """Discard everything written so far."""
+        self._closed = True
+        shutil.rmtree(self.tmp, ignore_errors=True)
+
+    def __enter__(self) -> EpisodeWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is not None:
+            self.abort()
+        elif not self._closed:
+            self.close()
+
+
+class EpisodeStore:
+    """Read access to a complete store. Cheap to construct and to pickle; arrays are read lazily.
+
+    ``store["action"]`` is the lazy zarr array of a per-step key; :meth:`array` loads (and caches) it in memory.
+    """
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.exists():
+            raise StoreError(f"{self.path}: no such store")
+        if not (self.path / "zarr.json").is_file():
+            raise StoreError(f"{self.path}: not an episode store (no zarr.json)")
+        attrs = dict(self._root().attrs)
+        if attrs.get("format") != FORMAT:
+            raise StoreError(f"{self.path}: format {attrs.get('format')!r}, expected {FORMAT!r}")
+        if attrs.get("version") != VERSION:
+            raise StoreError(f"{self.path}: store version {attrs.get('version')}, this bpp reads version {VERSION}")
+        if not attrs.get("complete"):
+            raise StoreError(f"{self.path}: incomplete store (its generation was interrupted); generate it again")
+        self.attrs = attrs
+        self.benchmark: str = attrs["benchmark"]
+        self.config: dict = attrs.get("config", {})
+        self.tasks: list[dict] = attrs["tasks"]
+        self.stats: dict[str, dict[str, list[float]]] = attrs["stats"]
+        self.episode_ends = np.asarray(self._root()["meta/episode_ends"][:])
+        self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
+        self._cache: dict[str, np.ndarray] = {}
+
+    def _root(self):
+        # One handle per process: handles are not shared across fork/spawn (see __getstate__).
+        handle = getattr(self, "_handle", None)
+        if handle is None or handle[0] != os.getpid():
+            import zarr
+
+            handle = (os.getpid(), zarr.open_group(str(self.path), mode="r"))
+            self._handle = handle
+        return handle[1]
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_handle", None)
+        state["_cache"] = {}
+        return state
+
+    # ---------------------------------------------------------------- queries
+    @property
+    def num_episodes(self) -> int:
+        return len(self.episode_ends)
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.episode_ends[-1])
+
+    @property
+    def num_tasks(self) -> int:
+        return len(self.tasks)
+
+    @property
+    def keys(self) -> list[str]:
+        return sorted(self._root()["data"].array_keys())
+
+    def __getitem__(self, key: str):
+        if key not in self.keys:
+            raise KeyError(f"{self.path}: no per-step key {key!r}; available: {self.keys}")
+        return self._root()[f"data/{key}"]
+
+    def array(self, key: str) -> np.ndarray:
+        """A per-step key loaded fully into memory (cached)."""
+        if key not in self._cache:
+            self._cache[key] = np.asarray(self[key][:])
+        return self._cache[key]
+
+    def column(self, name: str) -> np.ndarray:
+        """A column of the episode table, shape (E,)."""
+        try:
+            return np.asarray(self._root()[f"meta/{name}"][:])
+        except KeyError:
+            raise KeyError(f"{self.path}: no episode column {name!r}") from None
+
+    def episode_slice(self, index: int) -> slice:
+        if not 0 <= index < self.num_episodes:
+            raise IndexError(f"episode {index} out of range (store has {self.num_episodes})")
+        return slice(int(self.episode_starts[index]), int(self.episode_ends[index]))
+
+    def episode(self, index: int, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """All per-step arrays of one episode."""
+        sl = self.episode_slice(index)
+        return {k: np.asarray(self[k][sl]) for k in (keys or self.keys)}
+
+    def task_episodes(self) -> list[np.ndarray]:
+        """For each task index, the indices of its episodes."""
+        task_index = self.column("task_index")
+        return [np.flatnonzero(task_index == t) for t in range(self.num_tasks)]
+
+    def task_array(self, key: str, task_index: int) -> np.ndarray:
+        """The ragged per-task array `key` of one task."""
+        ends = np.asarray(self._root()[f"tasks/{key}__ends"][:])
+        start = 0 if task_index == 0 else int(ends[task_index - 1])
+        return np.asarray(self._root()[f"tasks/{key}"][start : int(ends[task_index])])
+
+    def disk_bytes(self) -> int:
+        return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())
+
+    def __repr__(self) -> str:
+        return (
+            f"EpisodeStore({str(self.path)!r}, benchmark={self.benchmark!r}, tasks={self.num_tasks}, "
+            f"episodes={self.num_episodes}, steps={self.num_steps})"
+        )
