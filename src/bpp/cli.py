@@ -135,11 +135,10 @@ class Demo:
 
 
 def demo(args: Demo) -> None:
+    from bpp.data.store import EpisodeStore, StoreError
     from bpp.envs.draw.dataset import generate
     from bpp.envs.draw.sheets import write_contact_sheet
     from bpp.envs.draw.viz import episode_frames, save_animation
-
-    from bpp.data.store import EpisodeStore, StoreError
 
     def ensure(name: str, cfg: DrawDataConfig) -> EpisodeStore:
         path = args.data_dir / f"{name}.zarr"

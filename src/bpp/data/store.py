@@ -106,8 +106,13 @@ class EpisodeWriter:
         self.tmp = self.path.parent / f".{self.path.name}.partial-{uuid.uuid4().hex[:8]}"
         self.root = zarr.open_group(str(self.tmp), mode="w")
         self.root.attrs.update(
-            {"format": FORMAT, "version": VERSION, "complete": False, "benchmark": benchmark,
-             "config": _json_safe(config or {})}
+            {
+                "format": FORMAT,
+                "version": VERSION,
+                "complete": False,
+                "benchmark": benchmark,
+                "config": _json_safe(config or {}),
+            }
         )
         self.overwrite = overwrite
         self.chunk_steps = chunk_steps
@@ -180,7 +185,10 @@ class EpisodeWriter:
         item_bytes = max(int(np.prod(example.shape[1:])) * example.dtype.itemsize, 1)
         rows = int(max(1, min(chunk_len, (8 << 20) // item_bytes)))  # chunks of at most ~8 MB
         return self.root.create_array(
-            name, shape=(0, *example.shape[1:]), chunks=(rows, *example.shape[1:]), dtype=example.dtype,
+            name,
+            shape=(0, *example.shape[1:]),
+            chunks=(rows, *example.shape[1:]),
+            dtype=example.dtype,
             compressors=ZstdCodec(level=5),
         )
 

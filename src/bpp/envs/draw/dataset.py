@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.envs.draw import physics
-from bpp.envs.draw.demonstrator import Demonstration, DemoConfig, demonstrate
+from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, board_pose
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
@@ -133,8 +133,13 @@ def generate(
         try:
             bar = tqdm(results, total=len(jobs), desc=f"generating {Path(out).name}", unit="task", disable=not progress)
             for drawing, info, demos in bar:
-                info = {**info, "source": cfg.source, "num_strokes": len(drawing.strokes),
-                        "ink_length": round(drawing.ink_length, 6), "instruction": ""}
+                info = {
+                    **info,
+                    "source": cfg.source,
+                    "num_strokes": len(drawing.strokes),
+                    "ink_length": round(drawing.ink_length, 6),
+                    "instruction": "",
+                }
                 task = writer.add_task(drawing.id, info, strokes=strokes_array(drawing))
                 for demo in demos:
                     writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)

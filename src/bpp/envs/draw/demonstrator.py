@@ -33,6 +33,9 @@ class DemoConfig:
     corner_tol: float = 0.25
     """At a corner the hand waits until the cursor is within this fraction of a step's travel."""
     corner_max_steps: int = 4
+    curve_tol_range: tuple[float, float] = (1.0, 4.0)
+    """On curves the hand slows so the cursor's lag cuts a curve by at most about this many px; a slow hand is
+    careful (low end), a fast one sloppy (high end), linearly in the demonstration's base speed."""
     arrive_tol: float = 4.0
     """The hand waits until the cursor is this close (px) to a stroke's start or end."""
     max_wait_steps: int = 12
@@ -115,15 +118,36 @@ class _Recorder:
             self.command(target, pen)
 
 
-def _plan(points: np.ndarray, stops: list[float], step_len, ramp: float, min_factor: float = 0.25):
+def _radius_of_curvature(points: np.ndarray, cum: np.ndarray, window: float) -> np.ndarray:
+    """Radius of curvature (px) at each polyline vertex: arc length over turning, measured across `window` px."""
+    seg = np.diff(points, axis=0)
+    heading = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0])) if len(seg) else np.zeros(0)
+    mids = (cum[:-1] + cum[1:]) / 2
+    if len(seg) < 2:
+        return np.full(len(points), np.inf)
+    turn = np.abs(np.interp(cum + window / 2, mids, heading) - np.interp(cum - window / 2, mids, heading))
+    return window / np.maximum(turn, 1e-9)
+
+
+def _plan(
+    points: np.ndarray,
+    stops: list[float],
+    step_len,
+    ramp: float,
+    curve_tol: float = np.inf,
+    min_factor: float = 0.25,
+):
     """Targets along a polyline, one per control step, slowing into each stop (an arc length) and landing on it.
 
     `step_len(k)` is the unhurried travel of step k in px; within `ramp` px of a stop (ahead or behind) the
-    travel shrinks like sqrt(distance), as a hand decelerates into a corner and accelerates out of it.
+    travel shrinks like sqrt(distance), as a hand decelerates into a corner and accelerates out of it. On
+    curves the travel is also held below sqrt(curve_tol * radius): the cursor's lag cuts a curve of radius R
+    by about travel^2 / R px, so this keeps the drawn curve within ~curve_tol px of the intended one.
     Returns (targets (K, 2), is_stop (K,) bool).
     """
     cum = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
     total = cum[-1]
+    radius = _radius_of_curvature(points, cum, window=30.0)
 
     def at(s: float) -> np.ndarray:
         return np.array([np.interp(s, cum, points[:, 0]), np.interp(s, cum, points[:, 1])])
@@ -133,7 +157,8 @@ def _plan(points: np.ndarray, stops: list[float], step_len, ramp: float, min_fac
     for stop in sorted({*(float(x) for x in stops if 0.0 < x < total), total}):
         while True:
             near = max(min(stop - s, s - behind), 0.0)
-            travel = max(step_len(k) * float(np.clip(np.sqrt(near / ramp), min_factor, 1.0)), 0.5)
+            travel = step_len(k) * float(np.clip(np.sqrt(near / ramp), min_factor, 1.0))
+            travel = max(min(travel, float(np.sqrt(curve_tol * np.interp(s, cum, radius)))), 0.5)
             k += 1
             if s + travel >= stop:
                 s = stop
@@ -160,15 +185,19 @@ def demonstrate(
     """
     speed = float(rng.uniform(*cfg.speed_range))
     seed = int(rng.integers(2**63))
+    lo, hi = cfg.speed_range
+    care = 0.0 if hi == lo else (speed - lo) / (hi - lo)
+    curve_tol = cfg.curve_tol_range[0] + care * (cfg.curve_tol_range[1] - cfg.curve_tol_range[0])
     for _ in range(8):
-        demo = _demonstrate_at(drawing, board_angle, cursor_start, np.random.default_rng(seed), cfg, speed)
+        demo = _demonstrate_at(drawing, board_angle, cursor_start, np.random.default_rng(seed), cfg, speed, curve_tol)
         if len(demo) <= cfg.max_steps:
             break
         speed *= 1.3
+        curve_tol *= 1.3**2
     return demo
 
 
-def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, speed: float) -> Demonstration:
+def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, speed: float, curve_tol: float):
     strokes = [unit_to_canvas(s, board_angle) for s in drawing.strokes]
     phase = rng.uniform(0, 2 * np.pi)
     wobble_period = rng.uniform(15.0, 40.0)
@@ -195,7 +224,7 @@ def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, sp
         rec.wait_until_near(start, 0.0, cfg.arrive_tol, cfg.max_wait_steps)
         # Trace the stroke, decelerating into corners and waiting there for the cursor.
         corners = list(_corner_arclengths(stroke, cfg.corner_angle_deg, scale=max(speed, 8.0)))
-        targets, is_stop = _plan(stroke, corners, step_len, ramp)
+        targets, is_stop = _plan(stroke, corners, step_len, ramp, curve_tol)
         for target, stop in zip(targets[:-1], is_stop[:-1], strict=True):
             if stop:
                 rec.command(target, 1.0)

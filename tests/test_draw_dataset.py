@@ -1,0 +1,56 @@
+import numpy as np
+
+from bpp.envs.draw.dataset import PRESETS, episode_paths, generate, render_episode, task_drawing
+from bpp.envs.draw.env import DrawEnv
+from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+
+
+def test_store_contents(debug_store):
+    s = debug_store
+    assert s.benchmark == "drawanything"
+    assert (s.num_tasks, s.num_episodes) == (12, 36)
+    assert set(s.keys) == {"state", "action", "agent_pos", "pen_down", "board_pose"}
+    assert s["state"].dtype == np.float64 and s["action"].dtype == np.float32
+    for key in ("action", "agent_pos", "pen_down", "board_pose"):
+        assert key in s.stats and len(s.stats[key]["mean"]) == s[key].shape[1]
+    angles = s.column("board_angle")
+    assert np.all(np.abs(angles) <= MAX_BOARD_ANGLE)
+    for episodes in s.task_episodes():
+        assert len(episodes) == 3
+        # Stratified: the demos of a task are at clearly different rotations.
+        assert np.diff(np.sort(angles[episodes])).min() > 0.0
+        assert len(np.unique(np.floor((angles[episodes] + MAX_BOARD_ANGLE) / (2 * MAX_BOARD_ANGLE / 3)))) == 3
+    assert s.tasks[0]["info"]["source"] == "procedural" and s.tasks[0]["info"]["parts"]
+    assert task_drawing(s, 3).id == s.tasks[3]["id"]
+
+
+def test_generation_is_independent_of_worker_count(debug_store, tmp_path):
+    other = generate(PRESETS["debug"], tmp_path / "two.zarr", workers=2, progress=False)
+    for key in debug_store.keys:
+        np.testing.assert_array_equal(debug_store.array(key), other.array(key))
+    np.testing.assert_array_equal(debug_store.column("board_angle"), other.column("board_angle"))
+
+
+def test_images_are_exactly_reproducible_from_the_store(debug_store):
+    """Datasets store no images: replaying the stored low-dimensional steps gives the env's frames bit for bit."""
+    for episode in (0, 17):
+        ep = debug_store.episode(episode)
+        angle = float(debug_store.column("board_angle")[episode])
+        frames = render_episode(debug_store, episode, 64)
+        env = DrawEnv(image_size=64, early_stop=False)
+        obs, _ = env.reset(options={"board_angle": angle, "cursor": ep["state"][0, :2]})
+        for t, action in enumerate(ep["action"]):
+            np.testing.assert_array_equal(obs["image"], frames[t])
+            np.testing.assert_array_equal(obs["agent_pos"], ep["agent_pos"][t])
+            np.testing.assert_array_equal(obs["pen_down"], ep["pen_down"][t])
+            np.testing.assert_array_equal(obs["board_pose"], ep["board_pose"][t])
+            obs, *_ = env.step(action)
+        assert len(episode_paths(debug_store, episode)) == len(env.paths)
+
+
+def test_human_evaluation_set(tmp_path):
+    s = generate(PRESETS["human"], tmp_path / "human.zarr", workers=1, progress=False)
+    assert s.num_tasks >= 50 and s.num_episodes == 5 * s.num_tasks
+    assert all(t["id"].startswith("hershey-") for t in s.tasks)
+    lengths = np.diff(np.concatenate([[0], s.episode_ends]))
+    assert lengths.max() <= 400

@@ -1,0 +1,55 @@
+import numpy as np
+import pytest
+
+from bpp.envs.draw.geometry import canvas_to_upright, unit_to_canvas
+from bpp.envs.draw.metric import EMPTY_DISTANCE, chamfer_distance, ink_mask
+
+
+def _line(y):
+    return np.array([[x, y] for x in range(156, 357, 10)], float)
+
+
+def _circle(r):
+    th = np.deg2rad(np.arange(0, 360))
+    return np.round(np.stack([256 + r * np.cos(th), 256 + r * np.sin(th)], 1))
+
+
+def test_parity_with_authors_metric():
+    # Values measured with the authors' implementation (../shared/ANCHORS.md).
+    assert chamfer_distance(ink_mask([_line(256)]), ink_mask([_line(266)])) == pytest.approx(9.18, abs=0.02)
+    assert chamfer_distance(ink_mask([_circle(100)]), ink_mask([_circle(110)])) == pytest.approx(9.69, abs=0.03)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3, -0.7, np.pi / 4])
+def test_identical_drawings_score_zero_at_any_angle(angle, rng):
+    stroke = np.cumsum(rng.normal(0, 0.02, (80, 2)), axis=0) + 0.5
+    target = ink_mask([unit_to_canvas(stroke, 0.0)])
+    rollout = ink_mask([canvas_to_upright(unit_to_canvas(stroke, angle), angle)])
+    assert chamfer_distance(target, rollout) == 0.0
+
+
+def test_thin_line_shift_gives_shift_in_each_direction():
+    a = np.zeros((512, 512), bool)
+    b = np.zeros((512, 512), bool)
+    a[200, 100:400] = True
+    b[207, 100:400] = True
+    # The score is a sum of the two directions, so a shift of d scores 2d.
+    assert chamfer_distance(a, b) == pytest.approx(14.0)
+    assert chamfer_distance(a, b) == chamfer_distance(b, a)
+
+
+def test_empty_canvases_are_defined():
+    ink = ink_mask([_line(256)])
+    empty = np.zeros_like(ink)
+    assert chamfer_distance(ink, empty) == EMPTY_DISTANCE
+    assert chamfer_distance(empty, ink) == EMPTY_DISTANCE
+    assert chamfer_distance(empty, empty) == 0.0
+
+
+def test_cropping_does_not_change_the_score(rng):
+    # The implementation crops to the joint bounding box; compare with brute force on a small case.
+    a = rng.random((64, 64)) > 0.97
+    b = rng.random((64, 64)) > 0.97
+    pa, pb = np.argwhere(a), np.argwhere(b)
+    d = np.linalg.norm(pa[:, None] - pb[None], axis=-1)
+    assert chamfer_distance(a, b) == pytest.approx(d.min(1).mean() + d.min(0).mean())

@@ -1,0 +1,111 @@
+import json
+import multiprocessing as mp
+import pickle
+
+import numpy as np
+import pytest
+
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+
+
+def _write(path, episodes=3, **kw):
+    with EpisodeWriter(path, benchmark="test", config={"a": 1}, chunk_steps=4, **kw) as w:
+        t = w.add_task("task-a", {"note": "x"}, points=np.arange(6.0).reshape(3, 2))
+        u = w.add_task("task-b", points=np.ones((1, 2)))
+        for e in range(episodes):
+            n = 3 + e
+            w.add_episode(
+                {"obs": np.full((n, 2), e, np.float32), "action": np.arange(n, dtype=np.float64)[:, None]},
+                t if e % 2 == 0 else u,
+                angle=0.1 * e,
+            )
+    return EpisodeStore(path)
+
+
+def test_round_trip(tmp_path):
+    s = _write(tmp_path / "s.zarr")
+    assert (s.num_tasks, s.num_episodes, s.num_steps) == (2, 3, 12)
+    np.testing.assert_array_equal(s.episode_ends, [3, 7, 12])
+    np.testing.assert_array_equal(s.episode(1)["obs"], np.full((4, 2), 1, np.float32))
+    np.testing.assert_allclose(s.column("angle"), [0.0, 0.1, 0.2])
+    np.testing.assert_array_equal(s.column("task_index"), [0, 1, 0])
+    assert [list(x) for x in s.task_episodes()] == [[0, 2], [1]]
+    np.testing.assert_array_equal(s.task_array("points", 0), np.arange(6.0).reshape(3, 2))
+    np.testing.assert_array_equal(s.task_array("points", 1), np.ones((1, 2)))
+    assert s.tasks[0] == {"id": "task-a", "info": {"note": "x"}}
+    assert s.config == {"a": 1}
+    st = s.stats["obs"]
+    assert st["min"] == [0.0, 0.0] and st["max"] == [2.0, 2.0]
+    assert st["mean"][0] == pytest.approx((0 * 3 + 1 * 4 + 2 * 5) / 12)
+    assert s["obs"].dtype == np.float32
+
+
+def test_refuses_to_clobber_and_overwrites_atomically(tmp_path):
+    path = tmp_path / "s.zarr"
+    _write(path, episodes=1)
+    with pytest.raises(StoreError, match="already exists"):
+        _write(path)
+    assert _write(path, episodes=3, overwrite=True).num_episodes == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["s.zarr"]
+
+
+def test_interrupted_write_leaves_nothing(tmp_path):
+    path = tmp_path / "s.zarr"
+    with pytest.raises(KeyboardInterrupt), EpisodeWriter(path, benchmark="test") as w:
+        w.add_task("t")
+        w.add_episode({"x": np.zeros((5, 1))}, 0)
+        raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_overwrite_keeps_the_old_store(tmp_path):
+    path = tmp_path / "s.zarr"
+    _write(path, episodes=2)
+    with pytest.raises(RuntimeError), EpisodeWriter(path, benchmark="test", overwrite=True) as w:
+        w.add_task("t")
+        raise RuntimeError("crash")
+    assert EpisodeStore(path).num_episodes == 2
+
+
+def test_incomplete_or_foreign_stores_do_not_load(tmp_path):
+    path = tmp_path / "s.zarr"
+    _write(path)
+    meta = json.loads((path / "zarr.json").read_text())
+    meta["attributes"]["complete"] = False
+    (path / "zarr.json").write_text(json.dumps(meta))
+    with pytest.raises(StoreError, match="incomplete"):
+        EpisodeStore(path)
+    meta["attributes"]["complete"] = True
+    meta["attributes"]["version"] = 99
+    (path / "zarr.json").write_text(json.dumps(meta))
+    with pytest.raises(StoreError, match="version 99"):
+        EpisodeStore(path)
+    with pytest.raises(StoreError, match="no such store"):
+        EpisodeStore(tmp_path / "missing.zarr")
+    (tmp_path / "plain").mkdir()
+    with pytest.raises(StoreError, match="not an episode store"):
+        EpisodeStore(tmp_path / "plain")
+
+
+def test_inconsistent_episodes_are_refused(tmp_path):
+    with pytest.raises(StoreError, match="differ"), EpisodeWriter(tmp_path / "s.zarr", benchmark="t") as w:
+        w.add_task("t")
+        w.add_episode({"x": np.zeros((5, 1))}, 0)
+        w.add_episode({"x": np.zeros((5, 2))}, 0)
+    with pytest.raises(StoreError, match="no episodes"), EpisodeWriter(tmp_path / "e.zarr", benchmark="t"):
+        pass
+
+
+def _read_episode(args):
+    store, index = args
+    return store.episode(index)["obs"].sum()
+
+
+def test_store_pickles_and_reads_from_worker_processes(tmp_path):
+    s = _write(tmp_path / "s.zarr", episodes=6)
+    s.episode(0)  # open a handle in the parent first
+    clone = pickle.loads(pickle.dumps(s))
+    assert clone.num_steps == s.num_steps
+    with mp.get_context("spawn").Pool(2) as pool:
+        sums = pool.map(_read_episode, [(s, i) for i in range(6)])
+    assert sums == [float(s.episode(i)["obs"].sum()) for i in range(6)]
