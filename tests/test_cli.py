@@ -27,6 +27,8 @@ def test_generate_sheet_video_info(tmp_path):
     assert (tmp_path / "s.png").stat().st_size > 10_000
     assert _bpp("draw", "video", str(store), "--episode", "1", "--out", str(tmp_path / "v.gif")).returncode == 0
     assert (tmp_path / "v.gif").stat().st_size > 10_000
+    assert _bpp("draw", "video", str(store), "--out", str(tmp_path / "v.mp4")).returncode == 0
+    assert (tmp_path / "v.mp4").stat().st_size > 2_000
     info = _bpp("store", "info", str(store))
     assert info.returncode == 0 and "episodes=12" in info.stdout
 

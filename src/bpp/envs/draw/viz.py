@@ -97,7 +97,11 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.suffix.lower() == ".mp4":
-        iio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", plugin="pyav" if False else None)
+        import imageio.v2 as iio2  # the ffmpeg writer (imageio-ffmpeg ships its own ffmpeg binary)
+
+        with iio2.get_writer(path, fps=fps, codec="libx264", macro_block_size=16) as writer:
+            for frame in frames:
+                writer.append_data(frame)
     else:
         iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
     return path
