@@ -1,0 +1,134 @@
+"""Checkpoints as data: safetensors for tensors, JSON for everything else, written atomically.
+
+A run directory::
+
+    <run>/config.json                 resolved training + model configuration
+    <run>/checkpoints/step_00001000/  model.safetensors, ema.safetensors, optimizer.safetensors, state.json
+    <run>/checkpoints/last            the name of the newest complete checkpoint folder
+
+A checkpoint folder is written under a temporary name and renamed when complete, then ``last`` is replaced
+atomically, so a crash at any moment leaves the previous checkpoint loadable.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from bpp.utils import from_dict, write_json_atomic
+
+FORMAT = "bpp-checkpoint"
+VERSION = 1
+
+
+def _tensors(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().to("cpu").contiguous().clone() for k, v in state.items()}
+
+
+def _flatten_optimizer(state: dict) -> tuple[dict[str, torch.Tensor], dict]:
+    tensors, skeleton = {}, {"param_groups": state["param_groups"], "state": {}}
+    for index, entry in state["state"].items():
+        skeleton["state"][str(index)] = {}
+        for name, value in entry.items():
+            if isinstance(value, torch.Tensor):
+                tensors[f"{index}/{name}"] = value
+                skeleton["state"][str(index)][name] = "__tensor__"
+            else:
+                skeleton["state"][str(index)][name] = value
+    return _tensors(tensors), skeleton
+
+
+def _unflatten_optimizer(tensors: dict[str, torch.Tensor], skeleton: dict) -> dict:
+    state = {}
+    for index, entry in skeleton["state"].items():
+        state[int(index)] = {
+            name: tensors[f"{index}/{name}"] if value == "__tensor__" else value for name, value in entry.items()
+        }
+    return {"state": state, "param_groups": skeleton["param_groups"]}
+
+
+def save_checkpoint(
+    run_dir: str | Path, step: int, model: torch.nn.Module, ema: torch.nn.Module, optimizer, meta: dict[str, Any]
+) -> Path:
+    """Write checkpoint `step` (complete or not at all) and point ``last`` at it."""
+    ckpt_dir = Path(run_dir) / "checkpoints"
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    name = f"step_{step:08d}"
+    tmp = ckpt_dir / f".{name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    save_file(_tensors(model.state_dict()), tmp / "model.safetensors")
+    save_file(_tensors(ema.state_dict()), tmp / "ema.safetensors")
+    opt_tensors, opt_skeleton = _flatten_optimizer(optimizer.state_dict())
+    save_file(opt_tensors, tmp / "optimizer.safetensors")
+    rng = {"torch_cpu": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        for i, s in enumerate(torch.cuda.get_rng_state_all()):
+            rng[f"torch_cuda_{i}"] = s
+    save_file(_tensors(rng), tmp / "rng.safetensors")
+    write_json_atomic(
+        tmp / "state.json", {"format": FORMAT, "version": VERSION, "step": step, "optimizer": opt_skeleton, **meta}
+    )
+    final = ckpt_dir / name
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+    last_tmp = ckpt_dir / f".last.tmp-{os.getpid()}"
+    last_tmp.write_text(name)
+    os.replace(last_tmp, ckpt_dir / "last")
+    return final
+
+
+def resolve_checkpoint(path: str | Path) -> Path:
+    """A checkpoint folder from a run directory (its ``last``), a checkpoints folder, or the folder itself."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such checkpoint or run directory")
+    if (path / "state.json").is_file():
+        return path
+    for base in (path / "checkpoints", path):
+        last = base / "last"
+        if last.is_file():
+            target = base / last.read_text().strip()
+            if (target / "state.json").is_file():
+                return target
+    raise FileNotFoundError(f"{path}: no checkpoint found (expected state.json, or checkpoints/last in a run dir)")
+
+
+def read_state(path: str | Path) -> dict:
+    ckpt = resolve_checkpoint(path)
+    state = json.loads((ckpt / "state.json").read_text())
+    if state.get("format") != FORMAT or state.get("version") != VERSION:
+        raise ValueError(f"{ckpt}: not a bpp checkpoint of version {VERSION}")
+    return state
+
+
+def load_training_state(path: str | Path, model, ema, optimizer) -> int:
+    """Restore model, EMA, optimizer and RNG in place; returns the step to continue from."""
+    ckpt = resolve_checkpoint(path)
+    state = read_state(ckpt)
+    model.load_state_dict(load_file(ckpt / "model.safetensors"))
+    ema.load_state_dict(load_file(ckpt / "ema.safetensors"))
+    optimizer.load_state_dict(_unflatten_optimizer(load_file(ckpt / "optimizer.safetensors"), state["optimizer"]))
+    rng = load_file(ckpt / "rng.safetensors")
+    torch.set_rng_state(rng["torch_cpu"])
+    return int(state["step"])
+
+
+def load_policy(path: str | Path, device: str | torch.device = "cpu", use_ema: bool = True):
+    """Rebuild a trained model from a checkpoint (config, normalisation statistics and weights)."""
+    from bpp.policies.registry import get_method
+
+    ckpt = resolve_checkpoint(path)
+    state = read_state(ckpt)
+    method = get_method(state["method"])
+    cfg = from_dict(method.config_cls, state["model_config"])
+    model = method.model_cls(cfg, state["stats"])
+    model.load_state_dict(load_file(ckpt / ("ema.safetensors" if use_ema else "model.safetensors")))
+    return model.to(device).eval()

@@ -1,0 +1,103 @@
+"""BPP configuration and its named presets."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+from bpp.policies.common import DiffusionConfig, Horizons, ObsConfig
+
+
+@dataclass(frozen=True)
+class PromptConfig:
+    """How a demonstration becomes prompt tokens."""
+
+    chunk_len: int = 10
+    """Δt: one observation + proprio step and the Δt actions up to the next chunk form one chunk."""
+    use_obs: bool = True
+    """Include the observation entries (cameras and low-dimensional state) in each chunk."""
+    use_proprio: bool = True
+    use_action: bool = True
+    pooling: Literal["all", "obs", "none"] = "all"
+    """all: attention-pool every modality of a chunk into one token (the paper's BPP); obs: pool observation
+    modalities, keep the action token separate; none: one token per modality (no pooling)."""
+    num_sinks: int = 4
+    """Learned attention-sink tokens at the start of the prompt."""
+    max_steps: int = 800
+    """Longest prompt (steps) accepted; sets the number of learned chunk positions."""
+
+    def __post_init__(self):
+        if self.chunk_len < 1:
+            raise ValueError(f"prompt chunk_len must be >= 1, got {self.chunk_len}")
+        if not (self.use_obs or self.use_proprio or self.use_action):
+            raise ValueError("the prompt must use at least one of obs, proprio, action")
+        if self.pooling not in ("all", "obs", "none"):
+            raise ValueError(f"pooling must be all, obs or none, got {self.pooling!r}")
+
+    @property
+    def max_chunks(self) -> int:
+        return -(-self.max_steps // self.chunk_len)
+
+
+@dataclass(frozen=True)
+class BPPConfig:
+    """Everything that defines a BPP model (saved as JSON in every checkpoint)."""
+
+    obs: ObsConfig = field(default_factory=ObsConfig)
+    horizons: Horizons = field(default_factory=Horizons)
+    prompt: PromptConfig = field(default_factory=PromptConfig)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+    action_key: str = "action"
+    dim: int = 128
+    """D: token width of the prompt encoder."""
+    layers: int = 2
+    heads: int = 4
+    mlp_dim: int = 512
+    dropout: float = 0.0
+
+    def __post_init__(self):
+        if self.dim % self.heads:
+            raise ValueError(f"dim {self.dim} must be divisible by heads {self.heads}")
+
+
+PRESETS: dict[str, BPPConfig] = {
+    # Tiny, for tests: seconds on a CPU.
+    "debug": BPPConfig(
+        dim=32,
+        layers=1,
+        heads=2,
+        mlp_dim=64,
+        prompt=PromptConfig(num_sinks=2),
+        diffusion=DiffusionConfig(down_dims=(32, 64), step_embed_dim=16, num_train_steps=20, num_inference_steps=4),
+    ),
+    # State-only DrawAnything on a 2-core CPU.
+    "cpu": BPPConfig(),
+    # Image observations at 64x64 on a CPU.
+    "cpu-image": BPPConfig(
+        obs=ObsConfig(image_keys=("image",), image_size=64, image_features=128, image_widths=(16, 32, 64, 128)),
+    ),
+    # The paper's sizes: prompt encoder 6 layers, D=768, MLP 3072, 8 heads; U-Net [256, 512, 1024], kernel 5,
+    # step embedding 128; ResNet-18 (GroupNorm) on 224x224 images.
+    "paper": BPPConfig(
+        obs=ObsConfig(
+            image_keys=("image",),
+            lowdim_keys=(),
+            image_size=224,
+            image_features=512,
+            image_widths=(64, 128, 256, 512),
+            image_blocks=(2, 2, 2, 2),
+        ),
+        dim=768,
+        layers=6,
+        heads=8,
+        mlp_dim=3072,
+        dropout=0.1,
+        diffusion=DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128),
+    ),
+}
+
+
+def preset(name: str, **overrides) -> BPPConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown BPP preset {name!r}; choose from {', '.join(PRESETS)}")
+    return replace(PRESETS[name], **overrides)

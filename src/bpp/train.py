@@ -1,0 +1,208 @@
+"""One training loop for every method, on one CPU, one GPU or many processes under ``torchrun`` (DDP).
+
+Read it top to bottom: set up (distributed, data, model, optimiser, resume), then a plain loop of
+``loss = model(batch); backward; clip; step; EMA``, with logging and atomic checkpoints.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from tqdm import tqdm
+
+from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpoint
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.store import EpisodeStore
+from bpp.policies.common import count_parameters
+from bpp.policies.registry import get_method
+from bpp.utils import to_dict, to_torch, write_json_atomic
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and bookkeeping (the model's own configuration is separate)."""
+
+    data: Path
+    """Training store (e.g. data/draw/train.zarr)."""
+    out: Path = Path("runs/bpp")
+    """Run directory: config.json, TensorBoard logs, checkpoints/."""
+    method: str = "bpp"
+    steps: int = 3000
+    batch_size: int = 64
+    """Windows per step (all from one task, conditioned on one prompt)."""
+    lr: float = 3e-4
+    weight_decay: float = 1e-4
+    warmup_steps: int = 200
+    """Linear warm-up, then cosine decay to 0 at `steps`."""
+    grad_clip: float = 1.0
+    ema_decay: float = 0.999
+    """Upper bound of the EMA decay (which ramps up as (1 + step) / (10 + step))."""
+    seed: int = 0
+    workers: int = 1
+    """Data-loader worker processes per training process (0: load in the training process)."""
+    device: str = "auto"
+    """auto (cuda if available), cpu, cuda, cuda:N."""
+    amp: bool = True
+    """bf16 autocast where the device supports it well (CUDA); CPUs train in fp32."""
+    log_every: int = 25
+    save_every: int = 500
+    resume: bool = False
+    """Continue the run in `out` from its last checkpoint."""
+    threads: int = 0
+    """torch CPU threads per process (0: torch's default)."""
+
+    def __post_init__(self):
+        if self.steps < 1 or self.batch_size < 1:
+            raise ValueError(f"steps and batch_size must be positive, got {self.steps}, {self.batch_size}")
+
+
+def lr_at(step: int, cfg: TrainConfig) -> float:
+    """Warm-up + cosine schedule: a pure function of the step, so resuming needs no scheduler state."""
+    if step < cfg.warmup_steps:
+        return cfg.lr * (step + 1) / cfg.warmup_steps
+    progress = (step - cfg.warmup_steps) / max(1, cfg.steps - cfg.warmup_steps)
+    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * min(progress, 1.0)))
+
+
+def _setup_distributed(requested: str) -> tuple[int, int, torch.device]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if requested == "auto":
+        requested = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(requested)
+    if device.type == "cuda" and world > 1:
+        device = torch.device("cuda", local)
+        torch.cuda.set_device(device)
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return rank, world, device
+
+
+@torch.no_grad()
+def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
+    for e, p in zip(ema.parameters(), model.parameters(), strict=True):
+        e.lerp_(p.detach(), 1.0 - decay)
+    for e, b in zip(ema.buffers(), model.buffers(), strict=True):
+        e.copy_(b)
+
+
+def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
+    """Train `cfg.method` with `model_cfg` on `cfg.data`; returns the final checkpoint folder."""
+    rank, world, device = _setup_distributed(cfg.device)
+    if cfg.threads:
+        torch.set_num_threads(cfg.threads)
+    main = rank == 0
+    run = Path(cfg.out)
+    has_ckpt = (run / "checkpoints" / "last").is_file()
+    if has_ckpt and not cfg.resume:
+        raise FileExistsError(f"{run} already holds a run; pass --resume to continue it, or choose another --out")
+    if cfg.resume and not has_ckpt:
+        raise FileNotFoundError(f"{run}: nothing to resume (no checkpoints/last)")
+
+    store = EpisodeStore(cfg.data)
+    method = get_method(cfg.method)
+    torch.manual_seed(cfg.seed)
+    model = method.model_cls(model_cfg, store.stats).to(device)
+    ema = copy.deepcopy(model).requires_grad_(False).eval()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.95, 0.999), weight_decay=cfg.weight_decay)
+    start = load_training_state(run, model, ema, optimizer) if cfg.resume else 0
+    meta = {
+        "method": cfg.method,
+        "model_config": to_dict(model_cfg),
+        "train_config": to_dict(cfg),
+        "stats": store.stats,
+        "dataset": {"path": str(cfg.data), "benchmark": store.benchmark, "tasks": store.num_tasks},
+        "world_size": world,
+    }
+    if main:
+        run.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
+        print(f"[train] {cfg.method}: {count_parameters(model) / 1e6:.2f}M parameters; {store}")
+        print(f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}")
+    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+
+    obs_cfg, h = model_cfg.obs, model_cfg.horizons
+    dataset = PromptBatchDataset(
+        store,
+        lowdim_keys=[*obs_cfg.lowdim_keys, *obs_cfg.proprio_keys],
+        image_keys=obs_cfg.image_keys,
+        image_size=obs_cfg.image_size,
+        action_key=model_cfg.action_key,
+        n_obs_steps=h.n_obs_steps,
+        horizon=h.horizon,
+        batch_size=cfg.batch_size,
+        num_batches=cfg.steps,
+        seed=cfg.seed,
+        rank=rank,
+        max_prompt_steps=model_cfg.prompt.max_steps,
+    )
+    loader = torch.utils.data.DataLoader(
+        dataset,
+        batch_size=None,
+        sampler=range(start, cfg.steps),
+        num_workers=cfg.workers,
+        persistent_workers=False,
+        prefetch_factor=4 if cfg.workers else None,
+    )
+    writer = None
+    if main:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run / "tb"), purge_step=start)
+    amp = cfg.amp and device.type == "cuda" and torch.cuda.is_bf16_supported()
+    bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.method}", disable=not (main and progress))
+    t_last, n_last = time.perf_counter(), start
+    loss_sum, loss_n = 0.0, 0
+    step = start
+    model.train()
+    for step, batch in zip(range(start, cfg.steps), loader, strict=False):
+        lr = lr_at(step, cfg)
+        for group in optimizer.param_groups:
+            group["lr"] = lr
+        # Every random draw of a step (diffusion noise and time steps, dropout) depends only on
+        # (seed, step, rank): a resumed run continues exactly as an uninterrupted one.
+        step_seed = (cfg.seed * 1_000_003 + step) * max(world, 1) + rank
+        torch.manual_seed(step_seed)
+        generator = torch.Generator(device).manual_seed(step_seed)
+        batch = to_torch(batch, device)
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+            loss = net(batch, generator)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+        optimizer.step()
+        _ema_update(ema, model, min(cfg.ema_decay, (1 + step) / (10 + step)))
+        loss_sum += loss.item()
+        loss_n += 1
+        bar.update(1)
+        if main and ((step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps):
+            now = time.perf_counter()
+            rate = (step + 1 - n_last) * cfg.batch_size * world / max(now - t_last, 1e-9)
+            t_last, n_last = now, step + 1
+            mean_loss = loss_sum / loss_n
+            loss_sum, loss_n = 0.0, 0
+            bar.set_postfix(loss=f"{mean_loss:.4f}", lr=f"{lr:.2e}", samples_s=f"{rate:.0f}")
+            writer.add_scalar("train/loss", mean_loss, step + 1)
+            writer.add_scalar("train/lr", lr, step + 1)
+            writer.add_scalar("train/grad_norm", float(grad_norm), step + 1)
+            writer.add_scalar("train/samples_per_s", rate, step + 1)
+        if (step + 1) % cfg.save_every == 0 or step + 1 == cfg.steps:
+            if main:
+                save_checkpoint(run, step + 1, model, ema, optimizer, meta)
+            if world > 1:
+                dist.barrier()
+    bar.close()
+    if writer is not None:
+        writer.close()
+    if world > 1:
+        dist.barrier()
+        dist.destroy_process_group()
+    return resolve_checkpoint(run)

@@ -1,0 +1,70 @@
+"""Small helpers: dataclass <-> JSON, tensors <-> devices, atomic file writes."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import typing
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def to_dict(obj: Any) -> Any:
+    """A (nested) dataclass as plain JSON-able data."""
+    if dataclasses.is_dataclass(obj):
+        return {f.name: to_dict(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (list, tuple)):
+        return [to_dict(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def from_dict(cls: type, data: dict) -> Any:
+    """Rebuild a (nested, frozen) dataclass from :func:`to_dict` output; unknown keys are an error."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
+    kwargs = {}
+    for name, value in data.items():
+        kwargs[name] = _convert(hints[name], value)
+    return cls(**kwargs)
+
+
+def _convert(tp: Any, value: Any) -> Any:
+    origin = typing.get_origin(tp)
+    if dataclasses.is_dataclass(tp) and isinstance(value, dict):
+        return from_dict(tp, value)
+    if origin is tuple and isinstance(value, list):
+        args = typing.get_args(tp)
+        inner = args[0] if args else Any
+        return tuple(_convert(inner, v) for v in value)
+    if tp is Path or (origin is typing.Union and Path in typing.get_args(tp) and isinstance(value, str)):
+        return Path(value)
+    return value
+
+
+def write_json_atomic(path: str | Path, data: Any) -> None:
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def to_torch(batch: Any, device: torch.device | str) -> Any:
+    """Nested dicts of numpy arrays / tensors -> tensors on `device` (floats as float32, images kept uint8)."""
+    if isinstance(batch, dict):
+        return {k: to_torch(v, device) for k, v in batch.items()}
+    if isinstance(batch, np.ndarray):
+        batch = torch.from_numpy(batch)
+    if isinstance(batch, torch.Tensor):
+        if batch.dtype == torch.float64:
+            batch = batch.float()
+        return batch.to(device, non_blocking=True)
+    return batch
