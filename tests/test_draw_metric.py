@@ -53,3 +53,16 @@ def test_cropping_does_not_change_the_score(rng):
     pa, pb = np.argwhere(a), np.argwhere(b)
     d = np.linalg.norm(pa[:, None] - pb[None], axis=-1)
     assert chamfer_distance(a, b) == pytest.approx(d.min(1).mean() + d.min(0).mean())
+
+
+def test_incremental_tracker_matches_direct_computation(rng):
+    from bpp.envs.draw.metric import ChamferTracker, InkMask
+
+    target = ink_mask([_circle(80)])
+    tracker = ChamferTracker(target)
+    assert tracker.score() == EMPTY_DISTANCE
+    ink = InkMask()
+    walk = np.cumsum(rng.normal(0, 6, (60, 2)), axis=0) + 256
+    for a, b in zip(walk[:-1], walk[1:], strict=True):
+        score = tracker.add(ink.add(np.stack([a, b])))
+        assert score == pytest.approx(chamfer_distance(target, ink.mask), rel=1e-9)

@@ -15,6 +15,9 @@ import tyro
 
 from bpp.envs.draw.dataset import PRESETS as DRAW_PRESETS
 from bpp.envs.draw.dataset import DrawDataConfig
+from bpp.policies.bpp.config import PRESETS as BPP_PRESETS
+from bpp.policies.bpp.config import BPPConfig
+from bpp.train import TrainConfig
 
 # ----------------------------------------------------------------------------- bpp draw generate
 
@@ -167,6 +170,82 @@ def demo(args: Demo) -> None:
         print(f"  {path}")
 
 
+# ----------------------------------------------------------------------------- bpp train
+
+
+@dataclass(frozen=True)
+class Train:
+    """Train a policy on a store (CPU, GPU, or many GPUs under torchrun).
+
+    Examples:
+      bpp train --data data/draw/train.zarr --out runs/bpp-cpu --preset cpu
+      bpp train --data data/draw/train.zarr --out runs/bpp-cpu --resume        (continue a killed run)
+      torchrun --nproc-per-node 4 -m bpp.cli train --data ... --preset paper --out runs/paper
+    """
+
+    train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes]
+    preset: str = "cpu"
+    """Model preset: debug, cpu, cpu-image, paper (--model.* flags override it)."""
+    model: BPPConfig = field(default_factory=BPPConfig)
+
+
+def train_cmd(args: Train) -> None:
+    from bpp.train import train
+
+    ckpt = train(args.train, args.model)
+    print(f"[train] final checkpoint: {ckpt}")
+
+
+# ----------------------------------------------------------------------------- bpp draw rollout
+
+
+@dataclass(frozen=True)
+class DrawRollout:
+    """Prompt a trained policy with one stored demonstration and let it draw at another board angle.
+
+    Writes a picture (prompt | rollout with the target overlaid) and an animation, and prints the Chamfer score.
+    """
+
+    checkpoint: tyro.conf.Positional[Path]
+    """A run directory or checkpoint folder."""
+    store: Path = Path("data/draw/human.zarr")
+    """Where the prompt demonstration comes from."""
+    episode: int = 0
+    """The prompt: an episode of the store."""
+    board_angle_deg: float = 20.0
+    seed: int = 0
+    out: Path = Path("outputs/rollout")
+
+
+def draw_rollout(args: DrawRollout) -> None:
+    import numpy as np
+
+    from bpp.data.store import EpisodeStore
+    from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes, save_animation
+    from bpp.evaluation.draw import rollout
+    from bpp.policies.agent import PolicyAgent
+
+    store = EpisodeStore(args.store)
+    agent = PolicyAgent.from_checkpoint(args.checkpoint, record_attention=True)
+    result = rollout(agent, store, args.episode, np.radians(args.board_angle_deg), args.seed, record_frames=True)
+    ep = store.episode(args.episode, ("state", "action"))
+    prompt_img = render_strokes(
+        group_strokes(ep["state"], ep["action"].astype(np.float64)),
+        float(store.column("board_angle")[args.episode]),
+        256,
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    sheet = contact_sheet(
+        [prompt_img, result.frames[-1]],
+        ["prompt", f"rollout: Chamfer {result.best_chamfer:.2f}"],
+        args.out / "rollout.png",
+        columns=2,
+    )
+    gif = save_animation(result.frames, args.out / "rollout.gif")
+    print(f"best Chamfer {result.best_chamfer:.2f} px (final {result.final_chamfer:.2f}) in {result.steps} steps")
+    print(f"wrote {sheet} and {gif}")
+
+
 # ----------------------------------------------------------------------------- dispatch
 
 COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
@@ -174,6 +253,8 @@ COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
     ("draw", "sheet"): (DrawSheet, draw_sheet),
     ("draw", "video"): (DrawVideo, draw_video),
     ("store", "info"): (StoreInfo, store_info),
+    ("train",): (Train, train_cmd),
+    ("draw", "rollout"): (DrawRollout, draw_rollout),
     ("demo",): (Demo, demo),
 }
 
@@ -196,10 +277,15 @@ def main(argv: list[str] | None = None) -> None:
             default = None
             if cls is DrawGenerate:
                 default = DrawGenerate(out=tyro.MISSING, data=_draw_preset(rest))
+            elif cls is Train:
+                name = _flag(rest, "--preset", "cpu")
+                if name not in BPP_PRESETS:
+                    sys.exit(f"bpp train: unknown preset {name!r}; choose from {', '.join(BPP_PRESETS)}")
+                default = Train(train=TrainConfig(data=tyro.MISSING), model=BPP_PRESETS[name], preset=name)
             args = tyro.cli(cls, args=rest, prog=f"bpp {' '.join(words)}", default=default)
             try:
                 run(args)
-            except (ValueError, OSError, RuntimeError) as err:
+            except (ValueError, OSError, RuntimeError, KeyError) as err:
                 sys.exit(f"bpp {' '.join(words)}: error: {err}")
             return
     print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
@@ -207,13 +293,19 @@ def main(argv: list[str] | None = None) -> None:
         sys.exit(2)
 
 
-def _draw_preset(argv: list[str]) -> DrawDataConfig:
-    name = "paper"
+def _flag(argv: list[str], flag: str, default: str) -> str:
+    """The value of `flag` in argv (before tyro parses it: presets decide the other flags' defaults)."""
+    value = default
     for i, a in enumerate(argv):
-        if a == "--preset" and i + 1 < len(argv):
-            name = argv[i + 1]
-        elif a.startswith("--preset="):
-            name = a.split("=", 1)[1]
+        if a == flag and i + 1 < len(argv):
+            value = argv[i + 1]
+        elif a.startswith(flag + "="):
+            value = a.split("=", 1)[1]
+    return value
+
+
+def _draw_preset(argv: list[str]) -> DrawDataConfig:
+    name = _flag(argv, "--preset", "paper")
     if name not in DRAW_PRESETS:
         sys.exit(f"bpp draw generate: unknown preset {name!r}; choose from {', '.join(DRAW_PRESETS)}")
     return DRAW_PRESETS[name]

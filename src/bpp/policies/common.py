@@ -63,9 +63,9 @@ class ObsConfig:
     image_keys: tuple[str, ...] = ()
     """Camera keys, (H, W, 3) uint8 images (empty: state-only)."""
     lowdim_keys: tuple[str, ...] = ("board_pose",)
-    """Low-dimensional observation keys other than proprioception, concatenated into one entry."""
+    """Low-dimensional observation keys other than proprioception (one entry each)."""
     proprio_keys: tuple[str, ...] = ("agent_pos", "pen_down")
-    """Proprioception keys, concatenated into one entry."""
+    """Proprioception keys (one entry each); the prompt can include or drop them as a group."""
     image_size: int = 96
     image_features: int = 256
     image_widths: tuple[int, ...] = (32, 64, 128, 256)
@@ -73,16 +73,12 @@ class ObsConfig:
 
     @property
     def entries(self) -> list[str]:
-        """Names of the observation entries, in token order: each camera, then 'lowdim', then 'proprio'."""
-        return [
-            *self.image_keys,
-            *(["lowdim"] if self.lowdim_keys else []),
-            *(["proprio"] if self.proprio_keys else []),
-        ]
+        """Observation entries in token order (one token per entry per history step): cameras, lowdim, proprio."""
+        return [*self.image_keys, *self.lowdim_keys, *self.proprio_keys]
 
 
 class ObsEncoder(nn.Module):
-    """Normalised raw observations -> one feature vector per entry (cameras, lowdim, proprio).
+    """Raw observations -> one feature vector per entry (each camera and each low-dimensional key).
 
     Input: a dict of (..., dim) tensors (images (..., H, W, 3) uint8); output: a list of (..., F_e) tensors in
     :attr:`ObsConfig.entries` order. Leading dims are arbitrary (e.g. (B, To) or (B, L)).
@@ -96,10 +92,7 @@ class ObsEncoder(nn.Module):
             {k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks) for k in cfg.image_keys}
         )
         self.dims = [cfg.image_features] * len(cfg.image_keys)
-        if cfg.lowdim_keys:
-            self.dims.append(sum(normalizer.width(k) for k in cfg.lowdim_keys))
-        if cfg.proprio_keys:
-            self.dims.append(sum(normalizer.width(k) for k in cfg.proprio_keys))
+        self.dims += [normalizer.width(k) for k in (*cfg.lowdim_keys, *cfg.proprio_keys)]
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> list[torch.Tensor]:
         out = []
@@ -108,9 +101,8 @@ class ObsEncoder(nn.Module):
             lead = images.shape[:-3]
             flat = images.reshape(-1, *images.shape[-3:]).permute(0, 3, 1, 2)
             out.append(net(flat).reshape(*lead, -1))
-        for keys in (self.cfg.lowdim_keys, self.cfg.proprio_keys):
-            if keys:
-                out.append(torch.cat([self.normalizer.normalize(k, obs[k]) for k in keys], dim=-1))
+        for key in (*self.cfg.lowdim_keys, *self.cfg.proprio_keys):
+            out.append(self.normalizer.normalize(key, obs[key]))
         return out
 
 

@@ -17,7 +17,7 @@ from bpp.envs.draw.geometry import (
     canvas_to_upright,
     unit_to_canvas,
 )
-from bpp.envs.draw.metric import InkMask, chamfer_distance, ink_mask
+from bpp.envs.draw.metric import ChamferTracker, InkMask, ink_mask
 from bpp.envs.draw.render import SceneRenderer
 
 CURSOR_START_RANGE = (50.0, 450.0)
@@ -111,7 +111,8 @@ class DrawEnv(gym.Env):
 
     def _set_target(self, target) -> None:
         self.target_mask = None
-        self.rollout_mask = None
+        self.tracker = None
+        self.target_overlay = None
         self.best_chamfer = float("inf")
         self.chamfer = float("inf")
         if target is None:
@@ -122,12 +123,13 @@ class DrawEnv(gym.Env):
             paths = [np.asarray(p, dtype=np.float64) for p in target]
         self.target_paths = paths
         self.target_mask = ink_mask(paths)
-        self.rollout_mask = InkMask()
-        self._score()
+        self.tracker = ChamferTracker(self.target_mask)
+        self.rollout_ink = InkMask()
+        self._set_score(self.tracker.score())
 
-    def _score(self) -> None:
-        self.chamfer = chamfer_distance(self.target_mask, self.rollout_mask.mask)
-        self.best_chamfer = min(self.best_chamfer, self.chamfer)
+    def _set_score(self, score: float) -> None:
+        self.chamfer = score
+        self.best_chamfer = min(self.best_chamfer, score)
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float64)
@@ -142,9 +144,10 @@ class DrawEnv(gym.Env):
                 self.renderer.add_ink(path)
             if self._video is not None:
                 self._video.add_ink(path)
-            if self.rollout_mask is not None:
-                self.rollout_mask.add(canvas_to_upright(path, self.board_angle))
-                self._score()
+            if self.tracker is not None:
+                stamp = self.rollout_ink.add(canvas_to_upright(path, self.board_angle))
+                if stamp is not None:
+                    self._set_score(self.tracker.add(stamp))
         terminated = self.early_stop and self._is_still()
         truncated = self.steps >= self.max_episode_steps
         reward = 0.0 if self.target_mask is None else -self.chamfer
@@ -180,7 +183,10 @@ class DrawEnv(gym.Env):
             return None
         frame = self._video.frame(self.state[:2])
         if self.target_mask is not None:
-            from bpp.envs.draw.viz import overlay_target
+            from bpp.envs.draw.viz import TARGET_RGB, target_coverage
 
-            frame = overlay_target(frame, self.target_paths, self.board_angle)
+            if self.target_overlay is None:
+                self.target_overlay = 0.35 * target_coverage(self.target_paths, self.board_angle, self.render_size)
+            c = self.target_overlay[..., None]
+            frame = np.rint(frame * (1.0 - c) + c * np.asarray(TARGET_RGB)).astype(np.uint8)
         return frame

@@ -51,6 +51,41 @@ def chamfer_distance(target: np.ndarray, rollout: np.ndarray) -> float:
     return float(to_rollout[t].mean() + to_target[r].mean())
 
 
+class ChamferTracker:
+    """The Chamfer score of a growing rollout ink mask against a fixed target, updated as ink is added.
+
+    Gives exactly :func:`chamfer_distance` but does half the work per update: the rollout->target mean is a
+    running sum over newly inked pixels of the target's distance field (computed once), so only the rollout's
+    distance field is recomputed.
+    """
+
+    def __init__(self, target: np.ndarray):
+        self.target = target
+        self.has_target = bool(target.any())
+        self.to_target = ndimage.distance_transform_edt(~target) if self.has_target else None
+        self.rollout = np.zeros_like(target)
+        self.sum_to_target = 0.0
+        self.count = 0
+
+    def add(self, mask: np.ndarray) -> float:
+        """OR `mask` into the rollout ink and return the new score."""
+        new = mask & ~self.rollout
+        if new.any():
+            self.rollout |= new
+            self.count += int(new.sum())
+            if self.has_target:
+                self.sum_to_target += float(self.to_target[new].sum())
+        return self.score()
+
+    def score(self) -> float:
+        if not self.has_target or self.count == 0:
+            return 0.0 if (not self.has_target and self.count == 0) else EMPTY_DISTANCE
+        r0, r1, c0, c1 = np.array([_bbox_of(self.target), _bbox_of(self.rollout)]).T
+        crop = (slice(r0.min(), r1.max()), slice(c0.min(), c1.max()))
+        to_rollout = ndimage.distance_transform_edt(~self.rollout[crop])
+        return float(to_rollout[self.target[crop]].mean() + self.sum_to_target / self.count)
+
+
 PEN_DOT_RADIUS = 4.0
 """The authors' pen also stamps a disc of this radius at every path point."""
 
@@ -90,18 +125,22 @@ class InkMask:
     def __init__(self, size: int = CANVAS_SIZE):
         self.mask = np.zeros((size, size), dtype=bool)
 
-    def add(self, path: np.ndarray) -> None:
-        """Ink a (N, 2) polyline given in this mask's pixel coordinates."""
+    def add(self, path: np.ndarray) -> np.ndarray | None:
+        """Ink a (N, 2) polyline given in this mask's pixel coordinates; returns a mask of this path's ink."""
         path = np.asarray(path, dtype=np.float64).reshape(-1, 2)
         size = self.mask.shape[0]
         reach = INK_WIDTH / 2 + 1.0
         lo = np.maximum(np.floor(path.min(axis=0) - reach).astype(int), 0)
         hi = np.minimum(np.ceil(path.max(axis=0) + reach).astype(int), size)
         if np.any(hi <= lo):
-            return
+            return None
         rows, cols = slice(lo[1], hi[1]), slice(lo[0], hi[0])
         x, y = pixel_centers(size, rows, cols)
-        self.mask[rows, cols] |= pen_band(x, y, polyline_segments(path))
+        inked = pen_band(x, y, polyline_segments(path))
+        self.mask[rows, cols] |= inked
+        stamp = np.zeros_like(self.mask)
+        stamp[rows, cols] = inked
+        return stamp
 
 
 def ink_mask(paths, size: int = CANVAS_SIZE) -> np.ndarray:

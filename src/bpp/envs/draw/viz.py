@@ -64,6 +64,15 @@ def group_strokes(states: np.ndarray, actions: np.ndarray) -> list[np.ndarray]:
     return strokes
 
 
+def target_coverage(target_paths: Sequence[np.ndarray], angle: float, size: int) -> np.ndarray:
+    """(size, size) ink coverage of upright canvas polylines rotated onto the board at `angle`."""
+    center = np.asarray(BOARD_CENTER)
+    layer = SceneRenderer(size, angle)
+    for p in target_paths:
+        layer.add_ink((np.asarray(p) - center) @ rotation(angle).T + center)
+    return layer.ink
+
+
 def overlay_target(frame: np.ndarray, target_paths: Sequence[np.ndarray], angle: float) -> np.ndarray:
     """Overlay upright canvas polylines, rotated onto the board at `angle`, faintly on a uint8 frame."""
     center = np.asarray(BOARD_CENTER)

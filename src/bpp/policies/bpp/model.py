@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from einops import rearrange, repeat
 from torch import nn
@@ -18,6 +19,10 @@ from torch import nn
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
 from bpp.policies.bpp.config import BPPConfig
 from bpp.policies.common import DiffusionHead, Normalizer, ObsEncoder
+
+
+class PromptError(ValueError):
+    """A prompt that this model cannot use; the message says what was expected."""
 
 
 @dataclass
@@ -56,10 +61,11 @@ class BPPModel(nn.Module):
         self.entry_embed = nn.Parameter(torch.randn(len(self.entries) + 1, D) * 0.02)  # + one for actions
         # Only modules that are used get created: DDP requires every parameter to receive a gradient.
         self.action_proj = nn.Linear(pcfg.chunk_len * (self.action_dim + 1), D) if pcfg.use_action else None
+        proprio = set(obs_cfg.proprio_keys)
         self.prompt_entries = [
             i
             for i, name in enumerate(self.entries)
-            if (name == "proprio" and pcfg.use_proprio) or (name != "proprio" and pcfg.use_obs)
+            if (name in proprio and pcfg.use_proprio) or (name not in proprio and pcfg.use_obs)
         ]
         self.pool = AttentionPooling(D, cfg.heads) if pcfg.pooling != "none" else None
         self.chunk_pos = nn.Parameter(torch.randn(pcfg.max_chunks, D) * 0.02)
@@ -138,6 +144,47 @@ class BPPModel(nn.Module):
         return self.head.loss(actions, cond, generator)
 
     # -------------------------------------------------------------- inference
+    def context_keys(self) -> list[str]:
+        """Per-step keys a prompt demonstration must provide."""
+        return [*self.cfg.obs.image_keys, *self.cfg.obs.lowdim_keys, *self.cfg.obs.proprio_keys]
+
+    def validate_context(self, prompt: Mapping) -> dict:
+        """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
+        if not isinstance(prompt, Mapping) or "obs" not in prompt or "action" not in prompt:
+            raise PromptError("a prompt must be a dict with 'obs' (a dict of per-step arrays) and 'action'")
+        actions = np.asarray(prompt["action"], dtype=np.float32)
+        if actions.ndim != 2 or actions.shape[1] != self.action_dim:
+            raise PromptError(
+                f"prompt actions must have shape (steps, {self.action_dim}) as in training, got {actions.shape}"
+            )
+        steps = len(actions)
+        dt = self.cfg.prompt.chunk_len
+        if steps < dt:
+            raise PromptError(f"prompt has {steps} steps; at least one chunk of {dt} steps is needed")
+        if steps > self.cfg.prompt.max_steps:
+            raise PromptError(f"prompt has {steps} steps; this model accepts at most {self.cfg.prompt.max_steps}")
+        if not np.all(np.isfinite(actions)):
+            raise PromptError("prompt actions contain NaN or infinite values")
+        obs = {}
+        for key in self.context_keys():
+            if key not in prompt["obs"]:
+                raise PromptError(f"prompt obs lacks {key!r}; expected keys {self.context_keys()}")
+            value = np.asarray(prompt["obs"][key])
+            if len(value) != steps:
+                raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
+            if key in self.cfg.obs.image_keys:
+                size = self.cfg.obs.image_size
+                if value.shape[1:] != (size, size, 3):
+                    raise PromptError(f"prompt images {key!r} must be (steps, {size}, {size}, 3), got {value.shape}")
+            else:
+                width = self.normalizer.width(key)
+                if value.ndim != 2 or value.shape[1] != width:
+                    raise PromptError(f"prompt obs {key!r} must be (steps, {width}), got {value.shape}")
+                if not np.all(np.isfinite(value)):
+                    raise PromptError(f"prompt obs {key!r} contains NaN or infinite values")
+            obs[key] = value[None]
+        return {"obs": obs, "action": actions[None], "valid": np.ones((1, steps), dtype=bool)}
+
     def encode_context(self, context: Mapping) -> PromptContext:
         return self.encode_prompt(context)
 

@@ -1,0 +1,1 @@
+"""Rolling out policies in benchmarks and scoring them."""

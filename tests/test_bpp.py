@@ -1,0 +1,250 @@
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.evaluation.draw import prompt_from_store, rollout
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.bpp.config import PRESETS, PromptConfig
+from bpp.policies.bpp.model import BPPModel, PromptError
+from bpp.policies.common import count_parameters
+from bpp.train import TrainConfig, train
+from bpp.utils import to_torch
+
+KEYS = ["board_pose", "agent_pos", "pen_down"]
+
+
+def _dataset(store, **kw):
+    return PromptBatchDataset(store, lowdim_keys=KEYS, batch_size=8, seed=0, **kw)
+
+
+def _model(store, cfg=None):
+    torch.manual_seed(0)
+    return BPPModel(cfg or PRESETS["debug"], store.stats)
+
+
+def test_batches_are_deterministic_and_from_one_task(debug_store):
+    ds = _dataset(debug_store)
+    a, b = ds[5], ds[5]
+    for key in KEYS:
+        np.testing.assert_array_equal(a["obs"][key], b["obs"][key])
+    assert a["obs"]["agent_pos"].shape == (8, 2, 2) and a["action"].shape == (8, 16, 3)
+    assert a["prompt"]["action"].shape[0] == 1 and a["prompt"]["valid"].all()
+    # The prompt is a demonstration of the batch's task and no window comes from it.
+    task_of = debug_store.column("task_index")
+    prompt_len = a["prompt"]["action"].shape[1]
+    prompt_eps = [
+        e
+        for e in debug_store.task_episodes()[int(a["task"])]
+        if debug_store.episode_slice(e).stop - debug_store.episode_slice(e).start == prompt_len
+    ]
+    assert prompt_eps and all(task_of[e] == a["task"] for e in prompt_eps)
+    other = ds[6]
+    assert not np.array_equal(a["action"], other["action"])
+
+
+def test_window_padding_repeats_edges(debug_store):
+    ds = _dataset(debug_store)
+    batch = ds[0]
+    # Action chunks are a window of one episode: consecutive targets never jump across the canvas.
+    jumps = np.abs(np.diff(batch["action"][..., :2], axis=1)).max()
+    assert jumps < 200
+
+
+def test_loss_and_shapes(debug_store):
+    model = _model(debug_store)
+    batch = to_torch(_dataset(debug_store)[0], "cpu")
+    loss = model.compute_loss(batch)
+    assert loss.ndim == 0 and torch.isfinite(loss)
+    loss.backward()
+    ctx = model.encode_prompt(batch["prompt"])
+    out = model.predict_action(batch["obs"], ctx, return_attention=True)
+    assert out["action"].shape == (8, 16, 3)
+    assert out["attention"].shape == (8, ctx.num_chunks + 1)
+    torch.testing.assert_close(out["attention"].sum(-1), torch.ones(8))
+
+
+def test_cached_prompt_gives_the_same_actions_as_recomputing_it(debug_store):
+    model = _model(debug_store).eval()
+    batch = to_torch(_dataset(debug_store)[3], "cpu")
+    noise = torch.randn(8, 16, 3, generator=torch.Generator().manual_seed(0))
+    cached = model.encode_prompt(batch["prompt"])
+    a = model.predict_action(batch["obs"], cached, noise=noise)["action"]
+    b = model.predict_action(batch["obs"], cached, noise=noise)["action"]
+    c = model.predict_action(batch["obs"], model.encode_prompt(batch["prompt"]), noise=noise)["action"]
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+    torch.testing.assert_close(a, c, rtol=0, atol=0)
+
+
+def test_prompt_encoded_once_per_rollout_and_prompt_encoder_once_per_call(debug_store):
+    model = _model(debug_store)
+    calls = {"encode": 0, "prompt_encoder": 0, "unet": 0}
+    original = model.encode_prompt
+
+    def counting_encode(prompt):
+        calls["encode"] += 1
+        return original(prompt)
+
+    model.encode_prompt = counting_encode
+    model.prompt_encoder.register_forward_hook(
+        lambda *a: calls.__setitem__("prompt_encoder", calls["prompt_encoder"] + 1)
+    )
+    model.head.net.register_forward_hook(lambda *a: calls.__setitem__("unet", calls["unet"] + 1))
+    agent = PolicyAgent(model)
+    prompt = prompt_from_store(debug_store, 0, KEYS)
+    agent.reset(prompt, seed=0)
+    assert calls["encode"] == 1
+    ep = debug_store.episode(1)
+    for t in range(24):
+        agent.act({k: ep[k][t] for k in KEYS})
+    ta, k = model.cfg.horizons.n_action_steps, model.cfg.diffusion.num_inference_steps
+    assert calls["encode"] == 1  # never again during the rollout
+    assert calls["prompt_encoder"] == 24 // ta  # once per inference call ...
+    assert calls["unet"] == k * (24 // ta)  # ... then every denoising step without the prompt
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (lambda p: p.update(action=p["action"][:0]), "at least one chunk"),
+        (lambda p: p.update(action=p["action"][:5]), "at least one chunk"),
+        (lambda p: p["obs"].pop("agent_pos"), "lacks 'agent_pos'"),
+        (lambda p: p["obs"].update(agent_pos=p["obs"]["agent_pos"][:, :1]), r"must be \(steps, 2\)"),
+        (lambda p: p["obs"]["board_pose"].__setitem__((3, 0), np.nan), "NaN"),
+        (lambda p: p["action"].__setitem__((2, 1), np.inf), "NaN"),
+        (lambda p: p.update(action=np.zeros((len(p["action"]), 7), np.float32)), r"shape \(steps, 3\)"),
+        (lambda p: p["obs"].update(pen_down=p["obs"]["pen_down"][:-1]), "steps, actions have"),
+        (lambda p: p.update(action=np.zeros((900, 3), np.float32)), "at most 800"),
+        (lambda p: p.pop("obs"), "must be a dict"),
+    ],
+)
+def test_bad_prompts_are_refused_with_a_reason(debug_store, mutate, message):
+    agent = PolicyAgent(_model(debug_store))
+    prompt = prompt_from_store(debug_store, 0, KEYS)
+    prompt["obs"] = {k: v.copy() for k, v in prompt["obs"].items()}
+    prompt["action"] = prompt["action"].copy()
+    mutate(prompt)
+    with pytest.raises(PromptError, match=message):
+        agent.reset(prompt)
+
+
+@pytest.mark.parametrize(
+    "prompt_cfg",
+    [
+        PromptConfig(pooling="none", num_sinks=1),
+        PromptConfig(pooling="obs"),
+        PromptConfig(use_obs=False, use_proprio=False),
+        PromptConfig(use_action=False, chunk_len=5),
+    ],
+)
+def test_prompt_ablations_train_and_act(debug_store, prompt_cfg):
+    cfg = replace(PRESETS["debug"], prompt=prompt_cfg)
+    model = _model(debug_store, cfg)
+    batch = to_torch(_dataset(debug_store)[0], "cpu")
+    model.compute_loss(batch).backward()
+    assert all(p.grad is not None for p in model.parameters())  # every module is used (DDP needs it)
+    ctx = model.encode_prompt(batch["prompt"])
+    assert model.predict_action(batch["obs"], ctx)["action"].shape == (8, 16, 3)
+
+
+def test_paper_preset_size():
+    stats = {k: {"min": [0.0] * n, "max": [1.0] * n} for k, n in [("agent_pos", 2), ("pen_down", 1), ("action", 3)]}
+    model = BPPModel(PRESETS["paper"], stats)
+    prompt_encoder = count_parameters(model.prompt_encoder)
+    unet = count_parameters(model.head)
+    print(f"paper preset: prompt encoder {prompt_encoder / 1e6:.1f}M, action decoder {unet / 1e6:.1f}M")
+    assert 0.9 * 57e6 < prompt_encoder < 1.1 * 57e6
+    assert 0.9 * 151e6 < unet < 1.1 * 151e6
+
+
+def _train(store, out, steps, save_every, resume=False):
+    cfg = TrainConfig(
+        data=store.path,
+        out=out,
+        steps=steps,
+        batch_size=8,
+        save_every=save_every,
+        log_every=2,
+        workers=0,
+        warmup_steps=2,
+        resume=resume,
+    )
+    return train(cfg, PRESETS["debug"], progress=False)
+
+
+def test_resume_reproduces_an_uninterrupted_run(debug_store, tmp_path):
+    full = _train(debug_store, tmp_path / "full", steps=6, save_every=3)
+    # "Kill" a run after step 3: keep only its first checkpoint, then resume it to step 6.
+    part = tmp_path / "part"
+    shutil.copytree(tmp_path / "full", part)
+    shutil.rmtree(part / "checkpoints" / "step_00000006")
+    (part / "checkpoints" / "last").write_text("step_00000003")
+    resumed = _train(debug_store, part, steps=6, save_every=3, resume=True)
+    for name in ("model.safetensors", "ema.safetensors", "optimizer.safetensors"):
+        a, b = load_file(full / name), load_file(resumed / name)
+        assert a.keys() == b.keys()
+        for k in a:
+            torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
+    with pytest.raises(FileExistsError, match="--resume"):
+        _train(debug_store, part, steps=6, save_every=3)
+
+
+def test_checkpoint_round_trip_acts_in_the_env(debug_store, tmp_path):
+    ckpt = _train(debug_store, tmp_path / "run", steps=4, save_every=4)
+    assert {p.name for p in ckpt.iterdir()} >= {"model.safetensors", "ema.safetensors", "state.json"}
+    agent = PolicyAgent.from_checkpoint(tmp_path / "run", record_attention=True)
+    result = rollout(agent, debug_store, 2, 0.2, seed=0, max_steps=30)
+    assert result.steps <= 30 and 0 < result.best_chamfer <= result.final_chamfer
+    assert len(result.attention) == -(-result.steps // agent.n_action_steps)
+    # Same seed, same rollout.
+    again = rollout(agent, debug_store, 2, 0.2, seed=0, max_steps=30)
+    assert again.best_chamfer == result.best_chamfer and again.steps == result.steps
+
+
+def test_ddp_two_processes_on_cpu(debug_store, tmp_path):
+    out = tmp_path / "ddp"
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--nproc-per-node",
+        "2",
+        "--master-port",
+        "29531",
+        "-m",
+        "bpp.cli",
+        "train",
+        "--data",
+        str(debug_store.path),
+        "--out",
+        str(out),
+        "--preset",
+        "debug",
+        "--steps",
+        "4",
+        "--batch-size",
+        "4",
+        "--workers",
+        "0",
+        "--warmup-steps",
+        "1",
+        "--save-every",
+        "4",
+    ]
+    done = subprocess.run(
+        cmd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin", "HOME": str(Path.home())},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    state = (out / "checkpoints" / "step_00000004" / "state.json").read_text()
+    assert '"world_size": 2' in state
