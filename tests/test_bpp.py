@@ -248,3 +248,30 @@ def test_ddp_two_processes_on_cpu(debug_store, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     state = (out / "checkpoints" / "step_00000004" / "state.json").read_text()
     assert '"world_size": 2' in state
+
+
+def test_rollout_command_writes_pictures(debug_store, tmp_path):
+    _train(debug_store, tmp_path / "run", steps=2, save_every=2)
+    out = tmp_path / "rollout"
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "bpp.cli",
+            "draw",
+            "rollout",
+            str(tmp_path / "run"),
+            "--store",
+            str(debug_store.path),
+            "--episode",
+            "4",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "best Chamfer" in done.stdout
+    assert (out / "rollout.png").stat().st_size > 5_000 and (out / "rollout.gif").stat().st_size > 5_000
