@@ -113,15 +113,19 @@ def main() -> None:
         ta = cfg.horizons.n_action_steps
         print(f"\n[{name}] {params:.1f}M params, {cfg.diffusion.num_inference_steps} DDIM steps, Ta={ta}")
         for label, t in (("100-step prompt", short), ("800-step prompt", long)):
-            print(f"  inference call, {label}: p50 {np.percentile(t, 50):.1f} ms, p95 {np.percentile(t, 95):.1f} ms"
-                  f"  (per act, amortised over Ta: {np.percentile(t, 50) / ta:.1f} ms)")
+            print(
+                f"  inference call, {label}: p50 {np.percentile(t, 50):.1f} ms, p95 {np.percentile(t, 95):.1f} ms"
+                f"  (per act, amortised over Ta: {np.percentile(t, 50) / ta:.1f} ms)"
+            )
         print(f"  latency ratio 800/100 (p50): {np.median(long) / np.median(short):.3f}")
         bs = 64 if name != "paper" else 8
         steps = 20 if name != "paper" else 3
         tr = train_rate(store, model, bs, steps)
         lr = loader_rate(store, model, bs, 40 if name != "paper" else 6)
-        print(f"  training: {tr:.0f} samples/s (batch {bs}); data loader (1 worker): {lr:.0f} samples/s "
-              f"= {lr / tr:.1f}x what training consumes")
+        print(
+            f"  training: {tr:.0f} samples/s (batch {bs}); data loader (1 worker): {lr:.0f} samples/s "
+            f"= {lr / tr:.1f}x what training consumes"
+        )
 
 
 if __name__ == "__main__":

@@ -275,3 +275,19 @@ def test_rollout_command_writes_pictures(debug_store, tmp_path):
     assert done.returncode == 0, done.stderr[-2000:]
     assert "best Chamfer" in done.stdout
     assert (out / "rollout.png").stat().st_size > 5_000 and (out / "rollout.gif").stat().st_size > 5_000
+
+
+def test_image_observations_train_and_act(debug_store):
+    from bpp.policies.common import ObsConfig
+
+    obs = ObsConfig(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
+    cfg = replace(PRESETS["debug"], obs=obs)
+    model = _model(debug_store, cfg)
+    ds = _dataset(debug_store, image_keys=("image",), image_size=32)
+    batch = ds[0]
+    assert batch["obs"]["image"].shape == (8, 2, 32, 32, 3) and batch["obs"]["image"].dtype == np.uint8
+    assert batch["prompt"]["obs"]["image"].shape[2:] == (32, 32, 3)
+    model.compute_loss(to_torch(batch, "cpu")).backward()
+    assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0
+    result = rollout(PolicyAgent(model), debug_store, 0, -0.4, seed=0, max_steps=13)
+    assert result.steps == 13

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -178,7 +178,3 @@ def render_episode(store: EpisodeStore, episode: int, image_size: int) -> np.nda
         if action[2] > physics.PEN_THRESHOLD:
             renderer.add_ink(path)
     return frames
-
-
-def with_overrides(cfg: DrawDataConfig, **kw) -> DrawDataConfig:
-    return replace(cfg, **kw)

@@ -1,0 +1,90 @@
+"""Does a short CPU training run of BPP learn to follow prompts? Rollouts of a checkpoint on two task sets.
+
+    python bench/bpp_cpu_acceptance.py runs/bpp-cpu --train data/draw/cpu.zarr --unseen data/draw/human.zarr
+
+For each set, `--tasks` tasks x `--rollouts` rollouts: the prompt is demo k of the task (cycling), the board angle
+is drawn per rollout from a seeded generator, and the score is the best Chamfer distance (px at 512) to the
+prompt's own ink. Two references put the number in context: *replay*, which executes the prompt's actions
+verbatim on the new board (it ignores the rotation), and *empty*, which never inks (724.1 px by definition).
+Writes a grid of prompt | rollout pictures next to the checkpoint.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from bpp.checkpoint import resolve_checkpoint
+from bpp.data.store import EpisodeStore
+from bpp.envs.draw.env import DrawEnv
+from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes
+from bpp.evaluation.draw import prompt_target, rollout
+from bpp.policies.agent import PolicyAgent
+
+
+def replay(store: EpisodeStore, episode: int, angle: float, seed: int) -> float:
+    env = DrawEnv(image_size=None)
+    env.reset(seed=seed, options={"board_angle": angle, "target": prompt_target(store, episode)})
+    info = {"best_chamfer": env.best_chamfer}
+    for action in store.episode(episode, ["action"])["action"]:
+        *_, info = env.step(action)
+    return info["best_chamfer"]
+
+
+def evaluate(agent, store: EpisodeStore, tasks: int, rollouts: int, seed: int):
+    by_task = store.task_episodes()
+    chosen = np.unique(np.linspace(0, store.num_tasks - 1, min(tasks, store.num_tasks)).round().astype(int))
+    rng = np.random.default_rng(seed)
+    scores, replays, pictures = [], [], []
+    for t in chosen:
+        per_task, per_task_replay = [], []
+        for k in range(rollouts):
+            episode = int(by_task[t][k % len(by_task[t])])
+            angle = float(rng.uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE))
+            r = rollout(agent, store, episode, angle, seed=int(rng.integers(2**31)), record_frames=k == 0)
+            per_task.append(r.best_chamfer)
+            per_task_replay.append(replay(store, episode, angle, 0))
+            if k == 0:
+                ep = store.episode(episode, ("state", "action"))
+                prompt_img = render_strokes(
+                    group_strokes(ep["state"], ep["action"].astype(np.float64)),
+                    float(store.column("board_angle")[episode]),
+                    256,
+                )
+                pictures.append((prompt_img, r.frames[-1], store.tasks[t]["id"], r.best_chamfer))
+        scores.append(np.mean(per_task))
+        replays.append(np.mean(per_task_replay))
+    return np.array(scores), np.array(replays), pictures
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint")
+    parser.add_argument("--train", default="data/draw/cpu.zarr")
+    parser.add_argument("--unseen", default="data/draw/human.zarr")
+    parser.add_argument("--tasks", type=int, default=10)
+    parser.add_argument("--rollouts", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    ckpt = resolve_checkpoint(args.checkpoint)
+    agent = PolicyAgent.from_checkpoint(ckpt)
+    print(f"checkpoint {ckpt}")
+    for name, path in (("training tasks", args.train), ("unseen human-made", args.unseen)):
+        store = EpisodeStore(path)
+        scores, replays, pictures = evaluate(agent, store, args.tasks, args.rollouts, args.seed)
+        print(
+            f"{name:18s} BPP {scores.mean():6.2f} ± {scores.std():5.2f} px | prompt replay {replays.mean():6.2f} px"
+            f" | empty 724.1 px   ({len(scores)} tasks x {args.rollouts} rollouts)"
+        )
+        images, titles = [], []
+        for prompt_img, frame, task_id, score in pictures:
+            images += [prompt_img, frame]
+            titles += [f"prompt: {task_id}", f"rollout: {score:.1f} px"]
+        out = ckpt.parent.parent / f"acceptance_{name.split()[0]}.png"
+        print(f"  wrote {contact_sheet(images, titles, out, columns=4)}")
+
+
+if __name__ == "__main__":
+    main()
