@@ -291,3 +291,35 @@ def test_image_observations_train_and_act(debug_store):
     assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0
     result = rollout(PolicyAgent(model), debug_store, 0, -0.4, seed=0, max_steps=13)
     assert result.steps == 13
+
+
+def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):
+    """Prompts of different lengths batched with padding + masks act exactly like each prompt alone."""
+    model = _model(debug_store).eval()
+    ds = _dataset(debug_store)
+    p1, p2 = ds.prompt(0), ds.prompt(7)
+    l1, l2 = p1["action"].shape[1], p2["action"].shape[1]
+    assert l1 != l2
+    length = max(l1, l2)
+
+    def pad(p):
+        n = length - p["action"].shape[1]
+        return {
+            "obs": {k: np.pad(v, ((0, 0), (0, n), (0, 0)), mode="edge") for k, v in p["obs"].items()},
+            "action": np.pad(p["action"], ((0, 0), (0, n), (0, 0)), mode="edge"),
+            "valid": np.pad(p["valid"], ((0, 0), (0, n))),
+        }
+
+    both = {
+        "obs": {k: np.concatenate([pad(p1)["obs"][k], pad(p2)["obs"][k]]) for k in KEYS},
+        "action": np.concatenate([pad(p1)["action"], pad(p2)["action"]]),
+        "valid": np.concatenate([pad(p1)["valid"], pad(p2)["valid"]]),
+    }
+    obs = to_torch({k: v[:2] for k, v in ds[0]["obs"].items()}, "cpu")
+    noise = torch.randn(2, 16, 3, generator=torch.Generator().manual_seed(1))
+    batched = model.predict_action(obs, model.encode_prompt(to_torch(both, "cpu")), noise=noise)["action"]
+    for i, p in enumerate((p1, p2)):
+        alone = model.predict_action(
+            {k: v[i : i + 1] for k, v in obs.items()}, model.encode_prompt(to_torch(p, "cpu")), noise=noise[i : i + 1]
+        )["action"]
+        torch.testing.assert_close(batched[i : i + 1], alone, rtol=1e-5, atol=1e-4)
