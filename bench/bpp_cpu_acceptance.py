@@ -59,6 +59,30 @@ def evaluate(agent, store: EpisodeStore, tasks: int, rollouts: int, seed: int):
     return np.array(scores), np.array(replays), pictures
 
 
+def prompt_use(model, store_path: str, batches: int = 5) -> tuple[float, float]:
+    """Mean px error of the executed actions on training windows: with the right prompt, and with a prompt of
+    another task. A policy that uses its prompt does much better with the right one."""
+    import torch
+
+    from bpp.data.prompt_dataset import PromptBatchDataset
+    from bpp.utils import to_torch
+
+    cfg = model.cfg
+    keys = [*cfg.obs.lowdim_keys, *cfg.obs.proprio_keys]
+    ds = PromptBatchDataset(store_path, lowdim_keys=keys, batch_size=64, seed=123)
+    ta, start = cfg.horizons.n_action_steps, cfg.horizons.n_obs_steps - 1
+    right, wrong = [], []
+    for i in range(batches):
+        batch, other = to_torch(ds[i], "cpu"), to_torch(ds[i + 1000], "cpu")
+        for prompt, out in ((batch["prompt"], right), (other["prompt"], wrong)):
+            pred = model.predict_action(
+                batch["obs"], model.encode_prompt(prompt), generator=torch.Generator().manual_seed(0)
+            )["action"]
+            err = (pred[:, start : start + ta, :2] - batch["action"][:, start : start + ta, :2]).norm(dim=-1)
+            out.append(err.mean().item())
+    return float(np.mean(right)), float(np.mean(wrong))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint")
@@ -71,6 +95,8 @@ def main() -> None:
     ckpt = resolve_checkpoint(args.checkpoint)
     agent = PolicyAgent.from_checkpoint(ckpt)
     print(f"checkpoint {ckpt}")
+    right, wrong = prompt_use(agent.model, args.train)
+    print(f"training windows: action error {right:.1f} px with the right prompt, {wrong:.1f} px with another task's")
     for name, path in (("training tasks", args.train), ("unseen human-made", args.unseen)):
         store = EpisodeStore(path)
         scores, replays, pictures = evaluate(agent, store, args.tasks, args.rollouts, args.seed)

@@ -9,7 +9,7 @@ def test_store_contents(debug_store):
     s = debug_store
     assert s.benchmark == "drawanything"
     assert (s.num_tasks, s.num_episodes) == (12, 36)
-    assert set(s.keys) == {"state", "action", "agent_pos", "pen_down", "board_pose"}
+    assert set(s.keys) == {"state", "action", "agent_pos", "pen_down", "board_pose", "cursor_on_board"}
     assert s["state"].dtype == np.float64 and s["action"].dtype == np.float32
     for key in ("action", "agent_pos", "pen_down", "board_pose"):
         assert key in s.stats and len(s.stats[key]["mean"]) == s[key].shape[1]
@@ -44,6 +44,7 @@ def test_images_are_exactly_reproducible_from_the_store(debug_store):
             np.testing.assert_array_equal(obs["agent_pos"], ep["agent_pos"][t])
             np.testing.assert_array_equal(obs["pen_down"], ep["pen_down"][t])
             np.testing.assert_array_equal(obs["board_pose"], ep["board_pose"][t])
+            np.testing.assert_array_equal(obs["cursor_on_board"], ep["cursor_on_board"][t])
             obs, *_ = env.step(action)
         assert len(episode_paths(debug_store, episode)) == len(env.paths)
 

@@ -16,12 +16,12 @@ from bpp.envs.draw import physics
 from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, board_pose
-from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, generate_drawing
 from bpp.envs.draw.render import SceneRenderer
 
 BENCHMARK = "drawanything"
-STEP_KEYS = ("state", "action", "agent_pos", "pen_down", "board_pose")
+STEP_KEYS = ("state", "action", "agent_pos", "pen_down", "board_pose", "cursor_on_board")
 
 
 @dataclass(frozen=True)
@@ -101,6 +101,7 @@ def episode_steps(demo: Demonstration) -> dict[str, np.ndarray]:
         "agent_pos": demo.states[:, 0:2].astype(np.float32),
         "pen_down": demo.states[:, 4:5].astype(np.float32),
         "board_pose": np.repeat(board_pose(demo.board_angle)[None], n, axis=0),
+        "cursor_on_board": canvas_to_unit(demo.states[:, 0:2], demo.board_angle).astype(np.float32),
     }
 
 

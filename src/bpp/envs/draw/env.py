@@ -14,6 +14,7 @@ from bpp.envs.draw.geometry import (
     BOARD_CENTER,
     CANVAS_SIZE,
     MAX_BOARD_ANGLE,
+    canvas_to_unit,
     canvas_to_upright,
     unit_to_canvas,
 )
@@ -39,7 +40,9 @@ class DrawEnv(gym.Env):
         ``image``      (R, R, 3) uint8, rendered directly at ``image_size`` (absent if ``image_size`` is None);
         ``agent_pos``  (2,) float32 cursor position in canvas px;
         ``pen_down``   (1,) float32, 1 if the pen is down (the last action's pen);
-        ``board_pose`` (2,) float32, (cos, sin) of the board angle.
+        ``board_pose`` (2,) float32, (cos, sin) of the board angle;
+        ``cursor_on_board`` (2,) float32, the cursor in the board's own unit frame (what the image shows: where
+        the cursor is on the board), for state-only policies.
     Action: (3,) ``[x, y, pen]`` — an absolute target in canvas px and a pen flag (down if > 0.5).
 
     The episode is truncated after ``max_episode_steps`` and terminated early once the cursor has stayed within
@@ -76,6 +79,7 @@ class DrawEnv(gym.Env):
             "agent_pos": spaces.Box(0.0, float(CANVAS_SIZE), (2,), np.float32),
             "pen_down": spaces.Box(0.0, 1.0, (1,), np.float32),
             "board_pose": spaces.Box(-1.0, 1.0, (2,), np.float32),
+            "cursor_on_board": spaces.Box(-2.0, 3.0, (2,), np.float32),
         }
         if image_size is not None:
             obs["image"] = spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
@@ -165,6 +169,7 @@ class DrawEnv(gym.Env):
             "agent_pos": self.state[:2].astype(np.float32),
             "pen_down": np.array([self.state[4]], dtype=np.float32),
             "board_pose": board_pose(self.board_angle),
+            "cursor_on_board": canvas_to_unit(self.state[:2], self.board_angle).astype(np.float32),
         }
         if self.renderer is not None:
             obs["image"] = self.renderer.frame(self.state[:2])
