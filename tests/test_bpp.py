@@ -18,7 +18,7 @@ from bpp.policies.common import count_parameters
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
 
-KEYS = ["board_pose", "agent_pos", "pen_down"]
+KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 
 
 def _dataset(store, **kw):

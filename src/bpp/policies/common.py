@@ -62,7 +62,7 @@ class ObsConfig:
 
     image_keys: tuple[str, ...] = ()
     """Camera keys, (H, W, 3) uint8 images (empty: state-only)."""
-    lowdim_keys: tuple[str, ...] = ("board_pose",)
+    lowdim_keys: tuple[str, ...] = ("board_pose", "cursor_on_board")
     """Low-dimensional observation keys other than proprioception (one entry each)."""
     proprio_keys: tuple[str, ...] = ("agent_pos", "pen_down")
     """Proprioception keys (one entry each); the prompt can include or drop them as a group."""
