@@ -265,6 +265,8 @@ class EpisodeStore:
         self.stats: dict[str, dict[str, list[float]]] = attrs["stats"]
         self.episode_ends = np.asarray(self._root()["meta/episode_ends"][:])
         self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
+        self.keys: list[str] = sorted(self._root()["data"].array_keys())
+        """Per-step keys (the store is read-only, so listed once)."""
         self._cache: dict[str, np.ndarray] = {}
 
     def _root(self):
@@ -295,10 +297,6 @@ class EpisodeStore:
     @property
     def num_tasks(self) -> int:
         return len(self.tasks)
-
-    @property
-    def keys(self) -> list[str]:
-        return sorted(self._root()["data"].array_keys())
 
     def __getitem__(self, key: str):
         if key not in self.keys:

@@ -12,16 +12,14 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp.data.store import EpisodeStore, EpisodeWriter
-from bpp.envs.draw import physics
-from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate
+from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate, replay_paths
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, board_pose
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, generate_drawing
-from bpp.envs.draw.render import SceneRenderer
+from bpp.envs.draw.viz import episode_frames
 
 BENCHMARK = "drawanything"
-STEP_KEYS = ("state", "action", "agent_pos", "pen_down", "board_pose", "cursor_on_board")
 
 
 @dataclass(frozen=True)
@@ -159,23 +157,12 @@ def task_drawing(store: EpisodeStore, task_index: int) -> Drawing:
 def episode_paths(store: EpisodeStore, episode: int) -> list[np.ndarray]:
     """Canvas polylines inked by each pen-down step of an episode, by exact replay of the stored physics."""
     ep = store.episode(episode, ("state", "action"))
-    paths = []
-    for state, action in zip(ep["state"], ep["action"].astype(np.float64), strict=True):
-        _, path = physics.control_step(state, action)
-        if action[2] > physics.PEN_THRESHOLD:
-            paths.append(path)
-    return paths
+    return replay_paths(ep["state"], ep["action"].astype(np.float64))
 
 
 def render_episode(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
     """(T, R, R, 3) uint8 image observations of a stored episode, identical to what the env showed."""
     ep = store.episode(episode, ("state", "action"))
     angle = float(store.column("board_angle")[episode])
-    renderer = SceneRenderer(image_size, angle)
-    frames = np.empty((len(ep["state"]), image_size, image_size, 3), dtype=np.uint8)
-    for t, (state, action) in enumerate(zip(ep["state"], ep["action"].astype(np.float64), strict=True)):
-        frames[t] = renderer.frame(state[:2])
-        _, path = physics.control_step(state, action)
-        if action[2] > physics.PEN_THRESHOLD:
-            renderer.add_ink(path)
-    return frames
+    # episode_frames also returns the frame after the last step, which is no observation.
+    return np.stack(episode_frames(ep["state"], ep["action"].astype(np.float64), angle, image_size)[:-1])

@@ -63,15 +63,6 @@ class Demonstration:
         return len(self.actions)
 
 
-def _resample(points: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Points along `points` at cumulative arc lengths given by cumsum(spacing), ending exactly at the end."""
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    t = np.cumsum(spacing)
-    t = np.concatenate([t[t < s[-1]], [s[-1]]])
-    return np.stack([np.interp(t, s, points[:, 0]), np.interp(t, s, points[:, 1])], axis=1)
-
-
 def _corner_arclengths(points: np.ndarray, angle_deg: float, scale: float) -> np.ndarray:
     """Arc lengths of sharp turns, measuring direction over `scale` px so dense curves are not corners."""
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)

@@ -9,6 +9,8 @@ benchmark never changes under you.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from bpp.envs.draw.drawing import Drawing
@@ -68,13 +70,18 @@ HUMAN_GLYPHS: tuple[tuple[str, str, str], ...] = (
 )
 
 
-def glyph_drawing(font: str, char: str, name: str, margin: float = 0.12) -> Drawing:
-    """One Hershey glyph as a drawing centred on the board, long side spanning [margin, 1 - margin]."""
+@functools.cache
+def _font(name: str):
     from HersheyFonts import HersheyFonts
 
-    fonts = HersheyFonts()
-    fonts.load_default_font(font)
-    strokes = [np.asarray(s, dtype=np.float64) for s in fonts.strokes_for_text(char) if len(s) > 1]
+    font = HersheyFonts()
+    font.load_default_font(name)
+    return font
+
+
+def glyph_drawing(font: str, char: str, name: str, margin: float = 0.12) -> Drawing:
+    """One Hershey glyph as a drawing centred on the board, long side spanning [margin, 1 - margin]."""
+    strokes = [np.asarray(s, dtype=np.float64) for s in _font(font).strokes_for_text(char) if len(s) > 1]
     if not strokes:
         raise ValueError(f"Hershey font {font!r} has no strokes for {char!r}")
     # Hershey coordinates are y-down; drawings are y-up.

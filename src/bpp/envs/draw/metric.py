@@ -32,6 +32,13 @@ def _bbox_of(mask: np.ndarray):
     return rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
 
 
+def _joint_crop(a: np.ndarray, b: np.ndarray) -> tuple[slice, slice]:
+    """The joint bounding box of two non-empty masks. Both point sets lie inside it, so distance fields
+    computed on this crop are exact for every pixel of either set."""
+    r0, r1, c0, c1 = np.array([_bbox_of(a), _bbox_of(b)]).T
+    return slice(r0.min(), r1.max()), slice(c0.min(), c1.max())
+
+
 def chamfer_distance(target: np.ndarray, rollout: np.ndarray) -> float:
     """Symmetric Chamfer score between two boolean (H, W) ink masks of the same shape, in pixels."""
     if target.shape != rollout.shape:
@@ -41,10 +48,7 @@ def chamfer_distance(target: np.ndarray, rollout: np.ndarray) -> float:
         return 0.0
     if not has_t or not has_r:
         return EMPTY_DISTANCE
-    # Both point sets lie inside their joint bounding box, so distance fields computed on that crop are exact
-    # for every pixel of either set.
-    r0, r1, c0, c1 = np.array([_bbox_of(target), _bbox_of(rollout)]).T
-    crop = (slice(r0.min(), r1.max()), slice(c0.min(), c1.max()))
+    crop = _joint_crop(target, rollout)
     t, r = target[crop], rollout[crop]
     to_rollout = ndimage.distance_transform_edt(~r)
     to_target = ndimage.distance_transform_edt(~t)
@@ -80,8 +84,7 @@ class ChamferTracker:
     def score(self) -> float:
         if not self.has_target or self.count == 0:
             return 0.0 if (not self.has_target and self.count == 0) else EMPTY_DISTANCE
-        r0, r1, c0, c1 = np.array([_bbox_of(self.target), _bbox_of(self.rollout)]).T
-        crop = (slice(r0.min(), r1.max()), slice(c0.min(), c1.max()))
+        crop = _joint_crop(self.target, self.rollout)
         to_rollout = ndimage.distance_transform_edt(~self.rollout[crop])
         return float(to_rollout[self.target[crop]].mean() + self.sum_to_target / self.count)
 

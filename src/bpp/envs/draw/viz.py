@@ -73,24 +73,13 @@ def target_coverage(target_paths: Sequence[np.ndarray], angle: float, size: int)
     return layer.ink
 
 
-def overlay_target(frame: np.ndarray, target_paths: Sequence[np.ndarray], angle: float) -> np.ndarray:
-    """Overlay upright canvas polylines, rotated onto the board at `angle`, faintly on a uint8 frame."""
-    center = np.asarray(BOARD_CENTER)
-    rotated = [(np.asarray(p) - center) @ rotation(angle).T + center for p in target_paths]
-    image = frame.astype(np.float64)
-    _paint_paths(image, rotated, TARGET_RGB, alpha=0.35)
-    return np.rint(image).astype(np.uint8)
-
-
 def episode_frames(states: np.ndarray, actions: np.ndarray, angle: float, size: int = 256) -> list[np.ndarray]:
     """Replay an episode into (size, size, 3) frames, one per observation, plus the final one."""
     from bpp.envs.draw.physics import PEN_THRESHOLD, control_step
 
     renderer = SceneRenderer(size, angle)
     frames = []
-    state = states[0]
-    for t, action in enumerate(actions):
-        state = states[t]
+    for state, action in zip(states, actions, strict=True):
         frames.append(renderer.frame(state[:2]))
         state, path = control_step(state, action)
         if action[2] > PEN_THRESHOLD:
