@@ -40,7 +40,7 @@ def _prompt_of_length(store, model, steps: int) -> dict:
 def act_latency(store, model, prompt_steps: int, calls: int) -> np.ndarray:
     agent = PolicyAgent(model)
     agent.reset(_prompt_of_length(store, model, prompt_steps), seed=0)
-    ep = prompt_from_store(store, 1, model.context_keys(), model.cfg.obs.image_keys, model.cfg.obs.image_size)
+    ep = prompt_from_store(store, 1, model.obs_keys(), model.cfg.obs.image_keys, model.cfg.obs.image_size)
     obs = {k: v[0] for k, v in ep["obs"].items()}
     agent.act(obs)  # warm-up
     times = []

@@ -9,7 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.prompt_dataset import DataSpec, PromptBatchDataset
 from bpp.evaluation.draw import prompt_from_store, rollout
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.config import PRESETS, PromptConfig
@@ -22,7 +22,7 @@ KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 
 
 def _dataset(store, **kw):
-    return PromptBatchDataset(store, lowdim_keys=KEYS, batch_size=8, seed=0, **kw)
+    return PromptBatchDataset(store, DataSpec(lowdim_keys=tuple(KEYS), **kw), batch_size=8, seed=0)
 
 
 def _model(store, cfg=None):
@@ -36,10 +36,10 @@ def test_batches_are_deterministic_and_from_one_task(debug_store):
     for key in KEYS:
         np.testing.assert_array_equal(a["obs"][key], b["obs"][key])
     assert a["obs"]["agent_pos"].shape == (8, 2, 2) and a["action"].shape == (8, 16, 3)
-    assert a["prompt"]["action"].shape[0] == 1 and a["prompt"]["valid"].all()
+    assert a["context"]["action"].shape[0] == 1 and a["context"]["valid"].all()
     # The prompt is a demonstration of the batch's task and no window comes from it.
     task_of = debug_store.column("task_index")
-    prompt_len = a["prompt"]["action"].shape[1]
+    prompt_len = a["context"]["action"].shape[1]
     prompt_eps = [
         e
         for e in debug_store.task_episodes()[int(a["task"])]
@@ -64,7 +64,7 @@ def test_loss_and_shapes(debug_store):
     loss = model.compute_loss(batch)
     assert loss.ndim == 0 and torch.isfinite(loss)
     loss.backward()
-    ctx = model.encode_prompt(batch["prompt"])
+    ctx = model.encode_prompt(batch["context"])
     out = model.predict_action(batch["obs"], ctx, return_attention=True)
     assert out["action"].shape == (8, 16, 3)
     assert out["attention"].shape == (8, ctx.num_chunks + 1)
@@ -75,10 +75,10 @@ def test_cached_prompt_gives_the_same_actions_as_recomputing_it(debug_store):
     model = _model(debug_store).eval()
     batch = to_torch(_dataset(debug_store)[3], "cpu")
     noise = torch.randn(8, 16, 3, generator=torch.Generator().manual_seed(0))
-    cached = model.encode_prompt(batch["prompt"])
+    cached = model.encode_prompt(batch["context"])
     a = model.predict_action(batch["obs"], cached, noise=noise)["action"]
     b = model.predict_action(batch["obs"], cached, noise=noise)["action"]
-    c = model.predict_action(batch["obs"], model.encode_prompt(batch["prompt"]), noise=noise)["action"]
+    c = model.predict_action(batch["obs"], model.encode_prompt(batch["context"]), noise=noise)["action"]
     torch.testing.assert_close(a, b, rtol=0, atol=0)
     torch.testing.assert_close(a, c, rtol=0, atol=0)
 
@@ -150,7 +150,7 @@ def test_prompt_ablations_train_and_act(debug_store, prompt_cfg):
     batch = to_torch(_dataset(debug_store)[0], "cpu")
     model.compute_loss(batch).backward()
     assert all(p.grad is not None for p in model.parameters())  # every module is used (DDP needs it)
-    ctx = model.encode_prompt(batch["prompt"])
+    ctx = model.encode_prompt(batch["context"])
     assert model.predict_action(batch["obs"], ctx)["action"].shape == (8, 16, 3)
 
 
@@ -286,7 +286,7 @@ def test_image_observations_train_and_act(debug_store):
     ds = _dataset(debug_store, image_keys=("image",), image_size=32)
     batch = ds[0]
     assert batch["obs"]["image"].shape == (8, 2, 32, 32, 3) and batch["obs"]["image"].dtype == np.uint8
-    assert batch["prompt"]["obs"]["image"].shape[2:] == (32, 32, 3)
+    assert batch["context"]["obs"]["image"].shape[2:] == (32, 32, 3)
     model.compute_loss(to_torch(batch, "cpu")).backward()
     assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0
     result = rollout(PolicyAgent(model), debug_store, 0, -0.4, seed=0, max_steps=13)
@@ -323,3 +323,16 @@ def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):
             {k: v[i : i + 1] for k, v in obs.items()}, model.encode_prompt(to_torch(p, "cpu")), noise=noise[i : i + 1]
         )["action"]
         torch.testing.assert_close(batched[i : i + 1], alone, rtol=1e-5, atol=1e-4)
+
+
+def test_batched_rollouts_match_single_rollouts(debug_store):
+    """Rollouts stepped together in one batch give exactly what each gives alone (per-rollout noise seeds)."""
+    from bpp.evaluation.draw import rollout_batch
+
+    agent = PolicyAgent(_model(debug_store).eval())
+    episodes, angles, seeds = [0, 4, 9], [0.3, -0.5, 0.1], [11, 12, 13]
+    together = rollout_batch(agent, debug_store, episodes, angles, seeds, max_steps=30)
+    for ep, angle, seed, batched in zip(episodes, angles, seeds, together, strict=True):
+        alone = rollout(agent, debug_store, ep, angle, seed=seed, max_steps=30)
+        assert alone.steps == batched.steps
+        assert alone.best_chamfer == pytest.approx(batched.best_chamfer, abs=1e-6)

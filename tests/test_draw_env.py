@@ -126,3 +126,17 @@ def test_bad_actions_and_options_are_refused():
         env.step(np.array([1.0, 2.0]))
     with pytest.raises(ValueError, match="unknown reset options"):
         env.reset(options={"angle": 0.1})
+
+
+def test_board_frame_actions_replay_the_demo_like_canvas_actions(debug_store):
+    """A stored demo executed as board-frame actions (action_on_board) inks exactly what its canvas actions ink."""
+    ep = debug_store.episode(3, ("state", "action", "action_on_board"))
+    angle = float(debug_store.column("board_angle")[3])
+    paths = {}
+    for frame, key in (("canvas", "action"), ("board", "action_on_board")):
+        env = DrawEnv(image_size=None, action_frame=frame)
+        env.reset(options={"board_angle": angle, "cursor": ep["state"][0, :2]})
+        for action in ep[key]:
+            env.step(action)
+        paths[frame] = np.concatenate(env.paths)
+    np.testing.assert_allclose(paths["board"], paths["canvas"], atol=1e-3)

@@ -7,16 +7,15 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import tyro
 
 from bpp.envs.draw.dataset import PRESETS as DRAW_PRESETS
 from bpp.envs.draw.dataset import DrawDataConfig
-from bpp.policies.bpp.config import PRESETS as BPP_PRESETS
-from bpp.policies.bpp.config import BPPConfig
+from bpp.policies.registry import get_method
 from bpp.train import TrainConfig
 
 # ----------------------------------------------------------------------------- bpp draw generate
@@ -179,14 +178,27 @@ class Train:
 
     Examples:
       bpp train --data data/draw/train.zarr --out runs/bpp-cpu --preset cpu
+      bpp train --method icrt --data data/draw/train.zarr --out runs/icrt-cpu --preset cpu
       bpp train --data data/draw/train.zarr --out runs/bpp-cpu --resume        (continue a killed run)
       torchrun --nproc-per-node 4 -m bpp.cli train --data ... --preset paper --out runs/paper
     """
 
     train: Annotated[TrainConfig, tyro.conf.OmitArgPrefixes]
     preset: str = "cpu"
-    """Model preset: debug, cpu, cpu-image, paper (--model.* flags override it)."""
-    model: BPPConfig = field(default_factory=BPPConfig)
+    """Model preset of the chosen --method (e.g. debug, cpu, paper; --model.* flags override it)."""
+    model: Any = None
+
+
+def _train_class(method) -> type:
+    """`Train` with `model` typed as the method's config, so that tyro offers that method's --model.* flags."""
+    cls = make_dataclass(
+        "Train",
+        [("model", method.config_cls, field(default_factory=method.config_cls))],
+        bases=(Train,),
+        frozen=True,
+    )
+    cls.__doc__ = Train.__doc__
+    return cls
 
 
 def train_cmd(args: Train) -> None:
@@ -278,10 +290,14 @@ def main(argv: list[str] | None = None) -> None:
             if cls is DrawGenerate:
                 default = DrawGenerate(out=tyro.MISSING, data=_draw_preset(rest))
             elif cls is Train:
-                name = _flag(rest, "--preset", "cpu")
-                if name not in BPP_PRESETS:
-                    sys.exit(f"bpp train: unknown preset {name!r}; choose from {', '.join(BPP_PRESETS)}")
-                default = Train(train=TrainConfig(data=tyro.MISSING), model=BPP_PRESETS[name], preset=name)
+                try:
+                    method = get_method(_flag(rest, "--method", "bpp"))
+                    preset = _flag(rest, "--preset", "cpu")
+                    model = method.preset(preset)
+                except ValueError as err:
+                    sys.exit(f"bpp train: {err}")
+                cls = _train_class(method)
+                default = cls(train=TrainConfig(data=tyro.MISSING, method=method.name), model=model, preset=preset)
             args = tyro.cli(cls, args=rest, prog=f"bpp {' '.join(words)}", default=default)
             try:
                 run(args)

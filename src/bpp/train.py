@@ -129,20 +129,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         print(f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}")
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
-    obs_cfg, h = model_cfg.obs, model_cfg.horizons
     dataset = PromptBatchDataset(
-        store,
-        lowdim_keys=[*obs_cfg.lowdim_keys, *obs_cfg.proprio_keys],
-        image_keys=obs_cfg.image_keys,
-        image_size=obs_cfg.image_size,
-        action_key=model_cfg.action_key,
-        n_obs_steps=h.n_obs_steps,
-        horizon=h.horizon,
-        batch_size=cfg.batch_size,
-        num_batches=cfg.steps,
-        seed=cfg.seed,
-        rank=rank,
-        max_prompt_steps=model_cfg.prompt.max_steps,
+        store, model.data_spec(), batch_size=cfg.batch_size, num_batches=cfg.steps, seed=cfg.seed, rank=rank
     )
     loader = torch.utils.data.DataLoader(
         dataset,

@@ -1,15 +1,21 @@
-"""Training batches for behavior prompting: one task, one prompt demonstration, windows from its other demos.
+"""Training batches for behavior prompting: one task, one context demonstration, samples from its other demos.
 
 Batch ``i`` is a pure function of ``(seed, i, rank)``, so data loading is deterministic whatever the number of
 loader workers, a resumed run sees exactly the batches it would have seen, and DDP ranks draw different
 batches. Each item of this map-style dataset is a *whole batch* (use ``DataLoader(batch_size=None)``).
+
+What a method needs is declared by its model as a :class:`DataSpec`: which keys, and which task context (a
+demonstration prompt, the prompt's goal image, or the task's instruction). Every method trains from the same
+(task, context demonstration, other demonstrations) draws, so that differences come from the context alone.
 """
 
 from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
@@ -18,6 +24,8 @@ from bpp.data.store import EpisodeStore
 
 FrameSource = Callable[[EpisodeStore, int, str, int], np.ndarray]
 """(store, episode, image key, size) -> (T, size, size, 3) uint8 frames of that episode."""
+
+ContextKind = Literal["demo", "goal_image", "instruction"]
 
 
 def benchmark_frames(benchmark: str) -> FrameSource | None:
@@ -29,52 +37,78 @@ def benchmark_frames(benchmark: str) -> FrameSource | None:
     return None
 
 
-class PromptBatchDataset(torch.utils.data.Dataset):
-    """Batches of ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "prompt": {...}, "task": ()}`` (numpy).
+@dataclass(frozen=True)
+class DataSpec:
+    """What a method's training batches contain (each model builds one from its config: ``model.data_spec()``)."""
 
-    The prompt is ``{"obs": {k: (1, L, ...)}, "action": (1, L, A), "valid": (1, L)}``: one demonstration of the
-    batch's task, and every window comes from a *different* demonstration of the same task. Tasks are drawn
-    uniformly (balanced), among tasks with at least two demonstrations.
+    lowdim_keys: tuple[str, ...]
+    """Per-step low-dimensional keys (observation and proprioception), in the batch's ``obs``."""
+    image_keys: tuple[str, ...] = ()
+    image_size: int = 96
+    action_key: str = "action"
+    n_obs_steps: int = 2
+    horizon: int = 16
+    context: ContextKind = "demo"
+    """demo: a whole demonstration (the prompt); goal_image: its final frame; instruction: the task's text."""
+    context_image_key: str = "image"
+    context_image_size: int = 96
+    """Goal images: which camera and at what size."""
+    samples: Literal["windows", "episodes"] = "windows"
+    """windows: (observation history, action chunk) windows; episodes: whole demonstrations, padded (ICRT)."""
+    max_prompt_steps: int = 800
+    max_episode_steps: int = 400
+    """Whole-episode samples are cut to this length."""
+
+
+class PromptBatchDataset(torch.utils.data.Dataset):
+    """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "task": ()}`` (numpy).
+
+    Each batch draws one task uniformly (balanced, among tasks with at least two demonstrations), one
+    *context demonstration* of it, and `batch_size` samples from the task's *other* demonstrations. The context is
+    (by ``spec.context``)
+
+    * ``demo``: ``{"obs": {k: (1, L, ...)}, "action": (1, L, A), "valid": (1, L)}``, the demonstration itself;
+    * ``goal_image``: ``{"image": (1, H, W, 3)}``, its final frame;
+    * ``instruction``: ``{"text": [str]}``, the task's instruction.
+
+    With ``spec.samples == "episodes"`` the samples are whole demonstrations instead of windows:
+    ``obs`` (B, L, ...), ``action`` (B, L, A) and ``valid`` (B, L), padded to the longest.
     """
 
     def __init__(
         self,
         store: str | Path | EpisodeStore,
+        spec: DataSpec,
         *,
-        lowdim_keys: Sequence[str],
-        image_keys: Sequence[str] = (),
-        image_size: int = 96,
-        action_key: str = "action",
-        n_obs_steps: int = 2,
-        horizon: int = 16,
         batch_size: int = 64,
         num_batches: int = 10**9,
         seed: int = 0,
         rank: int = 0,
-        max_prompt_steps: int = 800,
         tasks: Sequence[int] | None = None,
         frame_cache_episodes: int = 256,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
-        missing = [k for k in [*lowdim_keys, action_key] if k not in self.store.keys]
+        self.spec = spec
+        missing = [k for k in [*spec.lowdim_keys, spec.action_key] if k not in self.store.keys]
         if missing:
             raise KeyError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
-        self.lowdim_keys = list(lowdim_keys)
-        self.image_keys = list(image_keys)
-        self.image_size = image_size
-        self.frames = benchmark_frames(self.store.benchmark) if image_keys else None
-        if image_keys and self.frames is None:
+        needs_frames = bool(spec.image_keys) or spec.context == "goal_image"
+        self.frames = benchmark_frames(self.store.benchmark) if needs_frames else None
+        if needs_frames and self.frames is None:
             raise ValueError(f"{self.store.path}: benchmark {self.store.benchmark!r} provides no image observations")
-        self.action_key = action_key
-        self.n_obs_steps, self.horizon = n_obs_steps, horizon
+        if spec.context == "instruction":
+            self.instructions = [str(t.get("instruction") or "") for t in self.store.tasks]
+            if not any(self.instructions):
+                raise ValueError(
+                    f"{self.store.path}: its tasks carry no instructions, so a language policy can't train"
+                )
         self.batch_size, self.num_batches = batch_size, num_batches
         self.seed, self.rank = seed, rank
-        self.max_prompt_steps = max_prompt_steps
         by_task = self.store.task_episodes()
         chosen = range(len(by_task)) if tasks is None else tasks
         self.tasks = [t for t in chosen if len(by_task[t]) >= 2]
         if not self.tasks:
-            raise ValueError(f"{self.store.path}: no task has the two demonstrations BPP training needs")
+            raise ValueError(f"{self.store.path}: no task has the two demonstrations training needs")
         self.task_episodes = by_task
         self.starts, self.ends = self.store.episode_starts, self.store.episode_ends
         self._arrays: dict[str, np.ndarray] | None = None
@@ -92,49 +126,77 @@ class PromptBatchDataset(torch.utils.data.Dataset):
 
     def _data(self) -> dict[str, np.ndarray]:
         if self._arrays is None:
-            self._arrays = {k: self.store.array(k) for k in [*self.lowdim_keys, self.action_key]}
+            self._arrays = {k: self.store.array(k) for k in [*self.spec.lowdim_keys, self.spec.action_key]}
         return self._arrays
 
-    def _episode_frames(self, episode: int, key: str) -> np.ndarray:
-        cache_key = (episode, key)
+    def _episode_frames(self, episode: int, key: str, size: int) -> np.ndarray:
+        cache_key = (episode, key, size)
         if cache_key not in self._frame_cache:
-            self._frame_cache[cache_key] = self.frames(self.store, episode, key, self.image_size)
+            self._frame_cache[cache_key] = self.frames(self.store, episode, key, size)
             if len(self._frame_cache) > self._frame_cache_episodes:
                 self._frame_cache.popitem(last=False)
         self._frame_cache.move_to_end(cache_key)
         return self._frame_cache[cache_key]
 
+    def _gather(self, episodes: np.ndarray, index: np.ndarray) -> dict:
+        """Observations of `episodes` (B,) at their step indices `index` (B, N): ``{key: (B, N, ...)}``."""
+        data, base = self._data(), self.starts[episodes][:, None]
+        obs = {k: data[k][base + index] for k in self.spec.lowdim_keys}
+        for key in self.spec.image_keys:
+            obs[key] = np.stack(
+                [
+                    self._episode_frames(int(e), key, self.spec.image_size)[i]
+                    for e, i in zip(episodes, index, strict=True)
+                ]
+            )
+        return obs
+
     def prompt(self, episode: int) -> dict:
         """One stored episode as a prompt (capped at ``max_prompt_steps``), batch dimension 1."""
-        data = self._data()
-        start = int(self.starts[episode])
-        length = min(int(self.ends[episode]) - start, self.max_prompt_steps)
-        sl = slice(start, start + length)
-        obs = {k: data[k][sl][None] for k in self.lowdim_keys}
-        for key in self.image_keys:
-            obs[key] = self._episode_frames(episode, key)[:length][None]
-        return {"obs": obs, "action": data[self.action_key][sl][None], "valid": np.ones((1, length), dtype=bool)}
+        length = min(int(self.ends[episode] - self.starts[episode]), self.spec.max_prompt_steps)
+        episodes, index = np.array([episode]), np.arange(length)[None]
+        action = self._data()[self.spec.action_key][self.starts[episodes][:, None] + index]
+        return {"obs": self._gather(episodes, index), "action": action, "valid": np.ones((1, length), dtype=bool)}
+
+    def context(self, task: int, episode: int) -> dict:
+        """The task context a method is conditioned on, from context demonstration `episode` of `task`."""
+        kind = self.spec.context
+        if kind == "demo":
+            return self.prompt(episode)
+        if kind == "goal_image":
+            frames = self._episode_frames(episode, self.spec.context_image_key, self.spec.context_image_size)
+            return {"image": frames[-1:]}
+        return {"text": [self.instructions[task]]}
 
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index), self.rank])
         task = self.tasks[int(rng.integers(len(self.tasks)))]
         episodes = self.task_episodes[task]
-        prompt_episode = int(episodes[rng.integers(len(episodes))])
-        others = episodes[episodes != prompt_episode]
+        context_episode = int(episodes[rng.integers(len(episodes))])
+        others = episodes[episodes != context_episode]
         chosen = others[rng.integers(len(others), size=self.batch_size)]
+        batch = self._episodes(chosen) if self.spec.samples == "episodes" else self._windows(chosen, rng)
+        batch["context"] = self.context(task, context_episode)
+        batch["task"] = np.int64(task)
+        return batch
+
+    def _windows(self, chosen: np.ndarray, rng: np.random.Generator) -> dict:
+        To, T = self.spec.n_obs_steps, self.spec.horizon
         lengths = self.ends[chosen] - self.starts[chosen]
-        t = (rng.random(self.batch_size) * lengths).astype(np.int64)  # current step within each episode
-        obs_idx = np.clip(t[:, None] + np.arange(-self.n_obs_steps + 1, 1), 0, None)
-        act_idx = np.clip(t[:, None] + np.arange(-self.n_obs_steps + 1, self.horizon - self.n_obs_steps + 1), 0, None)
+        t = (rng.random(len(chosen)) * lengths).astype(np.int64)  # current step within each episode
+        obs_idx = np.clip(t[:, None] + np.arange(-To + 1, 1), 0, None)
+        act_idx = np.clip(t[:, None] + np.arange(-To + 1, T - To + 1), 0, None)
         act_idx = np.minimum(act_idx, lengths[:, None] - 1)  # pad past the end with the final action
-        data = self._data()
-        base = self.starts[chosen][:, None]
-        obs = {k: data[k][base + obs_idx] for k in self.lowdim_keys}
-        for key in self.image_keys:
-            obs[key] = np.stack([self._episode_frames(int(e), key)[i] for e, i in zip(chosen, obs_idx, strict=True)])
+        actions = self._data()[self.spec.action_key][self.starts[chosen][:, None] + act_idx]
+        return {"obs": self._gather(chosen, obs_idx), "action": actions}
+
+    def _episodes(self, chosen: np.ndarray) -> dict:
+        lengths = np.minimum(self.ends[chosen] - self.starts[chosen], self.spec.max_episode_steps)
+        longest = int(lengths.max())
+        index = np.minimum(np.arange(longest)[None], lengths[:, None] - 1)  # pad by repeating the last step
+        actions = self._data()[self.spec.action_key][self.starts[chosen][:, None] + index]
         return {
-            "obs": obs,
-            "action": data[self.action_key][base + act_idx],
-            "prompt": self.prompt(prompt_episode),
-            "task": np.int64(task),
+            "obs": self._gather(chosen, index),
+            "action": actions,
+            "valid": np.arange(longest)[None] < lengths[:, None],
         }

@@ -1,20 +1,26 @@
-"""The inference agent every evaluator and interface uses: numpy in, numpy out, one rollout at a time.
+"""The inference agent every evaluator and interface uses: numpy in, numpy out, one or many rollouts in lockstep.
 
 It owns what a rollout needs beyond the network: the task context encoded once at :meth:`reset` (for BPP, the
 prompt's chunk embeddings), the observation history (To steps, the first observation repeated at the start),
-the receding-horizon action queue (Ta of each predicted T-step chunk are executed), and a noise generator
-seeded per rollout so that every method sees identical seeds.
+the receding-horizon action queue (Ta of each predicted T-step chunk are executed), and one noise generator per
+rollout, seeded by the caller, so that every method sees identical seeds and a rollout does not depend on which
+other rollouts share its batch.
+
+Any model that implements the policy contract plugs in (see :mod:`bpp.policies.registry`):
+``obs_keys()``, ``validate_context(raw) -> batch of 1``, ``encode_context(batch) -> context``,
+``predict_action(obs, context, noise=..., return_attention=...) -> {"action": (B, T, A)}``.
 """
 
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from bpp.policies.common import collate_contexts
 from bpp.utils import to_torch
 
 
@@ -22,10 +28,11 @@ class PolicyAgent:
     """Wraps a tensor-only policy model for closed-loop control.
 
     Args:
-        model: a policy model (``validate_context``, ``encode_context``, ``predict_action``).
+        model: a policy model (see the module docstring for the contract).
         device: where to run the model.
         n_action_steps: actions executed per inference (default: the model's Ta).
-        record_attention: keep the prompt attention of every inference in :attr:`attention_log`.
+        record_attention: keep the prompt attention of every inference in :attr:`attention_log`
+            (models that have none ignore it).
     """
 
     def __init__(
@@ -44,7 +51,7 @@ class PolicyAgent:
             raise ValueError(f"n_action_steps must be in [1, {self.horizon - self.n_obs_steps + 1}]")
         self.record_attention = record_attention
         self.context = None
-        self.generator = torch.Generator(self.device)
+        self.obs_keys = list(model.obs_keys())
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", use_ema: bool = True, **kw) -> PolicyAgent:
@@ -52,41 +59,56 @@ class PolicyAgent:
 
         return cls(load_policy(path, device, use_ema), device, **kw)
 
+    # ------------------------------------------------------------ one rollout
     def reset(self, context: Mapping, seed: int = 0) -> None:
-        """Start a rollout: validate and encode the task context once, clear history and queue."""
-        batch = self.model.validate_context(context)
-        with torch.no_grad():
-            self.context = self.model.encode_context(to_torch(batch, self.device))
-        self.history: deque = deque(maxlen=self.n_obs_steps)
-        self.queue: deque = deque()
-        self.generator.manual_seed(seed)
-        self.attention_log: list[np.ndarray] = []
-        self.steps = 0
+        """Start one rollout: validate and encode the task context once, clear history and queue."""
+        self.reset_batch([context], [seed])
 
     def act(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
         """The next action (A,) for the current observation (a dict of per-key arrays without time axis)."""
+        return self.act_batch({k: np.asarray(obs[k])[None] for k in self.obs_keys})[0]
+
+    # ------------------------------------------------- many rollouts in lockstep
+    def reset_batch(self, contexts: Sequence[Mapping], seeds: Sequence[int]) -> None:
+        """Start len(contexts) rollouts at once (they then step together); rollout i's noise is seeded by seeds[i]."""
+        if len(contexts) != len(seeds) or not contexts:
+            raise ValueError(f"need one seed per context, got {len(contexts)} contexts and {len(seeds)} seeds")
+        batch = collate_contexts([self.model.validate_context(c) for c in contexts])
+        with torch.no_grad():
+            self.context = self.model.encode_context(to_torch(batch, self.device))
+        self.generators = [torch.Generator(self.device).manual_seed(int(s)) for s in seeds]
+        self.history: deque = deque(maxlen=self.n_obs_steps)
+        self.queue: deque = deque()
+        self.attention_log: list[np.ndarray] = []  # per inference call: (B, n_chunks + 1)
+        self.steps = 0
+
+    def act_batch(self, obs: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Next actions (B, A) for observations ``{key: (B, ...)}`` of the B rollouts started by reset_batch."""
         if self.context is None:
             raise RuntimeError("call reset(context) before act(obs)")
-        obs = {k: np.asarray(obs[k]) for k in self.model.context_keys()}
+        obs = {k: np.asarray(obs[k]) for k in self.obs_keys}
         if not self.history:
             self.history.extend([obs] * (self.n_obs_steps - 1))
         self.history.append(obs)
         if not self.queue:
             chunk = self.predict_chunk()
             start = self.n_obs_steps - 1
-            self.queue.extend(chunk[start : start + self.n_action_steps])
+            self.queue.extend(np.swapaxes(chunk[:, start : start + self.n_action_steps], 0, 1))
         self.steps += 1
         return self.queue.popleft()
 
     def predict_chunk(self) -> np.ndarray:
-        """Run the model on the current history: the full (T, A) action chunk."""
-        stacked = {k: np.stack([o[k] for o in self.history])[None] for k in self.history[-1]}
+        """Run the model on the current history: the full (B, T, A) action chunks."""
+        stacked = {k: np.stack([o[k] for o in self.history], axis=1) for k in self.obs_keys}
+        shape = (self.horizon, self.model.action_dim)
+        noise = torch.stack([torch.randn(shape, generator=g, device=self.device) for g in self.generators])
         out = self.model.predict_action(
             to_torch(stacked, self.device),
             self.context,
-            generator=self.generator,
+            noise=noise,
+            generator=self.generators[0],
             return_attention=self.record_attention,
         )
-        if self.record_attention:
-            self.attention_log.append(out["attention"][0].cpu().numpy())
-        return out["action"][0].cpu().numpy()
+        if self.record_attention and "attention" in out:
+            self.attention_log.append(out["attention"].cpu().numpy())
+        return out["action"].cpu().numpy()

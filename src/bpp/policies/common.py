@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -185,3 +186,21 @@ class Horizons:
 
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
+
+
+def collate_contexts(items: list) -> object:
+    """Stack validated task contexts (each with batch dimension 1) into one batch.
+
+    Arrays are concatenated along the batch axis; arrays whose time axis (axis 1) differs are zero-padded to
+    the longest first, so a demonstration's ``valid`` mask pads with False. Lists (e.g. instructions) are joined.
+    """
+    first = items[0]
+    if isinstance(first, Mapping):
+        return {k: collate_contexts([item[k] for item in items]) for k in first}
+    if isinstance(first, list):
+        return [x for item in items for x in item]
+    arrays = [np.asarray(a) for a in items]
+    if arrays[0].ndim >= 2:
+        longest = max(a.shape[1] for a in arrays)
+        arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
+    return np.concatenate(arrays, axis=0)

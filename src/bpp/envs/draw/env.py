@@ -28,9 +28,25 @@ STILL_WINDOW = 20
 STILL_RADIUS = 20.0
 
 
+ACTION_FRAMES = {"action": "canvas", "action_on_board": "board"}
+"""Stored action keys and the frame the environment must interpret them in (its ``action_frame``)."""
+
+
 def board_pose(angle: float) -> np.ndarray:
     """The low-dimensional board pose observation: (cos angle, sin angle), float32 (2,)."""
     return np.array([np.cos(angle), np.sin(angle)], dtype=np.float32)
+
+
+def action_to_board(actions: np.ndarray, angle: float) -> np.ndarray:
+    """Canvas actions (..., 3) ``[x, y, pen]`` -> board-frame actions: the target in the board's unit frame."""
+    actions = np.asarray(actions, dtype=np.float64)
+    return np.concatenate([canvas_to_unit(actions[..., :2], angle), actions[..., 2:]], axis=-1)
+
+
+def action_to_canvas(actions: np.ndarray, angle: float) -> np.ndarray:
+    """Inverse of :func:`action_to_board`."""
+    actions = np.asarray(actions, dtype=np.float64)
+    return np.concatenate([unit_to_canvas(actions[..., :2], angle), actions[..., 2:]], axis=-1)
 
 
 class DrawEnv(gym.Env):
@@ -43,7 +59,10 @@ class DrawEnv(gym.Env):
         ``board_pose`` (2,) float32, (cos, sin) of the board angle;
         ``cursor_on_board`` (2,) float32, the cursor in the board's own unit frame (what the image shows: where
         the cursor is on the board), for state-only policies.
-    Action: (3,) ``[x, y, pen]`` — an absolute target in canvas px and a pen flag (down if > 0.5).
+    Action: (3,) ``[x, y, pen]`` — an absolute target in canvas px and a pen flag (down if > 0.5), as in the
+    paper. With ``action_frame="board"`` the target is given in the board's unit frame instead (the frame of
+    ``cursor_on_board``; stored demonstrations carry it as ``action_on_board``): a rotation-free representation
+    for state-only policies, which then need not learn to rotate the prompt's actions onto a new board.
 
     The episode is truncated after ``max_episode_steps`` and terminated early once the cursor has stayed within
     ``still_radius`` px of where it was ``still_window`` steps earlier, for all of those steps.
@@ -65,7 +84,11 @@ class DrawEnv(gym.Env):
         still_radius: float = STILL_RADIUS,
         render_mode: str | None = None,
         render_size: int = CANVAS_SIZE,
+        action_frame: str = "canvas",
     ):
+        if action_frame not in ("canvas", "board"):
+            raise ValueError(f"action_frame must be 'canvas' or 'board', got {action_frame!r}")
+        self.action_frame = action_frame
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.image_size = image_size
@@ -84,9 +107,11 @@ class DrawEnv(gym.Env):
         if image_size is not None:
             obs["image"] = spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
         self.observation_space = spaces.Dict(obs)
-        self.action_space = spaces.Box(
-            np.zeros(3, np.float32), np.array([CANVAS_SIZE, CANVAS_SIZE, 1.0], np.float32), dtype=np.float32
-        )
+        if action_frame == "canvas":
+            low, high = np.zeros(3, np.float32), np.array([CANVAS_SIZE, CANVAS_SIZE, 1.0], np.float32)
+        else:  # the whole canvas at any board angle lies within [-0.6, 1.6] in board units
+            low, high = np.array([-0.6, -0.6, 0.0], np.float32), np.array([1.6, 1.6, 1.0], np.float32)
+        self.action_space = spaces.Box(low, high, dtype=np.float32)
         self.state = physics.initial_state(np.array(BOARD_CENTER))
         self.board_angle = 0.0
 
@@ -139,6 +164,8 @@ class DrawEnv(gym.Env):
         action = np.asarray(action, dtype=np.float64)
         if action.shape != (3,) or not np.all(np.isfinite(action)):
             raise ValueError(f"action must be 3 finite numbers [x, y, pen], got {action!r}")
+        if self.action_frame == "board":
+            action = action_to_canvas(action, self.board_angle)
         self.state, path = physics.control_step(self.state, action)
         self.steps += 1
         self.positions.append(self.state[:2].copy())

@@ -72,6 +72,11 @@ PRESETS: dict[str, BPPConfig] = {
     ),
     # State-only DrawAnything on a 2-core CPU.
     "cpu": BPPConfig(),
+    # State-only in the board's own frame (cursor and action targets as seen on the board): the prompt's actions
+    # transfer to a new board angle unchanged. Not the paper's setting (canvas actions); labelled wherever used.
+    "cpu-board": BPPConfig(
+        obs=ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down")), action_key="action_on_board"
+    ),
     # Image observations at 64x64 on a CPU.
     "cpu-image": BPPConfig(
         obs=ObsConfig(image_keys=("image",), image_size=64, image_features=128, image_widths=(16, 32, 64, 128)),

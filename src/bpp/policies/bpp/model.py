@@ -16,6 +16,7 @@ import torch
 from einops import rearrange, repeat
 from torch import nn
 
+from bpp.data.prompt_dataset import DataSpec
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
 from bpp.policies.bpp.config import BPPConfig
 from bpp.policies.common import DiffusionHead, Normalizer, ObsEncoder
@@ -47,6 +48,7 @@ class BPPModel(nn.Module):
     """Behavior Prompting Policy (tensor-only; :class:`bpp.policies.agent.PolicyAgent` wraps it for rollouts)."""
 
     method = "bpp"
+    context_kind = "demo"
 
     def __init__(self, cfg: BPPConfig, stats: Mapping[str, Mapping[str, list[float]]]):
         super().__init__()
@@ -138,15 +140,29 @@ class BPPModel(nn.Module):
         return self.compute_loss(batch, generator)
 
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        ctx = self.encode_prompt(batch["prompt"])
+        ctx = self.encode_prompt(batch["context"])
         cond, _ = self.condition(batch["obs"], ctx)
         actions = self.normalizer.normalize(self.cfg.action_key, batch["action"])
         return self.head.loss(actions, cond, generator)
 
     # -------------------------------------------------------------- inference
-    def context_keys(self) -> list[str]:
-        """Per-step keys a prompt demonstration must provide."""
-        return [*self.cfg.obs.image_keys, *self.cfg.obs.lowdim_keys, *self.cfg.obs.proprio_keys]
+    def obs_keys(self) -> list[str]:
+        """Per-step observation keys the policy reads (and a prompt demonstration must provide)."""
+        return self.cfg.obs.entries
+
+    def data_spec(self) -> DataSpec:
+        """What training batches must contain for this model."""
+        obs, h = self.cfg.obs, self.cfg.horizons
+        return DataSpec(
+            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
+            image_keys=obs.image_keys,
+            image_size=obs.image_size,
+            action_key=self.cfg.action_key,
+            n_obs_steps=h.n_obs_steps,
+            horizon=h.horizon,
+            context="demo",
+            max_prompt_steps=self.cfg.prompt.max_steps,
+        )
 
     def validate_context(self, prompt: Mapping) -> dict:
         """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
@@ -166,9 +182,9 @@ class BPPModel(nn.Module):
         if not np.all(np.isfinite(actions)):
             raise PromptError("prompt actions contain NaN or infinite values")
         obs = {}
-        for key in self.context_keys():
+        for key in self.obs_keys():
             if key not in prompt["obs"]:
-                raise PromptError(f"prompt obs lacks {key!r}; expected keys {self.context_keys()}")
+                raise PromptError(f"prompt obs lacks {key!r}; expected keys {self.obs_keys()}")
             value = np.asarray(prompt["obs"][key])
             if len(value) != steps:
                 raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
