@@ -53,10 +53,40 @@ def test_user_errors_are_reported_without_traceback(tmp_path):
 
 
 def test_demo_main_job_runs_and_reuses(tmp_path):
-    args = ("demo", "--out-dir", str(tmp_path / "out"), "--data-dir", str(tmp_path / "data"), "--num-tasks", "6")
+    args = (
+        "demo",
+        *("--out-dir", str(tmp_path / "out"), "--data-dir", str(tmp_path / "data")),
+        *("--run-dir", str(tmp_path / "run"), "--preset", "debug", "--num-tasks", "6", "--steps", "3"),
+        *("--eval-tasks", "2", "--rollouts", "2", "--max-steps", "30", "--workers", "1"),
+    )
     first = _bpp(*args)
-    assert first.returncode == 0, first.stderr
-    for name in ("train_sheet.png", "human_sheet.png", "human_demo_0.gif"):
-        assert (tmp_path / "out" / name).stat().st_size > 10_000
+    assert first.returncode == 0, first.stderr[-3000:]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "Chamfer, mean over drawings" in report and "rollout_" in report
+    for name in ("grid.png", "attention.png", "results.json", "results.md"):
+        assert (tmp_path / "out" / "eval-human" / name).stat().st_size > 300
+    assert list((tmp_path / "out" / "eval-human").glob("rollout_*"))
     second = _bpp(*args)
-    assert second.returncode == 0 and second.stdout.count("reusing") == 2
+    assert second.returncode == 0, second.stderr[-3000:]
+    assert second.stdout.count("reusing") == 4  # training data, human set, trained policy, evaluation
+
+
+def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
+    for seed in (0, 1):
+        train = _bpp(
+            *("train", "--data", str(debug_store.path), "--out", str(tmp_path / f"run{seed}"), "--preset", "debug"),
+            *("--steps", "2", "--workers", "0", "--seed", str(seed)),
+        )
+        assert train.returncode == 0, train.stderr[-3000:]
+    common = ("--rollouts", "2", "--max-steps", "25", "--data-dir", str(tmp_path / "data"))
+    out = _bpp(
+        *("eval", str(tmp_path / "run0"), str(tmp_path / "run1"), "--tasks", str(debug_store.path)),
+        *("--num-tasks", "2", "--workers", "2", "--out", str(tmp_path / "eval"), *common),
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "mean ± std over checkpoints" in (tmp_path / "eval" / "summary.md").read_text()
+    drawing = tmp_path / "tri.json"
+    drawing.write_text('{"drawings": [{"id": "tri", "strokes": [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8], [0.2, 0.2]]]}]}')
+    out = _bpp("eval", str(tmp_path / "run0"), "--drawings", str(drawing), "--out", str(tmp_path / "mine"), *common)
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "drawings: tri.json" in (tmp_path / "mine" / "results.md").read_text()

@@ -1,0 +1,114 @@
+"""Pictures and tables of evaluation results: a prompt | rollout grid, rollout videos, prompt-attention heatmaps,
+Markdown tables and bar charts."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from bpp.data.store import EpisodeStore
+from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes, save_animation
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def prompt_picture(store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
+    """The prompt demonstration's ink on its own board (strokes coloured by order)."""
+    ep = store.episode(episode, ("state", "action"))
+    strokes = group_strokes(ep["state"], ep["action"].astype(np.float64))
+    return render_strokes(strokes, float(store.column("board_angle")[episode]), size)
+
+
+def write_grid(results, store: EpisodeStore, path: Path, per_row: int = 3, title: str = "") -> Path:
+    """For each task: the prompt demonstration, then its first rollout at a new angle (target in faint red)."""
+    images, titles = [], []
+    for r in results:
+        first = r.rollouts[0]
+        images += [prompt_picture(store, first["prompt_episode"]), r.last_frame]
+        titles += [
+            f"{r.task_id}: prompt",
+            f"rollout {np.degrees(first['board_angle']):+.0f}°: {first['best_chamfer']:.1f} px (task {r.mean:.1f})",
+        ]
+    return contact_sheet(images, titles, path, columns=2 * per_row, title=title)
+
+
+def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, title: str = "") -> Path:
+    """Heatmap of prompt attention during one rollout: rollout step on x, prompt chunk on y (sinks in the top row).
+
+    attention: (calls, n_chunks + 1), column 0 the attention-sink mass, column i + 1 prompt chunk i.
+    """
+    plt = _pyplot()
+    calls, columns = attention.shape
+    fig, ax = plt.subplots(figsize=(7, 4))
+    image = ax.imshow(
+        attention.T,
+        aspect="auto",
+        origin="upper",
+        cmap="magma",
+        extent=(0, calls * n_action_steps, columns - 1.5, -1.5),
+        interpolation="nearest",
+    )
+    ax.set_xlabel("rollout step")
+    ax.set_ylabel("prompt chunk (-1: attention sinks)")
+    ax.set_title(title or "prompt attention during a rollout", fontsize=10)
+    fig.colorbar(image, ax=ax, label="attention mass")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write_video(frames: Sequence[np.ndarray], path: Path) -> Path:
+    """MP4 through imageio-ffmpeg; GIF if that fails (e.g. an ffmpeg without libx264)."""
+    try:
+        return save_animation(frames, path.with_suffix(".mp4"))
+    except Exception:  # noqa: BLE001 - any encoder failure: fall back to the always-available GIF writer
+        return save_animation(frames, path.with_suffix(".gif"))
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
+    """A GitHub Markdown table; floats with two decimals."""
+
+    def cell(v):
+        return f"{v:.2f}" if isinstance(v, float) else str(v)
+
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def bar_chart(values: Mapping[str, Mapping[str, tuple[float, float]]], path: Path, ylabel: str, title: str = ""):
+    """Grouped bars: values[group][series] = (mean, std), e.g. values["unseen human"]["BPP"] = (3.4, 0.1)."""
+    plt = _pyplot()
+    groups = list(values)
+    series = list(dict.fromkeys(s for g in groups for s in values[g]))
+    width = 0.8 / max(1, len(series))
+    fig, ax = plt.subplots(figsize=(1.6 + 1.6 * len(groups) * max(1, len(series)) / 2, 3.6))
+    for i, s in enumerate(series):
+        xs = [g_i + (i - (len(series) - 1) / 2) * width for g_i in range(len(groups))]
+        means = [values[g].get(s, (np.nan, 0))[0] for g in groups]
+        stds = [values[g].get(s, (np.nan, 0))[1] for g in groups]
+        bars = ax.bar(xs, means, width, yerr=stds, capsize=3, label=s)
+        ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=2)
+    ax.set_xticks(range(len(groups)), groups)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
