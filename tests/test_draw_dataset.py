@@ -9,7 +9,15 @@ def test_store_contents(debug_store):
     s = debug_store
     assert s.benchmark == "drawanything"
     assert (s.num_tasks, s.num_episodes) == (12, 36)
-    assert set(s.keys) == {"state", "action", "agent_pos", "pen_down", "board_pose", "cursor_on_board"}
+    assert set(s.keys) == {
+        "state",
+        "action",
+        "agent_pos",
+        "pen_down",
+        "board_pose",
+        "cursor_on_board",
+        "action_on_board",
+    }
     assert s["state"].dtype == np.float64 and s["action"].dtype == np.float32
     for key in ("action", "agent_pos", "pen_down", "board_pose"):
         assert key in s.stats and len(s.stats[key]["mean"]) == s[key].shape[1]

@@ -11,7 +11,7 @@ from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
 def _write(path, episodes=3, **kw):
     with EpisodeWriter(path, benchmark="test", config={"a": 1}, chunk_steps=4, **kw) as w:
         t = w.add_task("task-a", {"note": "x"}, points=np.arange(6.0).reshape(3, 2))
-        u = w.add_task("task-b", points=np.ones((1, 2)))
+        u = w.add_task("task-b", instruction="pick up the bowl", points=np.ones((1, 2)))
         for e in range(episodes):
             n = 3 + e
             w.add_episode(
@@ -32,7 +32,8 @@ def test_round_trip(tmp_path):
     assert [list(x) for x in s.task_episodes()] == [[0, 2], [1]]
     np.testing.assert_array_equal(s.task_array("points", 0), np.arange(6.0).reshape(3, 2))
     np.testing.assert_array_equal(s.task_array("points", 1), np.ones((1, 2)))
-    assert s.tasks[0] == {"id": "task-a", "info": {"note": "x"}}
+    assert s.tasks[0] == {"id": "task-a", "instruction": "", "info": {"note": "x"}}
+    assert s.tasks[1]["instruction"] == "pick up the bowl"
     assert s.config == {"a": 1}
     st = s.stats["obs"]
     assert st["min"] == [0.0, 0.0] and st["max"] == [2.0, 2.0]

@@ -3,7 +3,8 @@
 Layout (a zarr v3 directory)::
 
     <name>.zarr/
-      zarr.json          attributes: format, version, complete, benchmark, config, tasks, stats, created
+      zarr.json          attributes: format, version, complete, benchmark, config, tasks, stats, created;
+                         tasks is the task table: one {"id", "instruction", "info"} per task
       data/<key>         (N, ...) per-step arrays, episodes concatenated in time, chunked and zstd-compressed
       meta/episode_ends  (E,) int64, exclusive end step of each episode
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
@@ -128,15 +129,18 @@ class EpisodeWriter:
         self._closed = False
 
     # ------------------------------------------------------------------ tasks
-    def add_task(self, task_id: str, info: dict | None = None, **ragged: np.ndarray) -> int:
-        """Register a task; returns its index. `ragged` arrays (one (n_i, ...) array per key) are stored per task."""
+    def add_task(self, task_id: str, info: dict | None = None, *, instruction: str = "", **ragged: np.ndarray) -> int:
+        """Register a task; returns its index. `ragged` arrays (one (n_i, ...) array per key) are stored per task.
+
+        `instruction` is the task in words, for language-conditioned policies ("" if the benchmark has none).
+        """
         if self._tasks and set(ragged) != set(self._task_ragged):
             raise StoreError(f"task {task_id!r} has ragged keys {sorted(ragged)}, others {sorted(self._task_ragged)}")
         if any(t["id"] == task_id for t in self._tasks):
             raise StoreError(f"duplicate task id {task_id!r}")
         for key, value in ragged.items():
             self._task_ragged.setdefault(key, []).append(np.asarray(value))
-        self._tasks.append({"id": task_id, "info": _json_safe(info or {})})
+        self._tasks.append({"id": task_id, "instruction": str(instruction), "info": _json_safe(info or {})})
         return len(self._tasks) - 1
 
     # --------------------------------------------------------------- episodes

@@ -1,5 +1,6 @@
-"""Policies: one folder per method (BPP, and later Goal-Image, Language, ICRT) plus shared parts.
+"""Policies: one folder per method (BPP, Goal-Image, Language, ICRT) plus shared parts.
 
-Every method's model implements the :class:`bpp.policies.base.PolicyModel` contract, so one training loop and
-one inference agent serve them all.
+Every method's model implements the contract described in :mod:`bpp.policies.registry` (the diffusion-decoder
+methods by subclassing :class:`bpp.policies.common.ContextDiffusionPolicy`), so one training loop and one
+inference agent serve them all.
 """

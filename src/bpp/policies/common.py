@@ -1,4 +1,5 @@
-"""Parts shared by the policies: normalisation, observation encoding and the diffusion action head."""
+"""Parts shared by the policies: normalisation, observation encoding, the diffusion action head, and the skeleton
+of a policy that conditions that head on observations plus a task context (:class:`ContextDiffusionPolicy`)."""
 
 from __future__ import annotations
 
@@ -9,8 +10,16 @@ import numpy as np
 import torch
 from torch import nn
 
+from bpp.data.prompt_dataset import DataSpec
 from bpp.nn.unet1d import ConditionalUnet1D
 from bpp.nn.vision import ResNetGN
+
+
+class ContextError(ValueError):
+    """A task context (demonstration prompt, goal image or instruction) that a model cannot use.
+
+    Raised by ``validate_context``; the message names the input and what was expected.
+    """
 
 
 class NormalizationError(ValueError):
@@ -78,6 +87,13 @@ class ObsConfig:
         return [*self.image_keys, *self.lowdim_keys, *self.proprio_keys]
 
 
+def encode_images(net: nn.Module, images: torch.Tensor) -> torch.Tensor:
+    """Channels-last images (..., H, W, 3) (uint8 or [0, 1] floats) through an image encoder -> (..., F)."""
+    lead = images.shape[:-3]
+    flat = images.reshape(-1, *images.shape[-3:]).permute(0, 3, 1, 2)
+    return net(flat).reshape(*lead, -1)
+
+
 class ObsEncoder(nn.Module):
     """Raw observations -> one feature vector per entry (each camera and each low-dimensional key).
 
@@ -98,10 +114,7 @@ class ObsEncoder(nn.Module):
     def forward(self, obs: Mapping[str, torch.Tensor]) -> list[torch.Tensor]:
         out = []
         for key, net in self.cameras.items():
-            images = obs[key]
-            lead = images.shape[:-3]
-            flat = images.reshape(-1, *images.shape[-3:]).permute(0, 3, 1, 2)
-            out.append(net(flat).reshape(*lead, -1))
+            out.append(encode_images(net, obs[key]))
         for key in (*self.cfg.lowdim_keys, *self.cfg.proprio_keys):
             out.append(self.normalizer.normalize(key, obs[key]))
         return out
@@ -184,6 +197,24 @@ class Horizons:
             )
 
 
+# Preset parts that several methods' presets share (each method's config.py names its own presets).
+DEBUG_DIFFUSION = DiffusionConfig(down_dims=(32, 64), step_embed_dim=16, num_train_steps=20, num_inference_steps=4)
+"""The tiny action decoder of the ``debug`` presets."""
+BOARD_OBS = ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down"))
+"""State in the board's frame (the ``cpu-board`` presets, which pair it with ``action_key="action_on_board"``)."""
+PAPER_OBS = ObsConfig(
+    image_keys=("image",),
+    lowdim_keys=(),
+    image_size=224,
+    image_features=512,
+    image_widths=(64, 128, 256, 512),
+    image_blocks=(2, 2, 2, 2),
+)
+"""The paper's observations: 224x224 images through ResNet-18 (GroupNorm)."""
+PAPER_DIFFUSION = DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128)
+"""The paper's action decoder: U-Net [256, 512, 1024], kernel 5, step embedding 128."""
+
+
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 
@@ -204,3 +235,169 @@ def collate_contexts(items: list) -> object:
         longest = max(a.shape[1] for a in arrays)
         arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
     return np.concatenate(arrays, axis=0)
+
+
+class ContextDiffusionPolicy(nn.Module):
+    """What every method with the diffusion action decoder shares (the model contract of
+    :mod:`bpp.policies.registry`): normalisation, the observation encoder, the loss, sampling and the keys read.
+
+    A method adds how it encodes its task context once (``encode_context``), checks a raw one
+    (``validate_context``), and how context and observations become the decoder's conditioning vector
+    (:meth:`condition`). The default conditioning is the diffusion-policy one: a context vector (B or 1, C)
+    concatenated with the flattened observation features of the To history steps. A subclass builds its own
+    modules in ``__init__``, then calls :meth:`build_head` with the width C of its context features.
+
+    ``cfg`` needs ``obs`` (:class:`ObsConfig`), ``horizons``, ``diffusion`` and ``action_key``.
+    """
+
+    method: str
+    context_kind: str
+
+    def __init__(self, cfg, stats: Mapping[str, Mapping[str, list[float]]]):
+        super().__init__()
+        self.cfg = cfg
+        obs = cfg.obs
+        self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
+        self.action_dim = self.normalizer.width(cfg.action_key)
+        self.obs_encoder = ObsEncoder(obs, self.normalizer)
+
+    def build_head(self, context_dim: int) -> None:
+        """The action decoder, conditioned on `context_dim` context features + the observation history."""
+        obs_dim = self.cfg.horizons.n_obs_steps * sum(self.obs_encoder.dims)
+        self.head = DiffusionHead(self.cfg.diffusion, self.action_dim, context_dim + obs_dim)
+
+    # ------------------------------------------------------------- conditioning
+    @staticmethod
+    def flatten_obs(features: list[torch.Tensor]) -> torch.Tensor:
+        """Per-entry observation features [(B, To, F_e)] -> (B, To * sum F_e), the decoder's observation part."""
+        return torch.cat(features, dim=-1).flatten(1)
+
+    def condition(
+        self, obs: Mapping[str, torch.Tensor], ctx: torch.Tensor, return_attention: bool = False
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Observations ``{key: (B, To, ...)}`` + context features (B or 1, C) -> conditioning (B, C + To * F).
+
+        Returns the conditioning and attention maps (none here; methods with attention override this).
+        """
+        features = self.flatten_obs(self.obs_encoder(obs))
+        batch = features.shape[0]
+        ctx = ctx.expand(batch, -1) if ctx.shape[0] == 1 else ctx
+        assert ctx.shape[0] == batch, f"context batch {ctx.shape[0]} vs observation batch {batch}"
+        return torch.cat([ctx, features], dim=-1), []
+
+    # ------------------------------------------------------------------ train
+    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
+        return self.compute_loss(batch, generator)
+
+    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Noise-prediction loss of a batch ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": ...}``."""
+        ctx = self.encode_context(batch["context"])
+        cond, _ = self.condition(batch["obs"], ctx)
+        actions = self.normalizer.normalize(self.cfg.action_key, batch["action"])
+        return self.head.loss(actions, cond, generator)
+
+    def encode_context(self, context: Mapping):
+        """A batched, validated context (tensors) -> whatever :meth:`condition` takes; once per rollout."""
+        raise NotImplementedError
+
+    # -------------------------------------------------------------- inference
+    def obs_keys(self) -> list[str]:
+        """Per-step observation keys the policy reads."""
+        return self.cfg.obs.entries
+
+    def data_spec(self) -> DataSpec:
+        """What training batches must contain for this model."""
+        obs, h = self.cfg.obs, self.cfg.horizons
+        return DataSpec(
+            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
+            image_keys=obs.image_keys,
+            image_size=obs.image_size,
+            action_key=self.cfg.action_key,
+            n_obs_steps=h.n_obs_steps,
+            horizon=h.horizon,
+            context=self.context_kind,
+            **self.context_spec(),
+        )
+
+    def context_spec(self) -> dict:
+        """The method's own :class:`DataSpec` fields about its context (e.g. the goal image's size)."""
+        return {}
+
+    @torch.no_grad()
+    def predict_action(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        ctx,
+        noise: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        return_attention: bool = False,
+    ) -> dict[str, torch.Tensor]:
+        """Action chunk (B, T, A) in raw units from `noise` (B, T, A) (drawn from `generator` if None).
+
+        With `return_attention`, methods that attend to their context also return ``"attention"``.
+        """
+        cond, attentions = self.condition(obs, ctx, return_attention)
+        shape = (self.cfg.horizons.horizon, self.action_dim)
+        actions = self.normalizer.unnormalize(self.cfg.action_key, self.head.sample(cond, shape, noise, generator))
+        out = {"action": actions}
+        if return_attention and attentions:
+            out["attention"] = self.context_attention(attentions, ctx)
+        return out
+
+    def context_attention(self, attentions: list[torch.Tensor], ctx) -> torch.Tensor:
+        raise NotImplementedError
+
+
+class PromptError(ContextError):
+    """A demonstration prompt that a model cannot use; the message says what was expected."""
+
+
+def validate_demo_context(
+    prompt: Mapping,
+    obs_cfg: ObsConfig,
+    normalizer: Normalizer,
+    action_key: str,
+    chunk_len: int,
+    max_steps: int,
+    limit_note: str = "",
+) -> dict:
+    """Check a raw demonstration prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it.
+
+    Every observation entry of `obs_cfg` must be present with L steps (images (L, H, W, 3) at the model's size,
+    low-dimensional keys at their statistics' width, finite), actions (L, A) finite, and L between one chunk
+    (`chunk_len`) and `max_steps` (`limit_note` may say why that limit). Returns the prompt with batch dimension 1
+    and ``valid`` (1, L) all True; raises :class:`PromptError` naming the input and what was expected.
+    """
+    if not isinstance(prompt, Mapping) or "obs" not in prompt or "action" not in prompt:
+        raise PromptError("a prompt must be a dict with 'obs' (a dict of per-step arrays) and 'action'")
+    action_dim = normalizer.width(action_key)
+    actions = np.asarray(prompt["action"], dtype=np.float32)
+    if actions.ndim != 2 or actions.shape[1] != action_dim:
+        raise PromptError(f"prompt actions must have shape (steps, {action_dim}) as in training, got {actions.shape}")
+    steps = len(actions)
+    if steps < chunk_len:
+        raise PromptError(f"prompt has {steps} steps; at least one chunk of {chunk_len} steps is needed")
+    if steps > max_steps:
+        raise PromptError(f"prompt has {steps} steps; this model accepts at most {max_steps}{limit_note}")
+    if not np.all(np.isfinite(actions)):
+        raise PromptError("prompt actions contain NaN or infinite values")
+    obs = {}
+    for key in obs_cfg.entries:
+        if key not in prompt["obs"]:
+            raise PromptError(f"prompt obs lacks {key!r}; expected keys {obs_cfg.entries}")
+        value = np.asarray(prompt["obs"][key])
+        if len(value) != steps:
+            raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
+        if key in obs_cfg.image_keys:
+            size = obs_cfg.image_size
+            if value.shape[1:] != (size, size, 3):
+                raise PromptError(f"prompt images {key!r} must be (steps, {size}, {size}, 3), got {value.shape}")
+        else:
+            width = normalizer.width(key)
+            if value.ndim != 2 or value.shape[1] != width:
+                raise PromptError(f"prompt obs {key!r} must be (steps, {width}), got {value.shape}")
+            if not np.all(np.isfinite(value)):
+                raise PromptError(f"prompt obs {key!r} contains NaN or infinite values")
+        obs[key] = value[None]
+    return {"obs": obs, "action": actions[None], "valid": np.ones((1, steps), dtype=bool)}

@@ -20,6 +20,9 @@ from typing import Any
 
 METHODS: dict[str, str] = {
     "bpp": "bpp.policies.bpp",
+    "icrt": "bpp.policies.icrt",
+    "goal_image": "bpp.policies.goal_image",
+    "language": "bpp.policies.language",
 }
 """Method name -> the package that implements it."""
 

@@ -16,7 +16,7 @@ from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate, r
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
-from bpp.envs.draw.procedural import ProceduralConfig, generate_drawing
+from bpp.envs.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.envs.draw.viz import episode_frames
 
 BENCHMARK = "drawanything"
@@ -34,6 +34,9 @@ class DrawDataConfig:
     drawings: tuple[Path, ...] = ()
     """JSON stroke files or SVG files (source=files)."""
     seed: int = 0
+    describe: bool = False
+    """Give each procedural task an instruction describing its parts in order ("draw a line, then draw an oval"),
+    so that language-conditioned policies can train; without it, tasks have no instruction."""
     procedural: ProceduralConfig = field(default_factory=ProceduralConfig)
     demo: DemoConfig = field(default_factory=DemoConfig)
 
@@ -44,6 +47,8 @@ class DrawDataConfig:
             raise ValueError(f"num_tasks must be >= 1, got {self.num_tasks}")
         if self.source == "files" and not self.drawings:
             raise ValueError("source=files needs at least one drawing file (--drawings FILE ...)")
+        if self.describe and self.source != "procedural":
+            raise ValueError(f"describe needs procedural drawings (their list of parts), not source={self.source}")
 
 
 PRESETS: dict[str, DrawDataConfig] = {
@@ -138,9 +143,9 @@ def generate(
                     "source": cfg.source,
                     "num_strokes": len(drawing.strokes),
                     "ink_length": round(drawing.ink_length, 6),
-                    "instruction": "",
                 }
-                task = writer.add_task(drawing.id, info, strokes=strokes_array(drawing))
+                instruction = describe_parts(info["parts"]) if cfg.describe else ""
+                task = writer.add_task(drawing.id, info, instruction=instruction, strokes=strokes_array(drawing))
                 for demo in demos:
                     writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)
         finally:

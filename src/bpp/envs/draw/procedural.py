@@ -9,6 +9,7 @@ half of the time. A pen-up move starts a new stroke and is never followed by ano
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,6 +18,7 @@ from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.geometry import BOARD_SIZE
 
 PART_TYPES = ("line", "curve", "oval", "move")
+_PART_WORDS = {"line": "draw a line", "curve": "draw a curve", "oval": "draw an oval", "move": "lift the pen and move"}
 _PX = 1.0 / BOARD_SIZE  # one canvas pixel in unit-square units
 _SAMPLE_SPACING = 2.0 * _PX  # dense polyline resolution of generated parts
 
@@ -124,3 +126,12 @@ def generate_drawing(rng: np.random.Generator, cfg: ProceduralConfig, drawing_id
     if not polylines:  # only degenerate parts: retry deterministically with the same generator
         return generate_drawing(rng, cfg, drawing_id)
     return Drawing.from_strokes(drawing_id, polylines, source="procedural generator"), kinds
+
+
+def describe_parts(kinds: Sequence[str]) -> str:
+    """A drawing's parts in words, as an instruction: ["line", "move", "oval"] ->
+    "draw a line, then lift the pen and move, then draw an oval"."""
+    unknown = [k for k in kinds if k not in _PART_WORDS]
+    if unknown or not kinds:
+        raise ValueError(f"need a non-empty list of parts among {PART_TYPES}, got {list(kinds)}")
+    return ", then ".join(_PART_WORDS[k] for k in kinds)

@@ -5,7 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Literal
 
-from bpp.policies.common import DiffusionConfig, Horizons, ObsConfig
+from bpp.policies.common import (
+    BOARD_OBS,
+    DEBUG_DIFFUSION,
+    PAPER_DIFFUSION,
+    PAPER_OBS,
+    DiffusionConfig,
+    Horizons,
+    ObsConfig,
+)
 
 
 @dataclass(frozen=True)
@@ -68,37 +76,20 @@ PRESETS: dict[str, BPPConfig] = {
         heads=2,
         mlp_dim=64,
         prompt=PromptConfig(num_sinks=2),
-        diffusion=DiffusionConfig(down_dims=(32, 64), step_embed_dim=16, num_train_steps=20, num_inference_steps=4),
+        diffusion=DEBUG_DIFFUSION,
     ),
     # State-only DrawAnything on a 2-core CPU.
     "cpu": BPPConfig(),
     # State-only in the board's own frame (cursor and action targets as seen on the board): the prompt's actions
     # transfer to a new board angle unchanged. Not the paper's setting (canvas actions); labelled wherever used.
-    "cpu-board": BPPConfig(
-        obs=ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down")), action_key="action_on_board"
-    ),
+    "cpu-board": BPPConfig(obs=BOARD_OBS, action_key="action_on_board"),
     # Image observations at 64x64 on a CPU.
     "cpu-image": BPPConfig(
         obs=ObsConfig(image_keys=("image",), image_size=64, image_features=128, image_widths=(16, 32, 64, 128)),
     ),
     # The paper's sizes: prompt encoder 6 layers, D=768, MLP 3072, 8 heads; U-Net [256, 512, 1024], kernel 5,
     # step embedding 128; ResNet-18 (GroupNorm) on 224x224 images.
-    "paper": BPPConfig(
-        obs=ObsConfig(
-            image_keys=("image",),
-            lowdim_keys=(),
-            image_size=224,
-            image_features=512,
-            image_widths=(64, 128, 256, 512),
-            image_blocks=(2, 2, 2, 2),
-        ),
-        dim=768,
-        layers=6,
-        heads=8,
-        mlp_dim=3072,
-        dropout=0.1,
-        diffusion=DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128),
-    ),
+    "paper": BPPConfig(obs=PAPER_OBS, dim=768, layers=6, heads=8, mlp_dim=3072, dropout=0.1, diffusion=PAPER_DIFFUSION),
 }
 
 

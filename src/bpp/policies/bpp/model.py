@@ -11,19 +11,14 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 from einops import rearrange, repeat
 from torch import nn
 
-from bpp.data.prompt_dataset import DataSpec
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
 from bpp.policies.bpp.config import BPPConfig
-from bpp.policies.common import DiffusionHead, Normalizer, ObsEncoder
-
-
-class PromptError(ValueError):
-    """A prompt that this model cannot use; the message says what was expected."""
+from bpp.policies.common import ContextDiffusionPolicy, validate_demo_context
+from bpp.policies.common import PromptError as PromptError  # raised by validate_context; importable from here
 
 
 @dataclass
@@ -44,19 +39,15 @@ class PromptContext:
         )
 
 
-class BPPModel(nn.Module):
+class BPPModel(ContextDiffusionPolicy):
     """Behavior Prompting Policy (tensor-only; :class:`bpp.policies.agent.PolicyAgent` wraps it for rollouts)."""
 
     method = "bpp"
     context_kind = "demo"
 
     def __init__(self, cfg: BPPConfig, stats: Mapping[str, Mapping[str, list[float]]]):
-        super().__init__()
-        self.cfg = cfg
+        super().__init__(cfg, stats)
         obs_cfg, pcfg, h = cfg.obs, cfg.prompt, cfg.horizons
-        self.normalizer = Normalizer(stats, [*obs_cfg.lowdim_keys, *obs_cfg.proprio_keys, cfg.action_key])
-        self.action_dim = self.normalizer.width(cfg.action_key)
-        self.obs_encoder = ObsEncoder(obs_cfg, self.normalizer)
         self.entries = obs_cfg.entries
         D = cfg.dim
         self.entry_proj = nn.ModuleList([nn.Linear(f, D) for f in self.obs_encoder.dims])
@@ -74,8 +65,7 @@ class BPPModel(nn.Module):
         self.sinks = nn.Parameter(torch.randn(pcfg.num_sinks, D) * 0.02)
         self.obs_pos = nn.Parameter(torch.randn(h.n_obs_steps * len(self.entries), D) * 0.02)
         self.prompt_encoder = CrossAttentionDecoder(D, cfg.layers, cfg.heads, cfg.mlp_dim, cfg.dropout)
-        cond_dim = h.n_obs_steps * (len(self.entries) * D + sum(self.obs_encoder.dims))
-        self.head = DiffusionHead(cfg.diffusion, self.action_dim, cond_dim)
+        self.build_head(h.n_obs_steps * len(self.entries) * D)  # the prompt encoder's outputs for To steps
 
     # ------------------------------------------------------------------ prompt
     def encode_prompt(self, prompt: Mapping) -> PromptContext:
@@ -131,99 +121,24 @@ class BPPModel(nn.Module):
         tokens = rearrange(tokens, "b t e d -> b (t e) d") + self.obs_pos
         ctx = ctx.expand(tokens.shape[0])
         out, attentions = self.prompt_encoder(tokens, ctx.tokens, ctx.valid, return_attention)
-        cond = torch.cat([out.flatten(1), torch.cat(features, dim=-1).flatten(1)], dim=-1)
-        return cond, attentions
-
-    # ------------------------------------------------------------------ train
-    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
-        return self.compute_loss(batch, generator)
-
-    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        ctx = self.encode_prompt(batch["context"])
-        cond, _ = self.condition(batch["obs"], ctx)
-        actions = self.normalizer.normalize(self.cfg.action_key, batch["action"])
-        return self.head.loss(actions, cond, generator)
+        return torch.cat([out.flatten(1), self.flatten_obs(features)], dim=-1), attentions
 
     # -------------------------------------------------------------- inference
-    def obs_keys(self) -> list[str]:
-        """Per-step observation keys the policy reads (and a prompt demonstration must provide)."""
-        return self.cfg.obs.entries
-
-    def data_spec(self) -> DataSpec:
-        """What training batches must contain for this model."""
-        obs, h = self.cfg.obs, self.cfg.horizons
-        return DataSpec(
-            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
-            image_keys=obs.image_keys,
-            image_size=obs.image_size,
-            action_key=self.cfg.action_key,
-            n_obs_steps=h.n_obs_steps,
-            horizon=h.horizon,
-            context="demo",
-            max_prompt_steps=self.cfg.prompt.max_steps,
-        )
+    def context_spec(self) -> dict:
+        return {"max_prompt_steps": self.cfg.prompt.max_steps}
 
     def validate_context(self, prompt: Mapping) -> dict:
         """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
-        if not isinstance(prompt, Mapping) or "obs" not in prompt or "action" not in prompt:
-            raise PromptError("a prompt must be a dict with 'obs' (a dict of per-step arrays) and 'action'")
-        actions = np.asarray(prompt["action"], dtype=np.float32)
-        if actions.ndim != 2 or actions.shape[1] != self.action_dim:
-            raise PromptError(
-                f"prompt actions must have shape (steps, {self.action_dim}) as in training, got {actions.shape}"
-            )
-        steps = len(actions)
-        dt = self.cfg.prompt.chunk_len
-        if steps < dt:
-            raise PromptError(f"prompt has {steps} steps; at least one chunk of {dt} steps is needed")
-        if steps > self.cfg.prompt.max_steps:
-            raise PromptError(f"prompt has {steps} steps; this model accepts at most {self.cfg.prompt.max_steps}")
-        if not np.all(np.isfinite(actions)):
-            raise PromptError("prompt actions contain NaN or infinite values")
-        obs = {}
-        for key in self.obs_keys():
-            if key not in prompt["obs"]:
-                raise PromptError(f"prompt obs lacks {key!r}; expected keys {self.obs_keys()}")
-            value = np.asarray(prompt["obs"][key])
-            if len(value) != steps:
-                raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
-            if key in self.cfg.obs.image_keys:
-                size = self.cfg.obs.image_size
-                if value.shape[1:] != (size, size, 3):
-                    raise PromptError(f"prompt images {key!r} must be (steps, {size}, {size}, 3), got {value.shape}")
-            else:
-                width = self.normalizer.width(key)
-                if value.ndim != 2 or value.shape[1] != width:
-                    raise PromptError(f"prompt obs {key!r} must be (steps, {width}), got {value.shape}")
-                if not np.all(np.isfinite(value)):
-                    raise PromptError(f"prompt obs {key!r} contains NaN or infinite values")
-            obs[key] = value[None]
-        return {"obs": obs, "action": actions[None], "valid": np.ones((1, steps), dtype=bool)}
+        cfg = self.cfg
+        return validate_demo_context(
+            prompt, cfg.obs, self.normalizer, cfg.action_key, cfg.prompt.chunk_len, cfg.prompt.max_steps
+        )
 
     def encode_context(self, context: Mapping) -> PromptContext:
         return self.encode_prompt(context)
 
-    @torch.no_grad()
-    def predict_action(
-        self,
-        obs: Mapping[str, torch.Tensor],
-        ctx: PromptContext,
-        noise: torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
-        return_attention: bool = False,
-    ) -> dict[str, torch.Tensor]:
-        """Action chunk (B, T, A) in raw units; with `return_attention`, also the prompt attention per chunk."""
-        cond, attentions = self.condition(obs, ctx, return_attention)
-        shape = (self.cfg.horizons.horizon, self.action_dim)
-        actions = self.normalizer.unnormalize(self.cfg.action_key, self.head.sample(cond, shape, noise, generator))
-        out = {"action": actions}
-        if return_attention:
-            out["attention"] = self.chunk_attention(attentions, ctx)
-        return out
-
     @staticmethod
-    def chunk_attention(attentions: list[torch.Tensor], ctx: PromptContext) -> torch.Tensor:
+    def context_attention(attentions: list[torch.Tensor], ctx: PromptContext) -> torch.Tensor:
         """Average cross-attention (over layers and query tokens) summed per prompt chunk: (B, n_chunks + 1).
 
         Column 0 is the attention-sink mass; column i + 1 is chunk i.

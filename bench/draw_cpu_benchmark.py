@@ -1,0 +1,127 @@
+"""The DrawAnything-Sim result on a CPU: BPP against its baselines with the same data, budget and seeds.
+
+    python bench/draw_cpu_benchmark.py                                  # defaults below; ~1.5 h on 2 cores
+    python bench/draw_cpu_benchmark.py --methods bpp icrt --seeds 0 1 2 --steps bpp=6000 icrt=4000
+
+Generates the data (procedural training tasks, the unseen human-made drawings), trains every method x seed on the
+same training store (skipping runs that already finished, resuming killed ones), evaluates each with the paper's
+protocol on the unseen drawings and on training drawings, and writes a Markdown table, a JSON file and a bar chart
+into --out. Training wall time is measured and reported per run. Re-running reuses everything already done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from bpp.checkpoint import read_state, resolve_checkpoint
+from bpp.data.store import EpisodeStore, StoreError
+from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.envs.draw.dataset import DrawDataConfig, generate
+from bpp.evaluation.evaluate import Protocol, evaluate, resolve_task_set
+from bpp.evaluation.report import bar_chart, markdown_table
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, train
+from bpp.utils import write_json_atomic
+
+NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
+
+
+def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
+    with contextlib.suppress(StoreError):
+        return EpisodeStore(path)
+    return generate(cfg, path, overwrite=True)
+
+
+def train_run(method: str, preset: str, store: EpisodeStore, run: Path, steps: int, seed: int) -> float:
+    """Train (or finish, or reuse) one run; returns its training wall time in seconds (summed over sessions)."""
+    timing = run / "train_seconds.json"
+    spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
+    with contextlib.suppress(OSError, ValueError):
+        if read_state(resolve_checkpoint(run))["step"] >= steps:
+            return spent
+    resume = (run / "checkpoints" / "last").is_file()
+    t0 = time.perf_counter()
+    cfg = TrainConfig(data=store.path, out=run, method=method, steps=steps, seed=seed, resume=resume, save_every=500)
+    train(cfg, get_method(method).preset(preset))
+    spent += time.perf_counter() - t0
+    write_json_atomic(timing, {"seconds": spent})
+    return spent
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
+    parser.add_argument("--preset", default="cpu-board", help="model preset name, the same for every method")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+    parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
+    parser.add_argument("--default-steps", type=int, default=6000)
+    parser.add_argument("--num-tasks", type=int, default=500, help="procedural training tasks (5 demos each)")
+    parser.add_argument("--rollouts", type=int, default=8, help="rollouts per unseen drawing (paper: 32)")
+    parser.add_argument("--train-tasks", type=int, default=20, help="training drawings evaluated")
+    parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
+    parser.add_argument("--runs", type=Path, default=Path("runs/bench"))
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
+    parser.add_argument("--workers", type=int, default=0)
+    args = parser.parse_args()
+    steps = {m: args.default_steps for m in args.methods} | {
+        k: int(v) for k, v in (item.split("=") for item in args.steps)
+    }
+
+    train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
+    store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
+    protocol = Protocol(rollouts=args.rollouts)
+    rows, results = [], {}
+    for method in args.methods:
+        for seed in args.seeds:
+            run = args.runs / f"{method}-{args.preset}-s{seed}"
+            seconds = train_run(method, args.preset, train_store, run, steps[method], seed)
+            entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
+            for task_set, num in (("human", 0), ("train", args.train_tasks)):
+                store, tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir, num_tasks=num)
+                out = args.out / run.name / task_set
+                data = evaluate(run, store, tasks, label, out, protocol, args.workers)
+                entry[task_set] = data["summary"]["chamfer_mean"]
+            results[f"{method}/s{seed}"] = entry
+            write_json_atomic(args.out / "results.json", results)
+
+    chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
+    for method in args.methods:
+        entries = [e for e in results.values() if e["method"] == method]
+        human = np.array([e["human"] for e in entries])
+        trained = np.array([e["train"] for e in entries])
+        sd = lambda x: float(x.std(ddof=1)) if len(x) > 1 else 0.0  # noqa: E731
+        chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), sd(human))
+        chart["training drawings"][NAMES[method]] = (float(trained.mean()), sd(trained))
+        minutes = np.mean([e["train_s"] for e in entries]) / 60
+        rows.append(
+            (
+                NAMES[method],
+                f"{trained.mean():.2f} ± {sd(trained):.2f}",
+                f"{human.mean():.2f} ± {sd(human):.2f}",
+                len(entries),
+                steps[method],
+                f"{minutes:.1f}",
+            )
+        )
+    header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps", "train min/run"]
+    table = markdown_table(header, rows)
+    (args.out / "table.md").write_text(
+        f"DrawAnything-Sim on a CPU, preset `{args.preset}`, {args.num_tasks} tasks x 5 demos, "
+        f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "
+        f"mean ± std over seeds.\n\n{table}"
+    )
+    bar_chart(
+        chart, args.out / "chart.png", "Chamfer distance (px, lower is better)", f"DrawAnything-Sim, {args.preset}"
+    )
+    print(table)
+    print(f"wrote {args.out / 'table.md'}, {args.out / 'chart.png'}, {args.out / 'results.json'}")
+
+
+if __name__ == "__main__":
+    main()

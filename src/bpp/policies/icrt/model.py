@@ -1,0 +1,268 @@
+"""ICRT, the In-Context Robot Transformer (Fu et al., 2024): the paper's baseline that prompts with a demonstration.
+
+One causal transformer reads the prompt demonstration, then the rollout so far, with action chunking at the token
+level as in the paper's appendix (N = ``chunk_len``; chunk k covers steps kN .. kN + N - 1)::
+
+    o_0 a_0 o_1 a_1 ... o_{n-1} a_{n-1} | o'_0 a'_0 o'_1 a'_1 ... o'_k
+    '------------ prompt -------------'   '-------- rollout --------'
+
+* o_k: the observation at step kN (every entry and proprioception, through the shared :class:`ObsEncoder`,
+  concatenated and projected to one token);
+* a_k: the chunk's N actions, normalised, each with a validity flag (a short final chunk is padded), flattened and
+  projected to one token;
+* plus a learned position and a learned type (prompt or rollout, observation or action).
+
+The output at rollout observation token o'_k predicts that chunk's N actions (an MLP head); training is teacher
+forcing with an L1 loss on normalised actions over the rollout's valid steps, so every chunk of a whole rollout
+demonstration is a prediction in one pass. No diffusion.
+
+Padding: prompts of different lengths share a batch padded at their end (``valid`` False). No token attends to
+padding and a token's position counts only the valid tokens before it, so each sample is computed as if alone.
+
+Inference: :meth:`ICRTModel.encode_context` runs the prompt once and keeps its keys and values
+(:class:`ICRTContext`); each :meth:`ICRTModel.predict_action` appends the current observation token to that cache,
+predicts the chunk, and remembers the chunk's action token (the predicted actions are the executed ones), which is
+appended together with the next observation, so each call is one transformer pass over 1-2 new tokens.
+
+Context limit (``max_tokens``): when a rollout would outgrow it, each sample keeps its whole prompt and the most
+recent rollout chunks that fit; that window is run again without the cache (positions re-assigned from the prompt
+on, as if the rollout had started at the window), then the cache grows from there. A rollout that stays at the limit
+re-runs its window on every call. Training never sees such windows: a training rollout too long to fit after the
+prompt only contributes its first chunks.
+
+Tensor shapes at the boundaries (B: batch, Bp: prompt batch, 1 or B; L: steps; n: chunks; S: tokens; A, D):
+
+* demonstrations (prompt or rollout): ``{"obs": {key: (B, L, ...)}, "action": (B, L, A), "valid": (B, L)}`` raw
+* obs at inference: ``{key: (B, 1, ...)}`` raw; predicted actions (B, N, A) raw
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+from einops import rearrange, repeat
+from torch import nn
+from torch.nn import functional as F
+
+from bpp.data.prompt_dataset import DataSpec
+from bpp.nn.causal import CausalTransformer, KVCache
+from bpp.policies.common import Normalizer, ObsEncoder, validate_demo_context
+from bpp.policies.icrt.config import ICRTConfig
+
+# Token types: a segment (prompt or rollout) plus a kind (observation or action), indexing the type embedding.
+PROMPT, ROLLOUT = 0, 2
+OBS, ACTION = 0, 1
+
+
+@dataclass
+class ICRTContext:
+    """The transformer's running context for B rollouts: the prompt, then each rollout as it grows.
+
+    Slots ``[:prompt_slots]`` hold the (padded) prompts; the slots after them hold the rollouts' tokens
+    ``o' a' o' a' ... o'``, one pair per chunk, appended in lockstep. A sample's valid rollout slots are always a
+    suffix of that region (windows drop the oldest chunks).
+    """
+
+    tokens: torch.Tensor  # (B, S, D) every token in context, before positions are added (kept to re-run a window)
+    valid: torch.Tensor  # (B, S) bool
+    cache: KVCache  # keys and values of `tokens`
+    prompt_slots: int
+    pending: torch.Tensor | None = None  # (B, 1, D): the last executed action token, appended with the next obs
+
+    def expand_(self, batch: int) -> None:
+        """Share a context of batch 1 between `batch` rollouts (in place)."""
+        assert self.valid.shape[0] == 1, f"context batch {self.valid.shape[0]} vs observation batch {batch}"
+        self.tokens, self.valid = self.tokens.expand(batch, -1, -1), self.valid.expand(batch, -1)
+        self.cache = self.cache.expand(batch)
+        if self.pending is not None:
+            self.pending = self.pending.expand(batch, -1, -1)
+
+    def lengths(self) -> torch.Tensor:
+        """(B,) tokens in each sample's sequence, the pending action token included."""
+        return self.valid.sum(1) + (self.pending is not None)
+
+
+class ICRTModel(nn.Module):
+    """In-Context Robot Transformer (tensor-only; :class:`bpp.policies.agent.PolicyAgent` wraps it for rollouts)."""
+
+    method = "icrt"
+    context_kind = "demo"
+
+    def __init__(self, cfg: ICRTConfig, stats: Mapping[str, Mapping[str, list[float]]]):
+        super().__init__()
+        self.cfg = cfg
+        obs = cfg.obs
+        self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
+        self.action_dim = self.normalizer.width(cfg.action_key)
+        self.obs_encoder = ObsEncoder(obs, self.normalizer)
+        N, D = cfg.chunk_len, cfg.dim
+        self.obs_proj = nn.Linear(sum(self.obs_encoder.dims), D)
+        self.action_proj = nn.Linear(N * (self.action_dim + 1), D)  # N actions, each with its validity flag
+        self.type_embed = nn.Parameter(torch.randn(4, D) * 0.02)
+        self.pos_embed = nn.Parameter(torch.randn(cfg.max_tokens, D) * 0.02)
+        self.transformer = CausalTransformer(D, cfg.layers, cfg.heads, cfg.mlp_dim, cfg.dropout)
+        self.head = nn.Sequential(nn.Linear(D, D), nn.GELU(), nn.Linear(D, N * self.action_dim))
+
+    # ----------------------------------------------------------------- tokens
+    def obs_tokens(self, obs: Mapping[str, torch.Tensor], segment: int) -> torch.Tensor:
+        """Raw observations ``{key: (B, n, ...)}``, one per chunk -> observation tokens (B, n, D), no position."""
+        features = torch.cat(self.obs_encoder(obs), dim=-1)
+        return self.obs_proj(features) + self.type_embed[segment + OBS]
+
+    def action_tokens(self, actions: torch.Tensor, valid: torch.Tensor, segment: int) -> torch.Tensor:
+        """Raw actions (B, L, A) with `valid` (B, L) -> one token per chunk of N steps (B, ceil(L / N), D)."""
+        N = self.cfg.chunk_len
+        a = self.normalizer.normalize(self.cfg.action_key, actions) * valid[..., None]
+        a = torch.cat([a, valid[..., None].float()], dim=-1)
+        a = F.pad(a, (0, 0, 0, -a.shape[1] % N))
+        return self.action_proj(rearrange(a, "b (n t) c -> b n (t c)", t=N)) + self.type_embed[segment + ACTION]
+
+    def demo_tokens(self, demo: Mapping, segment: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """A demonstration (B, L) -> its interleaved tokens ``o_0 a_0 o_1 a_1 ...`` (B, 2n, D) and their validity."""
+        N = self.cfg.chunk_len
+        valid = demo["valid"].bool()
+        obs = self.obs_tokens({k: v[:, ::N] for k, v in demo["obs"].items()}, segment)
+        actions = self.action_tokens(demo["action"], valid, segment)
+        tokens = rearrange(torch.stack([obs, actions], dim=2), "b n two d -> b (n two) d")
+        return tokens, repeat(valid[:, ::N], "b n -> b (n two)", two=2)  # a chunk exists where its first step does
+
+    def run(
+        self, tokens: torch.Tensor, valid: torch.Tensor, cache: KVCache | None = None
+    ) -> tuple[torch.Tensor, KVCache]:
+        """Tokens (B, S_new, D) after the cached ones -> outputs (B, S_new, D) and the extended cache.
+
+        Each token's position is the number of valid tokens before it in its own sample (padding takes its
+        neighbour's position; nothing attends to it).
+        """
+        start = 0 if cache is None else cache.valid.sum(1, keepdim=True)
+        positions = (start + valid.cumsum(1) - 1).clamp_min(0)
+        assert int(positions.max()) < self.cfg.max_tokens, "sequence longer than max_tokens"
+        return self.transformer(tokens + self.pos_embed[positions], valid, cache)
+
+    # ------------------------------------------------------------------ train
+    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
+        return self.compute_loss(batch, generator)
+
+    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """Mean L1 error of the normalised actions over the valid rollout steps (teacher forcing).
+
+        batch: ``{"context": prompt (Bp, Lp), "obs": {key: (B, L, ...)}, "action": (B, L, A), "valid": (B, L)}``,
+        B whole demonstrations padded to the longest. `generator` is unused: the loss draws no noise (dropout draws
+        from the global generator, which the training loop seeds per step).
+        """
+        ctx = self.encode_context(batch["context"])
+        # A rollout longer than what fits after the prompt is cut: only its first chunks are learned from.
+        steps = (self.cfg.max_tokens - int(ctx.valid.sum(1).max())) // 2 * self.cfg.chunk_len
+        obs = {k: v[:, :steps] for k, v in batch["obs"].items()}
+        actions, valid = batch["action"][:, :steps], batch["valid"][:, :steps].bool()
+        predicted = rearrange(
+            self.rollout_chunks(ctx, {"obs": obs, "action": actions, "valid": valid}), "b n t a -> b (n t) a"
+        )
+        target = self.normalizer.normalize(self.cfg.action_key, actions)
+        error = (predicted[:, : target.shape[1]] - target).abs() * valid[..., None]
+        return error.sum() / (valid.sum() * self.action_dim).clamp_min(1)
+
+    def rollout_chunks(self, ctx: ICRTContext, rollout: Mapping) -> torch.Tensor:
+        """Teacher forcing: whole rollouts (B, L) after the encoded prompts -> each chunk's predicted normalised
+        actions (B, n, N, A), chunk k seeing the prompt, observations 0..k and the actions of chunks before k.
+
+        `ctx` is not modified; a prompt of batch 1 is shared by the B rollouts (run once, not B times).
+        """
+        tokens, valid = self.demo_tokens(rollout, ROLLOUT)
+        cache = ctx.cache if ctx.valid.shape[0] == tokens.shape[0] else ctx.cache.expand(tokens.shape[0])
+        out, _ = self.run(tokens, valid, cache)
+        return rearrange(self.head(out[:, ::2]), "b n (t a) -> b n t a", t=self.cfg.chunk_len)
+
+    # -------------------------------------------------------------- inference
+    def obs_keys(self) -> list[str]:
+        """Per-step observation keys the policy reads (and a prompt demonstration must provide)."""
+        return self.cfg.obs.entries
+
+    def data_spec(self) -> DataSpec:
+        """Training batches: a prompt demonstration and B whole demonstrations of the same task."""
+        obs, N = self.cfg.obs, self.cfg.chunk_len
+        return DataSpec(
+            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
+            image_keys=obs.image_keys,
+            image_size=obs.image_size,
+            action_key=self.cfg.action_key,
+            n_obs_steps=1,
+            horizon=N,
+            context="demo",
+            samples="episodes",
+            max_prompt_steps=self.cfg.max_prompt_steps,
+            max_episode_steps=(self.cfg.max_tokens // 2 - 1) * N,  # what could fit after a one-chunk prompt
+        )
+
+    def validate_context(self, prompt: Mapping) -> dict:
+        """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
+        cfg = self.cfg
+        why = (
+            f" (its context holds {cfg.max_tokens} tokens, 2 per chunk of {cfg.chunk_len} steps, and keeps room "
+            f"for {cfg.min_rollout_chunks} rollout chunks)"
+        )
+        return validate_demo_context(
+            prompt, cfg.obs, self.normalizer, cfg.action_key, cfg.chunk_len, cfg.max_prompt_steps, why
+        )
+
+    def encode_context(self, prompt: Mapping) -> ICRTContext:
+        """Run prompts (Bp, L) through the transformer once: the context every rollout step extends."""
+        tokens, valid = self.demo_tokens(prompt, PROMPT)
+        _, cache = self.run(tokens, valid)
+        return ICRTContext(tokens, valid, cache, tokens.shape[1])
+
+    @torch.no_grad()
+    def predict_action(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        ctx: ICRTContext,
+        noise: torch.Tensor | None = None,
+        generator: torch.Generator | None = None,
+        return_attention: bool = False,
+    ) -> dict[str, torch.Tensor]:
+        """The next chunk's N actions (B, N, A) raw, from the observation ``{key: (B, 1, ...)}`` at its first step.
+
+        Extends `ctx` by this chunk (it must be called once per N executed steps, as :class:`PolicyAgent` does
+        with ``n_action_steps = N``). Deterministic: `noise` and `generator` are unused, and there is no attention
+        map to return.
+        """
+        batch = next(iter(obs.values())).shape[0]
+        if ctx.valid.shape[0] != batch:
+            ctx.expand_(batch)
+        new = self.obs_tokens(obs, ROLLOUT)
+        if ctx.pending is not None:
+            new = torch.cat([ctx.pending, new], dim=1)
+        new_valid = torch.ones(new.shape[:2], dtype=torch.bool, device=new.device)
+        tokens, valid = torch.cat([ctx.tokens, new], dim=1), torch.cat([ctx.valid, new_valid], dim=1)
+        if bool((valid.sum(1) + 1 > self.cfg.max_tokens).any()):  # + 1: this chunk's action token, still to come
+            tokens, valid = self.window(tokens, valid, ctx.prompt_slots)
+            out, ctx.cache = self.run(tokens, valid)
+        else:
+            out, ctx.cache = self.run(new, new_valid, ctx.cache)
+        ctx.tokens, ctx.valid = tokens, valid
+        chunk = rearrange(self.head(out[:, -1]), "b (t a) -> b t a", t=self.cfg.chunk_len)
+        actions = self.normalizer.unnormalize(self.cfg.action_key, chunk)
+        executed = torch.ones(actions.shape[:2], dtype=torch.bool, device=actions.device)
+        ctx.pending = self.action_tokens(actions, executed, ROLLOUT)
+        return {"action": actions}
+
+    def window(self, tokens: torch.Tensor, valid: torch.Tensor, prompt_slots: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keep each sample's prompt and its most recent rollout chunks that fit in ``max_tokens``.
+
+        tokens (B, S, D), valid (B, S): the prompts, then rollout slots ``o' a' ... o'`` ending with the newest
+        observation (whose action token is still to come). Returns the shortened tokens and validity. Because each
+        sample's valid rollout slots are a suffix, its window is a shorter suffix; slots that no sample keeps go.
+        """
+        prompt_len = valid[:, :prompt_slots].sum(1)
+        keep = (self.cfg.max_tokens - prompt_len) // 2 * 2 - 1  # whole chunks, the newest one without its action
+        keep = torch.minimum(keep, valid[:, prompt_slots:].sum(1))
+        assert int(keep.min()) >= 1, "a prompt leaves no room for the rollout (validate_context should refuse it)"
+        region = tokens.shape[1] - prompt_slots
+        first = region - int(keep.max())  # even: a window starts at an observation token
+        from_end = torch.arange(region - first - 1, -1, -1, device=valid.device)
+        rollout_valid = from_end[None] < keep[:, None]
+        tokens = torch.cat([tokens[:, :prompt_slots], tokens[:, prompt_slots + first :]], dim=1)
+        return tokens, torch.cat([valid[:, :prompt_slots], rollout_valid], dim=1)

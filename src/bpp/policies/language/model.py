@@ -1,0 +1,54 @@
+"""The Language baseline: BPP's diffusion action decoder, conditioned on the observation history and an encoding
+of the task's instruction (a text encoder trained with the policy) in place of the prompt encoder.
+
+Tensor shapes at the boundaries (B: batch; Bt: instruction batch, 1 or B; To, T, A):
+
+* context: ``{"text": [str] * Bt}``; encoded: (Bt, D)
+* obs: ``{key: (B, To, ...)}`` raw; action: (B, T, A) raw
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from bpp.nn.text import ByteTokenizer, TextTransformer
+from bpp.policies.common import ContextDiffusionPolicy, ContextError
+from bpp.policies.language.config import LanguageConfig
+
+
+class LanguageModel(ContextDiffusionPolicy):
+    """Language-conditioned policy (tensor-only; :class:`bpp.policies.agent.PolicyAgent` wraps it for rollouts)."""
+
+    method = "language"
+    context_kind = "instruction"
+
+    def __init__(self, cfg: LanguageConfig, stats: Mapping[str, Mapping[str, list[float]]]):
+        super().__init__(cfg, stats)
+        t = cfg.text
+        self.tokenizer = ByteTokenizer()
+        self.text_encoder = TextTransformer(
+            self.tokenizer.vocab_size, t.dim, t.layers, t.heads, t.mlp_dim, t.max_tokens, t.dropout
+        )
+        self.build_head(t.dim)
+
+    def validate_context(self, context: Mapping) -> dict:
+        """Check a raw instruction ``{"text": str}`` and batch it; clear errors if bad."""
+        if not isinstance(context, Mapping) or "text" not in context:
+            raise ContextError("an instruction context must be a dict {'text': str}")
+        text = context["text"]
+        if not isinstance(text, str):
+            raise ContextError(f"the instruction must be a str, got {type(text).__name__}")
+        if not text.strip():
+            raise ContextError("this task has no instruction; Language is not offered for it")
+        tokens, limit = self.tokenizer.num_tokens(text), self.cfg.text.max_tokens
+        if tokens > limit:
+            raise ContextError(f"the instruction is {tokens} tokens (UTF-8 bytes + 2); this model accepts {limit}")
+        return {"text": [text]}
+
+    def encode_context(self, context: Mapping) -> torch.Tensor:
+        """Instructions ``{"text": [str] * Bt}`` -> instruction embeddings (Bt, D), once per rollout."""
+        ids, valid = self.tokenizer(context["text"], self.cfg.text.max_tokens)
+        device = self.text_encoder.pos.device
+        return self.text_encoder(ids.to(device), valid.to(device))
