@@ -21,6 +21,15 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    _pyplot().close(fig)
+    return path
+
+
 def prompt_picture(store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
     """The prompt demonstration's ink on its own board (strokes coloured by order)."""
     ep = store.episode(episode, ("state", "action"))
@@ -47,6 +56,8 @@ def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, titl
     attention: (calls, n_chunks + 1), column 0 the attention-sink mass, column i + 1 prompt chunk i.
     """
     plt = _pyplot()
+    used = np.flatnonzero(attention.sum(axis=0) > 0)
+    attention = attention[:, : used.max() + 1] if len(used) else attention  # drop chunks padded in by batching
     calls, columns = attention.shape
     fig, ax = plt.subplots(figsize=(7, 4))
     image = ax.imshow(
@@ -61,12 +72,7 @@ def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, titl
     ax.set_ylabel("prompt chunk (-1: attention sinks)")
     ax.set_title(title or "prompt attention during a rollout", fontsize=10)
     fig.colorbar(image, ax=ax, label="attention mass")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def write_video(frames: Sequence[np.ndarray], path: Path) -> Path:
@@ -106,9 +112,4 @@ def bar_chart(values: Mapping[str, Mapping[str, tuple[float, float]]], path: Pat
     if title:
         ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from bpp.data.prompt_dataset import DataSpec
+from bpp.nn.lowdim import LowDimEncoder
 from bpp.nn.unet1d import ConditionalUnet1D
 from bpp.nn.vision import ResNetGN
 
@@ -80,6 +81,10 @@ class ObsConfig:
     image_features: int = 256
     image_widths: tuple[int, ...] = (32, 64, 128, 256)
     image_blocks: tuple[int, ...] = (1, 1, 1, 1)
+    lowdim_fourier_octaves: int = 0
+    """0: low-dimensional entries are their normalised values; k > 0: Fourier features over k octaves and an MLP
+    to ``lowdim_features`` (a nonlinear embedding, so that attention can match nearby states; see bpp.nn.lowdim)."""
+    lowdim_features: int = 64
 
     @property
     def entries(self) -> list[str]:
@@ -108,15 +113,23 @@ class ObsEncoder(nn.Module):
         self.cameras = nn.ModuleDict(
             {k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks) for k in cfg.image_keys}
         )
+        lowdim = (*cfg.lowdim_keys, *cfg.proprio_keys)
+        self.lowdim = nn.ModuleDict(
+            {
+                k: LowDimEncoder(normalizer.width(k), cfg.lowdim_features, cfg.lowdim_fourier_octaves)
+                for k in (lowdim if cfg.lowdim_fourier_octaves > 0 else ())
+            }
+        )
         self.dims = [cfg.image_features] * len(cfg.image_keys)
-        self.dims += [normalizer.width(k) for k in (*cfg.lowdim_keys, *cfg.proprio_keys)]
+        self.dims += [cfg.lowdim_features if k in self.lowdim else normalizer.width(k) for k in lowdim]
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> list[torch.Tensor]:
         out = []
         for key, net in self.cameras.items():
             out.append(encode_images(net, obs[key]))
         for key in (*self.cfg.lowdim_keys, *self.cfg.proprio_keys):
-            out.append(self.normalizer.normalize(key, obs[key]))
+            x = self.normalizer.normalize(key, obs[key])
+            out.append(self.lowdim[key](x) if key in self.lowdim else x)
         return out
 
 
@@ -237,17 +250,12 @@ def collate_contexts(items: list) -> object:
     return np.concatenate(arrays, axis=0)
 
 
-class ContextDiffusionPolicy(nn.Module):
-    """What every method with the diffusion action decoder shares (the model contract of
-    :mod:`bpp.policies.registry`): normalisation, the observation encoder, the loss, sampling and the keys read.
+class PolicyModel(nn.Module):
+    """The parts of the model contract (:mod:`bpp.policies.registry`) that every method shares: the normaliser,
+    the observation encoder, ``forward`` = ``compute_loss``, the keys read and the training batches wanted.
 
-    A method adds how it encodes its task context once (``encode_context``), checks a raw one
-    (``validate_context``), and how context and observations become the decoder's conditioning vector
-    (:meth:`condition`). The default conditioning is the diffusion-policy one: a context vector (B or 1, C)
-    concatenated with the flattened observation features of the To history steps. A subclass builds its own
-    modules in ``__init__``, then calls :meth:`build_head` with the width C of its context features.
-
-    ``cfg`` needs ``obs`` (:class:`ObsConfig`), ``horizons``, ``diffusion`` and ``action_key``.
+    ``cfg`` needs ``obs`` (:class:`ObsConfig`), ``horizons`` and ``action_key``. A method sets ``method`` and
+    ``context_kind`` and may add :class:`DataSpec` fields in :meth:`context_spec`.
     """
 
     method: str
@@ -260,6 +268,48 @@ class ContextDiffusionPolicy(nn.Module):
         self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
         self.action_dim = self.normalizer.width(cfg.action_key)
         self.obs_encoder = ObsEncoder(obs, self.normalizer)
+
+    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
+        return self.compute_loss(batch, generator)
+
+    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        raise NotImplementedError
+
+    def obs_keys(self) -> list[str]:
+        """Per-step observation keys the policy reads (and a demonstration prompt must provide)."""
+        return self.cfg.obs.entries
+
+    def data_spec(self) -> DataSpec:
+        """What training batches must contain for this model."""
+        obs, h = self.cfg.obs, self.cfg.horizons
+        return DataSpec(
+            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
+            image_keys=obs.image_keys,
+            image_size=obs.image_size,
+            action_key=self.cfg.action_key,
+            n_obs_steps=h.n_obs_steps,
+            horizon=h.horizon,
+            context=self.context_kind,
+            **self.context_spec(),
+        )
+
+    def context_spec(self) -> dict:
+        """The method's own :class:`DataSpec` fields (e.g. the goal image's size, or whole-episode samples)."""
+        return {}
+
+
+class ContextDiffusionPolicy(PolicyModel):
+    """What every method with the diffusion action decoder shares: the loss, sampling and the conditioning.
+
+    A method adds how it encodes its task context once (``encode_context``), checks a raw one
+    (``validate_context``), and how context and observations become the decoder's conditioning vector
+    (:meth:`condition`). The default conditioning is the diffusion-policy one: a context vector (B or 1, C)
+    concatenated with the flattened observation features of the To history steps. A subclass builds its own
+    modules in ``__init__``, then calls :meth:`build_head` with the width C of its context features.
+
+    ``cfg`` also needs ``diffusion``.
+    """
 
     def build_head(self, context_dim: int) -> None:
         """The action decoder, conditioned on `context_dim` context features + the observation history."""
@@ -285,11 +335,6 @@ class ContextDiffusionPolicy(nn.Module):
         assert ctx.shape[0] == batch, f"context batch {ctx.shape[0]} vs observation batch {batch}"
         return torch.cat([ctx, features], dim=-1), []
 
-    # ------------------------------------------------------------------ train
-    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
-        return self.compute_loss(batch, generator)
-
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
         """Noise-prediction loss of a batch ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": ...}``."""
         ctx = self.encode_context(batch["context"])
@@ -300,29 +345,6 @@ class ContextDiffusionPolicy(nn.Module):
     def encode_context(self, context: Mapping):
         """A batched, validated context (tensors) -> whatever :meth:`condition` takes; once per rollout."""
         raise NotImplementedError
-
-    # -------------------------------------------------------------- inference
-    def obs_keys(self) -> list[str]:
-        """Per-step observation keys the policy reads."""
-        return self.cfg.obs.entries
-
-    def data_spec(self) -> DataSpec:
-        """What training batches must contain for this model."""
-        obs, h = self.cfg.obs, self.cfg.horizons
-        return DataSpec(
-            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
-            image_keys=obs.image_keys,
-            image_size=obs.image_size,
-            action_key=self.cfg.action_key,
-            n_obs_steps=h.n_obs_steps,
-            horizon=h.horizon,
-            context=self.context_kind,
-            **self.context_spec(),
-        )
-
-    def context_spec(self) -> dict:
-        """The method's own :class:`DataSpec` fields about its context (e.g. the goal image's size)."""
-        return {}
 
     @torch.no_grad()
     def predict_action(

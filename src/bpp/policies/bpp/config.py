@@ -26,6 +26,9 @@ class PromptConfig:
     """Include the observation entries (cameras and low-dimensional state) in each chunk."""
     use_proprio: bool = True
     use_action: bool = True
+    action_fourier_octaves: int = 0
+    """0: a chunk's actions enter its token through one linear layer (normalised values); k > 0: Fourier
+    features over k octaves per action, then an MLP (the state-only presets: see bpp.nn.lowdim for why)."""
     pooling: Literal["all", "obs", "none"] = "all"
     """all: attention-pool every modality of a chunk into one token (the paper's BPP); obs: pool observation
     modalities, keep the action token separate; none: one token per modality (no pooling)."""

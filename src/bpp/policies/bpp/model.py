@@ -16,6 +16,7 @@ from einops import rearrange, repeat
 from torch import nn
 
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
+from bpp.nn.lowdim import FourierFeatures
 from bpp.policies.bpp.config import BPPConfig
 from bpp.policies.common import ContextDiffusionPolicy, validate_demo_context
 from bpp.policies.common import PromptError as PromptError  # raised by validate_context; importable from here
@@ -53,7 +54,18 @@ class BPPModel(ContextDiffusionPolicy):
         self.entry_proj = nn.ModuleList([nn.Linear(f, D) for f in self.obs_encoder.dims])
         self.entry_embed = nn.Parameter(torch.randn(len(self.entries) + 1, D) * 0.02)  # + one for actions
         # Only modules that are used get created: DDP requires every parameter to receive a gradient.
-        self.action_proj = nn.Linear(pcfg.chunk_len * (self.action_dim + 1), D) if pcfg.use_action else None
+        self.action_fourier, self.action_proj = None, None
+        if pcfg.use_action:
+            width = self.action_dim
+            if pcfg.action_fourier_octaves:  # a nonlinear embedding of the chunk's actions (see bpp.nn.lowdim)
+                self.action_fourier = FourierFeatures(pcfg.action_fourier_octaves)
+                width = self.action_fourier.out_dim(width)
+            flat = pcfg.chunk_len * (width + 1)  # + a validity flag per step
+            self.action_proj = (
+                nn.Sequential(nn.Linear(flat, D), nn.GELU(), nn.Linear(D, D))
+                if self.action_fourier is not None
+                else nn.Linear(flat, D)
+            )
         proprio = set(obs_cfg.proprio_keys)
         self.prompt_entries = [
             i
@@ -84,7 +96,10 @@ class BPPModel(ContextDiffusionPolicy):
                 modality.append(self.entry_proj[i](features[i]) + self.entry_embed[i])
         if self.cfg.prompt.use_action:
             pad = n * dt - steps
-            a = self.normalizer.normalize(self.cfg.action_key, actions) * valid[..., None]
+            a = self.normalizer.normalize(self.cfg.action_key, actions)
+            if self.action_fourier is not None:
+                a = self.action_fourier(a)
+            a = a * valid[..., None]
             a = torch.cat([a, valid[..., None].float()], dim=-1)
             a = nn.functional.pad(a, (0, 0, 0, pad))
             a = rearrange(a, "b (n dt) c -> b n (dt c)", dt=dt)

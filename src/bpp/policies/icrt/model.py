@@ -46,9 +46,8 @@ from einops import rearrange, repeat
 from torch import nn
 from torch.nn import functional as F
 
-from bpp.data.prompt_dataset import DataSpec
 from bpp.nn.causal import CausalTransformer, KVCache
-from bpp.policies.common import Normalizer, ObsEncoder, validate_demo_context
+from bpp.policies.common import PolicyModel, validate_demo_context
 from bpp.policies.icrt.config import ICRTConfig
 
 # Token types: a segment (prompt or rollout) plus a kind (observation or action), indexing the type embedding.
@@ -84,19 +83,14 @@ class ICRTContext:
         return self.valid.sum(1) + (self.pending is not None)
 
 
-class ICRTModel(nn.Module):
+class ICRTModel(PolicyModel):
     """In-Context Robot Transformer (tensor-only; :class:`bpp.policies.agent.PolicyAgent` wraps it for rollouts)."""
 
     method = "icrt"
     context_kind = "demo"
 
     def __init__(self, cfg: ICRTConfig, stats: Mapping[str, Mapping[str, list[float]]]):
-        super().__init__()
-        self.cfg = cfg
-        obs = cfg.obs
-        self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
-        self.action_dim = self.normalizer.width(cfg.action_key)
-        self.obs_encoder = ObsEncoder(obs, self.normalizer)
+        super().__init__(cfg, stats)
         N, D = cfg.chunk_len, cfg.dim
         self.obs_proj = nn.Linear(sum(self.obs_encoder.dims), D)
         self.action_proj = nn.Linear(N * (self.action_dim + 1), D)  # N actions, each with its validity flag
@@ -142,10 +136,6 @@ class ICRTModel(nn.Module):
         return self.transformer(tokens + self.pos_embed[positions], valid, cache)
 
     # ------------------------------------------------------------------ train
-    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The training loss (``forward`` so that DDP's gradient hooks see it)."""
-        return self.compute_loss(batch, generator)
-
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
         """Mean L1 error of the normalised actions over the valid rollout steps (teacher forcing).
 
@@ -177,25 +167,13 @@ class ICRTModel(nn.Module):
         return rearrange(self.head(out[:, ::2]), "b n (t a) -> b n t a", t=self.cfg.chunk_len)
 
     # -------------------------------------------------------------- inference
-    def obs_keys(self) -> list[str]:
-        """Per-step observation keys the policy reads (and a prompt demonstration must provide)."""
-        return self.cfg.obs.entries
-
-    def data_spec(self) -> DataSpec:
+    def context_spec(self) -> dict:
         """Training batches: a prompt demonstration and B whole demonstrations of the same task."""
-        obs, N = self.cfg.obs, self.cfg.chunk_len
-        return DataSpec(
-            lowdim_keys=(*obs.lowdim_keys, *obs.proprio_keys),
-            image_keys=obs.image_keys,
-            image_size=obs.image_size,
-            action_key=self.cfg.action_key,
-            n_obs_steps=1,
-            horizon=N,
-            context="demo",
-            samples="episodes",
-            max_prompt_steps=self.cfg.max_prompt_steps,
-            max_episode_steps=(self.cfg.max_tokens // 2 - 1) * N,  # what could fit after a one-chunk prompt
-        )
+        return {
+            "samples": "episodes",
+            "max_prompt_steps": self.cfg.max_prompt_steps,
+            "max_episode_steps": (self.cfg.max_tokens // 2 - 1) * self.cfg.chunk_len,  # fits after a 1-chunk prompt
+        }
 
     def validate_context(self, prompt: Mapping) -> dict:
         """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
