@@ -67,19 +67,21 @@ def prompt_use(model, store_path: str, batches: int = 5) -> tuple[float, float]:
     from bpp.data.prompt_dataset import PromptBatchDataset
     from bpp.utils import to_torch
 
+    from bpp.envs.draw.geometry import BOARD_SIZE
+
     cfg = model.cfg
-    keys = [*cfg.obs.lowdim_keys, *cfg.obs.proprio_keys]
-    ds = PromptBatchDataset(store_path, lowdim_keys=keys, batch_size=64, seed=123)
+    ds = PromptBatchDataset(store_path, model.data_spec(), batch_size=64, seed=123)
     ta, start = cfg.horizons.n_action_steps, cfg.horizons.n_obs_steps - 1
+    px = BOARD_SIZE if cfg.action_key == "action_on_board" else 1.0  # board-frame actions are in board units
     right, wrong = [], []
     for i in range(batches):
         batch, other = to_torch(ds[i], "cpu"), to_torch(ds[i + 1000], "cpu")
-        for prompt, out in ((batch["prompt"], right), (other["prompt"], wrong)):
+        for prompt, out in ((batch["context"], right), (other["context"], wrong)):
             pred = model.predict_action(
                 batch["obs"], model.encode_prompt(prompt), generator=torch.Generator().manual_seed(0)
             )["action"]
             err = (pred[:, start : start + ta, :2] - batch["action"][:, start : start + ta, :2]).norm(dim=-1)
-            out.append(err.mean().item())
+            out.append(px * err.mean().item())
     return float(np.mean(right)), float(np.mean(wrong))
 
 

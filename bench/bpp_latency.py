@@ -72,15 +72,7 @@ def train_rate(store, model, batch_size: int, steps: int) -> float:
 
 
 def _dataset(store, model, batch_size):
-    cfg = model.cfg.obs
-    return PromptBatchDataset(
-        store,
-        lowdim_keys=[*cfg.lowdim_keys, *cfg.proprio_keys],
-        image_keys=cfg.image_keys,
-        image_size=cfg.image_size,
-        batch_size=batch_size,
-        seed=1,
-    )
+    return PromptBatchDataset(store, model.data_spec(), batch_size=batch_size, seed=1)
 
 
 def loader_rate(store, model, batch_size: int, batches: int) -> float:

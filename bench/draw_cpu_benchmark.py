@@ -38,7 +38,9 @@ def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
     return generate(cfg, path, overwrite=True)
 
 
-def train_run(method: str, preset: str, store: EpisodeStore, run: Path, steps: int, seed: int) -> float:
+def train_run(
+    method: str, preset: str, store: EpisodeStore, run: Path, steps: int, seed: int, batch_size: int = 64
+) -> float:
     """Train (or finish, or reuse) one run; returns its training wall time in seconds (summed over sessions)."""
     timing = run / "train_seconds.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
@@ -47,11 +49,25 @@ def train_run(method: str, preset: str, store: EpisodeStore, run: Path, steps: i
             return spent
     resume = (run / "checkpoints" / "last").is_file()
     t0 = time.perf_counter()
-    cfg = TrainConfig(data=store.path, out=run, method=method, steps=steps, seed=seed, resume=resume, save_every=500)
+    cfg = TrainConfig(
+        data=store.path,
+        out=run,
+        method=method,
+        steps=steps,
+        batch_size=batch_size,
+        seed=seed,
+        resume=resume,
+        save_every=500,
+    )
     train(cfg, get_method(method).preset(preset))
     spent += time.perf_counter() - t0
     write_json_atomic(timing, {"seconds": spent})
     return spent
+
+
+def _per_method(items: list[str]) -> dict[str, int]:
+    """["bpp=6000", "icrt=4000"] -> {"bpp": 6000, "icrt": 4000}."""
+    return {k: int(v) for k, v in (item.split("=", 1) for item in items)}
 
 
 def main() -> None:
@@ -61,6 +77,12 @@ def main() -> None:
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
     parser.add_argument("--default-steps", type=int, default=6000)
+    parser.add_argument(
+        "--batch",
+        nargs="*",
+        default=["icrt=16"],
+        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations of ~10 chunks)",
+    )
     parser.add_argument("--num-tasks", type=int, default=500, help="procedural training tasks (5 demos each)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per unseen drawing (paper: 32)")
     parser.add_argument("--train-tasks", type=int, default=20, help="training drawings evaluated")
@@ -69,9 +91,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
     parser.add_argument("--workers", type=int, default=0)
     args = parser.parse_args()
-    steps = {m: args.default_steps for m in args.methods} | {
-        k: int(v) for k, v in (item.split("=") for item in args.steps)
-    }
+    steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
+    batch = {m: 64 for m in args.methods} | _per_method(args.batch)
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
     store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
@@ -80,8 +101,9 @@ def main() -> None:
     for method in args.methods:
         for seed in args.seeds:
             run = args.runs / f"{method}-{args.preset}-s{seed}"
-            seconds = train_run(method, args.preset, train_store, run, steps[method], seed)
+            seconds = train_run(method, args.preset, train_store, run, steps[method], seed, batch[method])
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
+            entry["batch_size"] = batch[method]
             for task_set, num in (("human", 0), ("train", args.train_tasks)):
                 store, tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir, num_tasks=num)
                 out = args.out / run.name / task_set
@@ -105,11 +127,11 @@ def main() -> None:
                 f"{trained.mean():.2f} ± {sd(trained):.2f}",
                 f"{human.mean():.2f} ± {sd(human):.2f}",
                 len(entries),
-                steps[method],
+                f"{steps[method]} x {batch[method]}",
                 f"{minutes:.1f}",
             )
         )
-    header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps", "train min/run"]
+    header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps x batch", "train min"]
     table = markdown_table(header, rows)
     (args.out / "table.md").write_text(
         f"DrawAnything-Sim on a CPU, preset `{args.preset}`, {args.num_tasks} tasks x 5 demos, "

@@ -336,3 +336,35 @@ def test_batched_rollouts_match_single_rollouts(debug_store):
         alone = rollout(agent, debug_store, ep, angle, seed=seed, max_steps=30)
         assert alone.steps == batched.steps
         assert alone.best_chamfer == pytest.approx(batched.best_chamfer, abs=1e-6)
+
+
+def test_fourier_embeddings_train_and_act(debug_store):
+    """The state-only presets' nonlinear input embeddings: every module gets a gradient and the model acts."""
+    from bpp.policies.common import ObsConfig
+
+    cfg = replace(
+        PRESETS["debug"],
+        obs=ObsConfig(lowdim_fourier_octaves=3, lowdim_features=16),
+        prompt=PromptConfig(num_sinks=2, action_fourier_octaves=3),
+    )
+    model = _model(debug_store, cfg)
+    assert model.obs_encoder.dims[-4:] == [16, 16, 16, 16]
+    batch = to_torch(_dataset(debug_store)[0], "cpu")
+    model.compute_loss(batch).backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.parameters())
+    ctx = model.encode_prompt(batch["context"])
+    assert torch.isfinite(model.predict_action(batch["obs"], ctx)["action"]).all()
+
+
+def test_fourier_features_make_nearby_inputs_similar():
+    """Why the embedding exists: with Fourier features, the dot product peaks at the nearest input, not the
+    furthest along the query's direction (which is what a linear embedding's dot product rewards)."""
+    from bpp.nn.lowdim import FourierFeatures
+
+    ff = FourierFeatures(5)
+    keys = torch.linspace(-1, 1, 41)[:, None]
+    for q in (-0.6, 0.1, 0.45):
+        query = torch.tensor([[q]])
+        scores = ff(keys)[:, 1:] @ ff(query)[0, 1:]  # the sin/cos part
+        assert abs(keys[scores.argmax(), 0].item() - q) <= 0.05
+        assert abs(keys[(keys @ query[0]).argmax(), 0].item()) == 1.0  # linear: an end of the range wins

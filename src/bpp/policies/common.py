@@ -213,7 +213,9 @@ class Horizons:
 # Preset parts that several methods' presets share (each method's config.py names its own presets).
 DEBUG_DIFFUSION = DiffusionConfig(down_dims=(32, 64), step_embed_dim=16, num_train_steps=20, num_inference_steps=4)
 """The tiny action decoder of the ``debug`` presets."""
-BOARD_OBS = ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down"))
+CPU_OBS = ObsConfig(lowdim_fourier_octaves=6)
+"""State-only observations (the ``cpu`` presets) with Fourier-feature embeddings of every entry."""
+BOARD_OBS = ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down"), lowdim_fourier_octaves=6)
 """State in the board's frame (the ``cpu-board`` presets, which pair it with ``action_key="action_on_board"``)."""
 PAPER_OBS = ObsConfig(
     image_keys=("image",),

@@ -7,6 +7,7 @@ from typing import Literal
 
 from bpp.policies.common import (
     BOARD_OBS,
+    CPU_OBS,
     DEBUG_DIFFUSION,
     PAPER_DIFFUSION,
     PAPER_OBS,
@@ -82,10 +83,10 @@ PRESETS: dict[str, BPPConfig] = {
         diffusion=DEBUG_DIFFUSION,
     ),
     # State-only DrawAnything on a 2-core CPU.
-    "cpu": BPPConfig(),
+    "cpu": BPPConfig(obs=CPU_OBS, prompt=PromptConfig(action_fourier_octaves=6)),
     # State-only in the board's own frame (cursor and action targets as seen on the board): the prompt's actions
     # transfer to a new board angle unchanged. Not the paper's setting (canvas actions); labelled wherever used.
-    "cpu-board": BPPConfig(obs=BOARD_OBS, action_key="action_on_board"),
+    "cpu-board": BPPConfig(obs=BOARD_OBS, prompt=PromptConfig(action_fourier_octaves=6), action_key="action_on_board"),
     # Image observations at 64x64 on a CPU.
     "cpu-image": BPPConfig(
         obs=ObsConfig(image_keys=("image",), image_size=64, image_features=128, image_widths=(16, 32, 64, 128)),

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from bpp.policies.common import (
     BOARD_OBS,
+    CPU_OBS,
     DEBUG_DIFFUSION,
     PAPER_DIFFUSION,
     PAPER_OBS,
@@ -64,7 +65,7 @@ PRESETS: dict[str, GoalImageConfig] = {
         goal_image_size=32, goal_features=16, goal_widths=(8, 16), goal_blocks=(1, 1), diffusion=DEBUG_DIFFUSION
     ),
     # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset) + a 96x96 goal image.
-    "cpu": GoalImageConfig(),
+    "cpu": GoalImageConfig(obs=CPU_OBS),
     # As BPP's cpu-board preset: state and actions in the board's frame (not the paper's setting).
     "cpu-board": GoalImageConfig(obs=BOARD_OBS, action_key="action_on_board"),
     # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm), one encoder for the camera and the goal;

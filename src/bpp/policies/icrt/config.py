@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import BOARD_OBS, PAPER_OBS, Horizons, ObsConfig
+from bpp.policies.common import BOARD_OBS, CPU_OBS, PAPER_OBS, Horizons, ObsConfig
 
 
 @dataclass(frozen=True)
@@ -60,7 +60,7 @@ PRESETS: dict[str, ICRTConfig] = {
     # Tiny, for tests: seconds on a CPU.
     "debug": ICRTConfig(dim=32, layers=2, heads=2, mlp_dim=64, max_tokens=128),
     # State-only DrawAnything on a 2-core CPU (about 5M parameters; BPP's cpu preset has 8M, mostly its U-Net).
-    "cpu": ICRTConfig(),
+    "cpu": ICRTConfig(obs=CPU_OBS),
     # State-only in the board's frame, as BPP's cpu-board preset (not the paper's setting: canvas actions).
     "cpu-board": ICRTConfig(obs=BOARD_OBS, action_key="action_on_board"),
     # The paper's setting: 224x224 images through a ResNet-18 (GroupNorm), as BPP's paper preset. The ICRT paper's

@@ -5,7 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from bpp.policies.common import DEBUG_DIFFUSION, PAPER_DIFFUSION, PAPER_OBS, DiffusionConfig, Horizons, ObsConfig
+from bpp.policies.common import (
+    CPU_OBS,
+    DEBUG_DIFFUSION,
+    PAPER_DIFFUSION,
+    PAPER_OBS,
+    DiffusionConfig,
+    Horizons,
+    ObsConfig,
+)
 
 
 @dataclass(frozen=True)
@@ -50,7 +58,7 @@ PRESETS: dict[str, LanguageConfig] = {
     # Tiny, for tests: seconds on a CPU.
     "debug": LanguageConfig(text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION),
     # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset).
-    "cpu": LanguageConfig(),
+    "cpu": LanguageConfig(obs=CPU_OBS),
     # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm); U-Net [256, 512, 1024]; a text encoder of
     # CLIP ViT-B's text-tower size (12 layers, width 512, 8 heads), here trained from scratch.
     "paper": LanguageConfig(

@@ -1,0 +1,87 @@
+"""Inference latency of every method on this CPU, measured over whole 400-step DrawAnything rollouts.
+
+    python bench/method_latency.py --data data/draw/cpu.zarr --preset cpu [--methods bpp goal_image icrt]
+
+For each method (untrained weights: latency does not depend on training): `reset` (the task context is encoded
+once per rollout) and then `act` for 400 steps of a real env rollout with early stopping off. Reported: the
+latency of the `act` calls that run the network (p50 / p95), the per-step cost amortised over all 400 `act`
+calls, and, for ICRT, how the latency of a network call grows with the rollout history (its KV cache grows by
+two tokens per chunk).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from bpp.data.store import EpisodeStore
+from bpp.envs.draw.env import ACTION_FRAMES, DrawEnv
+from bpp.evaluation.draw import context_for
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.registry import get_method
+
+
+def rollout_timings(agent: PolicyAgent, store: EpisodeStore, steps: int) -> tuple[float, list[tuple[int, float]]]:
+    """(reset seconds, [(step, act seconds)]) over one rollout of `steps` steps."""
+    spec = agent.model.data_spec()
+    env = DrawEnv(
+        image_size=spec.image_size if spec.image_keys else None,
+        early_stop=False,
+        max_episode_steps=steps,
+        action_frame=ACTION_FRAMES[spec.action_key],
+    )
+    obs, _ = env.reset(seed=0, options={"board_angle": 0.3})
+    t0 = time.perf_counter()
+    agent.reset(context_for(agent.model, store, 0), seed=0)
+    reset_s = time.perf_counter() - t0
+    times = []
+    for step in range(steps):
+        t0 = time.perf_counter()
+        action = agent.act(obs)
+        times.append((step, time.perf_counter() - t0))
+        obs, *_ = env.step(action)
+    return reset_s, times
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", default="data/draw/cpu.zarr")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
+    parser.add_argument("--steps", type=int, default=400)
+    args = parser.parse_args()
+    store = EpisodeStore(args.data)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, preset {args.preset}")
+    header = "| method | params | reset (context encoding) | network call p50 / p95 | calls | per step, amortised |"
+    print("\n" + header + "\n| --- | ---: | ---: | ---: | ---: | ---: |")
+    growth = {}
+    for name in args.methods:
+        method = get_method(name)
+        torch.manual_seed(0)
+        model = method.model_cls(method.preset(args.preset), store.stats).eval()
+        agent = PolicyAgent(model)
+        rollout_timings(agent, store, 24)  # warm-up
+        reset_s, times = rollout_timings(agent, store, args.steps)
+        every = agent.n_action_steps
+        calls = np.array([t for step, t in times if step % every == 0]) * 1e3
+        total = sum(t for _, t in times) * 1e3
+        params = sum(p.numel() for p in model.parameters()) / 1e6
+        print(
+            f"| {name} | {params:.1f}M | {reset_s * 1e3:.1f} ms | {np.percentile(calls, 50):.1f} / "
+            f"{np.percentile(calls, 95):.1f} ms | {len(calls)} | {total / len(times):.2f} ms |"
+        )
+        if name == "icrt":
+            growth[name] = [(step, t * 1e3) for step, t in times if step % every == 0]
+    for name, rows in growth.items():
+        marks = [rows[i] for i in np.unique(np.linspace(0, len(rows) - 1, 6).round().astype(int))]
+        print(f"\n{name}: network call latency along the rollout (history grows): ")
+        print("  " + ", ".join(f"step {step}: {ms:.1f} ms" for step, ms in marks))
+        first, last = np.median([ms for _, ms in rows[:5]]), np.median([ms for _, ms in rows[-5:]])
+        print(f"  median of the last 5 calls / first 5 calls: {last / first:.2f}")
+
+
+if __name__ == "__main__":
+    main()
