@@ -65,9 +65,8 @@ def prompt_use(model, store_path: str, batches: int = 5) -> tuple[float, float]:
     import torch
 
     from bpp.data.prompt_dataset import PromptBatchDataset
-    from bpp.utils import to_torch
-
     from bpp.envs.draw.geometry import BOARD_SIZE
+    from bpp.utils import to_torch
 
     cfg = model.cfg
     ds = PromptBatchDataset(store_path, model.data_spec(), batch_size=64, seed=123)
