@@ -39,7 +39,15 @@ def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
 
 
 def train_run(
-    method: str, preset: str, store: EpisodeStore, run: Path, steps: int, seed: int, batch_size: int = 64
+    method: str,
+    preset: str,
+    store: EpisodeStore,
+    run: Path,
+    steps: int,
+    seed: int,
+    batch_size: int = 64,
+    tasks_per_batch: int = 1,
+    threads: int = 0,
 ) -> float:
     """Train (or finish, or reuse) one run; returns its training wall time in seconds (summed over sessions)."""
     timing = run / "train_seconds.json"
@@ -55,7 +63,10 @@ def train_run(
         method=method,
         steps=steps,
         batch_size=batch_size,
+        tasks_per_batch=tasks_per_batch,
         seed=seed,
+        threads=threads,
+        workers=0,
         resume=resume,
         save_every=500,
     )
@@ -83,6 +94,8 @@ def main() -> None:
         default=["icrt=16"],
         help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations of ~10 chunks)",
     )
+    parser.add_argument("--tasks-per-batch", type=int, default=8, help="tasks (prompts) per step, all methods")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads for training (0: torch's default)")
     parser.add_argument("--num-tasks", type=int, default=500, help="procedural training tasks (5 demos each)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per unseen drawing (paper: 32)")
     parser.add_argument("--train-tasks", type=int, default=20, help="training drawings evaluated")
@@ -101,7 +114,17 @@ def main() -> None:
     for method in args.methods:
         for seed in args.seeds:
             run = args.runs / f"{method}-{args.preset}-s{seed}"
-            seconds = train_run(method, args.preset, train_store, run, steps[method], seed, batch[method])
+            seconds = train_run(
+                method,
+                args.preset,
+                train_store,
+                run,
+                steps[method],
+                seed,
+                batch[method],
+                args.tasks_per_batch,
+                args.threads,
+            )
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
             for task_set, num in (("human", 0), ("train", args.train_tasks)):

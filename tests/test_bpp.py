@@ -42,7 +42,7 @@ def test_batches_are_deterministic_and_from_one_task(debug_store):
     prompt_len = a["context"]["action"].shape[1]
     prompt_eps = [
         e
-        for e in debug_store.task_episodes()[int(a["task"])]
+        for e in debug_store.task_episodes()[int(a["task"][0])]
         if debug_store.episode_slice(e).stop - debug_store.episode_slice(e).start == prompt_len
     ]
     assert prompt_eps and all(task_of[e] == a["task"] for e in prompt_eps)

@@ -49,7 +49,8 @@ def _uncached_chunks(model, prompt: dict, episode: dict, actions: np.ndarray, st
             torch.cat([prompt_tokens, rollout_tokens], dim=1), torch.cat([prompt_valid, rollout_valid], dim=1)
         )
         chunks = model.head(out[0, prompt_tokens.shape[1] :: 2]).reshape(-1, N, model.action_dim)
-    return model.normalizer.unnormalize("action", chunks)
+    origin = model.chunk_origins(to_torch(rollout["obs"], "cpu"), N)
+    return model.unnormalize_actions(chunks, None if origin is None else origin[0].reshape(-1, N, origin.shape[-1]))
 
 
 def test_trains_saves_loads_and_draws(debug_store, tmp_path):
@@ -74,8 +75,9 @@ def test_trains_saves_loads_and_draws(debug_store, tmp_path):
     assert again.steps == result.steps and again.best_chamfer == result.best_chamfer
 
 
-def test_cached_inference_equals_recomputing_the_whole_sequence(debug_store):
-    model = _model(debug_store)
+@pytest.mark.parametrize("relative_to", ["", "agent_pos"], ids=["absolute", "relative"])
+def test_cached_inference_equals_recomputing_the_whole_sequence(debug_store, relative_to):
+    model = _model(debug_store, action_relative_to=relative_to)
     agent = PolicyAgent(model)
     prompt = prompt_from_store(debug_store, 0, KEYS)
     agent.reset(prompt)
@@ -88,8 +90,10 @@ def test_cached_inference_equals_recomputing_the_whole_sequence(debug_store):
     batch["valid"] = torch.ones(1, 6 * N, dtype=torch.bool)
     with torch.no_grad():
         ctx = model.encode_context(to_torch(model.validate_context(prompt), "cpu"))
-        taught = model.normalizer.unnormalize("action", model.rollout_chunks(ctx, batch))
-    torch.testing.assert_close(taught[0], expected, rtol=1e-5, atol=1e-5)
+        chunks = model.rollout_chunks(ctx, batch)[0]
+        origin = model.chunk_origins(batch["obs"], N)
+        taught = model.unnormalize_actions(chunks, None if origin is None else origin[0].reshape(6, N, -1))
+    torch.testing.assert_close(taught, expected, rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.parametrize("max_tokens", [128, 44])  # 44: both rollouts outgrow the context, at different steps

@@ -36,7 +36,10 @@ class TrainConfig:
     method: str = "bpp"
     steps: int = 3000
     batch_size: int = 64
-    """Windows per step (all from one task, conditioned on one prompt)."""
+    """Samples per step and process."""
+    tasks_per_batch: int = 1
+    """G: tasks per step, each with its own context demonstration and batch_size / G samples from its other
+    demonstrations. 1 is the paper's recipe; more prompts per step help when steps are few (a CPU)."""
     lr: float = 3e-4
     weight_decay: float = 1e-4
     warmup_steps: int = 200
@@ -130,7 +133,13 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
     dataset = PromptBatchDataset(
-        store, model.data_spec(), batch_size=cfg.batch_size, num_batches=cfg.steps, seed=cfg.seed, rank=rank
+        store,
+        model.data_spec(),
+        batch_size=cfg.batch_size,
+        num_batches=cfg.steps,
+        seed=cfg.seed,
+        rank=rank,
+        tasks_per_batch=cfg.tasks_per_batch,
     )
     loader = torch.utils.data.DataLoader(
         dataset,

@@ -12,7 +12,7 @@ demonstration prompt, the prompt's goal image, or the task's instruction). Every
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -60,16 +60,38 @@ class DataSpec:
     """Whole-episode samples are cut to this length."""
 
 
+def collate_contexts(items: list) -> object:
+    """Stack task contexts (each with batch dimension 1) into one batch.
+
+    Arrays are concatenated along the batch axis; arrays whose time axis (axis 1) differs are zero-padded to
+    the longest first, so a demonstration's ``valid`` mask pads with False. Lists (e.g. instructions) are joined.
+    """
+    first = items[0]
+    if isinstance(first, Mapping):
+        return {k: collate_contexts([item[k] for item in items]) for k in first}
+    if isinstance(first, list):
+        return [x for item in items for x in item]
+    arrays = [np.asarray(a) for a in items]
+    if arrays[0].ndim >= 2:
+        longest = max(a.shape[1] for a in arrays)
+        arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
+    return np.concatenate(arrays, axis=0)
+
+
 class PromptBatchDataset(torch.utils.data.Dataset):
-    """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "task": ()}`` (numpy).
+    """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "context_index": (B,),
+    "task": (G,)}`` (numpy).
 
-    Each batch draws one task uniformly (balanced, among tasks with at least two demonstrations), one
-    *context demonstration* of it, and `batch_size` samples from the task's *other* demonstrations. The context is
-    (by ``spec.context``)
+    Each batch draws G = `tasks_per_batch` distinct tasks uniformly (balanced, among tasks with at least two
+    demonstrations); for each, one *context demonstration* and B / G samples from the task's *other*
+    demonstrations. Sample i is conditioned on context ``context_index[i]``. The paper draws one task per step
+    (G = 1); a larger G shows the model more prompts per optimiser step at the same batch size, which matters
+    when steps are few (a CPU). The contexts are (by ``spec.context``)
 
-    * ``demo``: ``{"obs": {k: (1, L, ...)}, "action": (1, L, A), "valid": (1, L)}``, the demonstration itself;
-    * ``goal_image``: ``{"image": (1, H, W, 3)}``, its final frame;
-    * ``instruction``: ``{"text": [str]}``, the task's instruction.
+    * ``demo``: ``{"obs": {k: (G, L, ...)}, "action": (G, L, A), "valid": (G, L)}``, the demonstrations
+      themselves, padded to the longest (``valid`` False past a demonstration's end);
+    * ``goal_image``: ``{"image": (G, H, W, 3)}``, their final frames;
+    * ``instruction``: ``{"text": [str] * G}``, the tasks' instructions.
 
     With ``spec.samples == "episodes"`` the samples are whole demonstrations instead of windows:
     ``obs`` (B, L, ...), ``action`` (B, L, A) and ``valid`` (B, L), padded to the longest.
@@ -85,6 +107,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         seed: int = 0,
         rank: int = 0,
         tasks: Sequence[int] | None = None,
+        tasks_per_batch: int = 1,
         frame_cache_episodes: int = 256,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
@@ -102,7 +125,11 @@ class PromptBatchDataset(torch.utils.data.Dataset):
                 raise ValueError(
                     f"{self.store.path}: its tasks carry no instructions, so a language policy can't train"
                 )
-        self.batch_size, self.num_batches = batch_size, num_batches
+        if tasks_per_batch < 1 or batch_size % tasks_per_batch:
+            raise ValueError(
+                f"batch_size {batch_size} must be a positive multiple of tasks_per_batch {tasks_per_batch}"
+            )
+        self.batch_size, self.num_batches, self.tasks_per_batch = batch_size, num_batches, tasks_per_batch
         self.seed, self.rank = seed, rank
         by_task = self.store.task_episodes()
         chosen = range(len(by_task)) if tasks is None else tasks
@@ -170,14 +197,23 @@ class PromptBatchDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index), self.rank])
-        task = self.tasks[int(rng.integers(len(self.tasks)))]
-        episodes = self.task_episodes[task]
-        context_episode = int(episodes[rng.integers(len(episodes))])
-        others = episodes[episodes != context_episode]
-        chosen = others[rng.integers(len(others), size=self.batch_size)]
+        groups, per_group = self.tasks_per_batch, self.batch_size // self.tasks_per_batch
+        if groups == 1:
+            tasks = [self.tasks[int(rng.integers(len(self.tasks)))]]
+        else:  # distinct tasks while there are enough of them
+            tasks = rng.choice(self.tasks, size=groups, replace=groups > len(self.tasks)).tolist()
+        contexts, chosen = [], []
+        for task in tasks:
+            episodes = self.task_episodes[task]
+            context_episode = int(episodes[rng.integers(len(episodes))])
+            others = episodes[episodes != context_episode]
+            chosen.append(others[rng.integers(len(others), size=per_group)])
+            contexts.append(self.context(task, context_episode))
+        chosen = np.concatenate(chosen)
         batch = self._episodes(chosen) if self.spec.samples == "episodes" else self._windows(chosen, rng)
-        batch["context"] = self.context(task, context_episode)
-        batch["task"] = np.int64(task)
+        batch["context"] = collate_contexts(contexts)
+        batch["context_index"] = np.repeat(np.arange(groups), per_group)
+        batch["task"] = np.asarray(tasks, dtype=np.int64)
         return batch
 
     def _windows(self, chosen: np.ndarray, rng: np.random.Generator) -> dict:

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.policies.common import collate_contexts
+from bpp.data.prompt_dataset import collate_contexts
 from bpp.utils import to_torch
 
 

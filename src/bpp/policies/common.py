@@ -217,6 +217,15 @@ CPU_OBS = ObsConfig(lowdim_fourier_octaves=6)
 """State-only observations (the ``cpu`` presets) with Fourier-feature embeddings of every entry."""
 BOARD_OBS = ObsConfig(lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down"), lowdim_fourier_octaves=6)
 """State in the board's frame (the ``cpu-board`` presets, which pair it with ``action_key="action_on_board"``)."""
+CPU_IMAGE_OBS = ObsConfig(
+    image_keys=("image",),
+    lowdim_keys=(),
+    image_size=64,
+    image_features=128,
+    image_widths=(16, 32, 64, 128),
+    lowdim_fourier_octaves=6,
+)
+"""The paper's visual setting at CPU scale (the ``cpu-image`` presets): a 64x64 camera + proprioception only."""
 PAPER_OBS = ObsConfig(
     image_keys=("image",),
     lowdim_keys=(),
@@ -234,30 +243,12 @@ def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 
 
-def collate_contexts(items: list) -> object:
-    """Stack validated task contexts (each with batch dimension 1) into one batch.
-
-    Arrays are concatenated along the batch axis; arrays whose time axis (axis 1) differs are zero-padded to
-    the longest first, so a demonstration's ``valid`` mask pads with False. Lists (e.g. instructions) are joined.
-    """
-    first = items[0]
-    if isinstance(first, Mapping):
-        return {k: collate_contexts([item[k] for item in items]) for k in first}
-    if isinstance(first, list):
-        return [x for item in items for x in item]
-    arrays = [np.asarray(a) for a in items]
-    if arrays[0].ndim >= 2:
-        longest = max(a.shape[1] for a in arrays)
-        arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
-    return np.concatenate(arrays, axis=0)
-
-
 class PolicyModel(nn.Module):
     """The parts of the model contract (:mod:`bpp.policies.registry`) that every method shares: the normaliser,
     the observation encoder, ``forward`` = ``compute_loss``, the keys read and the training batches wanted.
 
-    ``cfg`` needs ``obs`` (:class:`ObsConfig`), ``horizons`` and ``action_key``. A method sets ``method`` and
-    ``context_kind`` and may add :class:`DataSpec` fields in :meth:`context_spec`.
+    ``cfg`` needs ``obs`` (:class:`ObsConfig`), ``horizons``, ``action_key`` and ``action_relative_to``. A method
+    sets ``method`` and ``context_kind`` and may add :class:`DataSpec` fields in :meth:`context_spec`.
     """
 
     method: str
@@ -270,6 +261,52 @@ class PolicyModel(nn.Module):
         self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
         self.action_dim = self.normalizer.width(cfg.action_key)
         self.obs_encoder = ObsEncoder(obs, self.normalizer)
+        origin = cfg.action_relative_to
+        if origin:
+            if origin not in (*obs.lowdim_keys, *obs.proprio_keys):
+                raise ValueError(f"action_relative_to {origin!r} must be an observed low-dimensional key")
+            if self.normalizer.width(origin) > self.action_dim:
+                raise ValueError(f"action_relative_to {origin!r} is wider than the actions ({self.action_dim})")
+        self.relative_dims = self.normalizer.width(origin) if origin else 0
+
+    # ----------------------------------------------------------------- actions
+    def _relative_scale(self) -> torch.Tensor:
+        # Offsets are scaled by the absolute actions' range: an offset as large as that whole range maps to 1, so
+        # a T-step chunk at the demonstrations' speeds stays inside the sampler's [-1, 1] clip.
+        return getattr(self.normalizer, f"{self.cfg.action_key}__scale")[: self.relative_dims] / 2
+
+    def normalize_actions(self, actions: torch.Tensor, origin: torch.Tensor | None) -> torch.Tensor:
+        """Raw actions (..., T, A) -> the model's normalised action space.
+
+        Absolute by default. With ``cfg.action_relative_to`` set, the first P dims become offsets from `origin`
+        (..., 1 or T, P), the raw value of that observation key (e.g. the cursor at the current step), so a chunk
+        that continues from where the robot is sits near 0 whatever the position.
+        """
+        x = self.normalizer.normalize(self.cfg.action_key, actions)
+        if not self.relative_dims:
+            return x
+        P = self.relative_dims
+        return torch.cat([(actions[..., :P] - origin) * self._relative_scale(), x[..., P:]], dim=-1)
+
+    def unnormalize_actions(self, x: torch.Tensor, origin: torch.Tensor | None) -> torch.Tensor:
+        """The inverse of :meth:`normalize_actions`."""
+        actions = self.normalizer.unnormalize(self.cfg.action_key, x)
+        if not self.relative_dims:
+            return actions
+        P = self.relative_dims
+        return torch.cat([x[..., :P] / self._relative_scale() + origin, actions[..., P:]], dim=-1)
+
+    def chunk_origins(self, obs: Mapping[str, torch.Tensor], chunk_len: int) -> torch.Tensor | None:
+        """Per-step origins (B, L, P) for demonstrations ``{key: (B, L, ...)}`` cut into chunks of `chunk_len`
+        steps: each step's actions are relative to the observation at its chunk's first step."""
+        if not self.relative_dims:
+            return None
+        value = obs[self.cfg.action_relative_to].float()
+        return value[:, ::chunk_len].repeat_interleave(chunk_len, dim=1)[:, : value.shape[1]]
+
+    def action_origin(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+        """Where relative actions start for observations ``{key: (B, To, ...)}``: (B, 1, P) at the current step."""
+        return obs[self.cfg.action_relative_to][:, -1:].float() if self.relative_dims else None
 
     def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
         """The training loss (``forward`` so that DDP's gradient hooks see it)."""
@@ -338,15 +375,23 @@ class ContextDiffusionPolicy(PolicyModel):
         return torch.cat([ctx, features], dim=-1), []
 
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Noise-prediction loss of a batch ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": ...}``."""
+        """Noise-prediction loss of a batch ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": ...,
+        "context_index": (B,)}``: G contexts, each encoded once, sample i conditioned on context_index[i]."""
         ctx = self.encode_context(batch["context"])
+        if "context_index" in batch:
+            ctx = self.select_context(ctx, batch["context_index"])
         cond, _ = self.condition(batch["obs"], ctx)
-        actions = self.normalizer.normalize(self.cfg.action_key, batch["action"])
+        actions = self.normalize_actions(batch["action"], self.action_origin(batch["obs"]))
         return self.head.loss(actions, cond, generator)
 
     def encode_context(self, context: Mapping):
         """A batched, validated context (tensors) -> whatever :meth:`condition` takes; once per rollout."""
         raise NotImplementedError
+
+    @staticmethod
+    def select_context(ctx: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Encoded contexts (G, ...) -> one per sample (B, ...), sample i taking context ``index[i]``."""
+        return ctx[index]
 
     @torch.no_grad()
     def predict_action(
@@ -363,7 +408,8 @@ class ContextDiffusionPolicy(PolicyModel):
         """
         cond, attentions = self.condition(obs, ctx, return_attention)
         shape = (self.cfg.horizons.horizon, self.action_dim)
-        actions = self.normalizer.unnormalize(self.cfg.action_key, self.head.sample(cond, shape, noise, generator))
+        sample = self.head.sample(cond, shape, noise, generator)
+        actions = self.unnormalize_actions(sample, self.action_origin(obs))
         out = {"action": actions}
         if return_attention and attentions:
             out["attention"] = self.context_attention(attentions, ctx)

@@ -7,6 +7,7 @@ from typing import Literal
 
 from bpp.policies.common import (
     BOARD_OBS,
+    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
     PAPER_DIFFUSION,
@@ -60,6 +61,10 @@ class BPPConfig:
     prompt: PromptConfig = field(default_factory=PromptConfig)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
+    action_relative_to: str = ""
+    """"": absolute actions (the paper). An observation key (e.g. ``cursor_on_board``, whose frame the actions'
+    first dims share): actions are learned and predicted as offsets from that key's value at the current step,
+    which a small model fits far more precisely (see README, "Relative actions")."""
     dim: int = 128
     """D: token width of the prompt encoder."""
     layers: int = 2
@@ -87,10 +92,8 @@ PRESETS: dict[str, BPPConfig] = {
     # State-only in the board's own frame (cursor and action targets as seen on the board): the prompt's actions
     # transfer to a new board angle unchanged. Not the paper's setting (canvas actions); labelled wherever used.
     "cpu-board": BPPConfig(obs=BOARD_OBS, prompt=PromptConfig(action_fourier_octaves=6), action_key="action_on_board"),
-    # Image observations at 64x64 on a CPU.
-    "cpu-image": BPPConfig(
-        obs=ObsConfig(image_keys=("image",), image_size=64, image_features=128, image_widths=(16, 32, 64, 128)),
-    ),
+    # The paper's visual setting at CPU scale: a 64x64 camera + proprioception, canvas actions.
+    "cpu-image": BPPConfig(obs=CPU_IMAGE_OBS, prompt=PromptConfig(action_fourier_octaves=6)),
     # The paper's sizes: prompt encoder 6 layers, D=768, MLP 3072, 8 heads; U-Net [256, 512, 1024], kernel 5,
     # step embedding 128; ResNet-18 (GroupNorm) on 224x224 images.
     "paper": BPPConfig(obs=PAPER_OBS, dim=768, layers=6, heads=8, mlp_dim=3072, dropout=0.1, diffusion=PAPER_DIFFUSION),

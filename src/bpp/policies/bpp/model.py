@@ -31,6 +31,10 @@ class PromptContext:
     token_chunk: torch.Tensor  # (M,) long: the prompt chunk each token belongs to, -1 for attention sinks
     num_chunks: int
 
+    def select(self, index: torch.Tensor) -> PromptContext:
+        """One prompt per sample: sample i takes prompt ``index[i]`` (index (B,) into the Bp prompts)."""
+        return PromptContext(self.tokens[index], self.valid[index], self.token_chunk, self.num_chunks)
+
     def expand(self, batch: int) -> PromptContext:
         if self.tokens.shape[0] == batch:
             return self
@@ -96,7 +100,7 @@ class BPPModel(ContextDiffusionPolicy):
                 modality.append(self.entry_proj[i](features[i]) + self.entry_embed[i])
         if self.cfg.prompt.use_action:
             pad = n * dt - steps
-            a = self.normalizer.normalize(self.cfg.action_key, actions)
+            a = self.normalize_actions(actions, self.chunk_origins(prompt["obs"], dt))
             if self.action_fourier is not None:
                 a = self.action_fourier(a)
             a = a * valid[..., None]
@@ -151,6 +155,10 @@ class BPPModel(ContextDiffusionPolicy):
 
     def encode_context(self, context: Mapping) -> PromptContext:
         return self.encode_prompt(context)
+
+    @staticmethod
+    def select_context(ctx: PromptContext, index: torch.Tensor) -> PromptContext:
+        return ctx.select(index)
 
     @staticmethod
     def context_attention(attentions: list[torch.Tensor], ctx: PromptContext) -> torch.Tensor:

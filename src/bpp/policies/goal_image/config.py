@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from bpp.policies.common import (
     BOARD_OBS,
+    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
     PAPER_DIFFUSION,
@@ -29,6 +30,10 @@ class GoalImageConfig:
     horizons: Horizons = field(default_factory=Horizons)
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
+    action_relative_to: str = ""
+    """"": absolute actions (the paper). An observation key (e.g. ``cursor_on_board``, whose frame the actions'
+    first dims share): actions are learned and predicted as offsets from that key's value at the current step,
+    which a small model fits far more precisely (see README, "Relative actions")."""
     goal_camera: str = "image"
     goal_image_size: int = 96
     """Goal images are (goal_image_size, goal_image_size, 3) uint8; with image observations, obs.image_size."""
@@ -68,6 +73,8 @@ PRESETS: dict[str, GoalImageConfig] = {
     "cpu": GoalImageConfig(obs=CPU_OBS),
     # As BPP's cpu-board preset: state and actions in the board's frame (not the paper's setting).
     "cpu-board": GoalImageConfig(obs=BOARD_OBS, action_key="action_on_board"),
+    # As BPP's cpu-image preset: a 64x64 camera + proprioception; the goal frame goes through the camera's encoder.
+    "cpu-image": GoalImageConfig(obs=CPU_IMAGE_OBS, goal_image_size=CPU_IMAGE_OBS.image_size),
     # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm), one encoder for the camera and the goal;
     # U-Net [256, 512, 1024], kernel 5, step embedding 128.
     "paper": GoalImageConfig(obs=PAPER_OBS, goal_image_size=224, diffusion=PAPER_DIFFUSION),

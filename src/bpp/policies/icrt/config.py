@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import BOARD_OBS, CPU_OBS, PAPER_OBS, Horizons, ObsConfig
+from bpp.policies.common import BOARD_OBS, CPU_IMAGE_OBS, CPU_OBS, PAPER_OBS, Horizons, ObsConfig
 
 
 @dataclass(frozen=True)
@@ -18,6 +18,10 @@ class ICRTConfig:
 
     obs: ObsConfig = field(default_factory=ObsConfig)
     action_key: str = "action"
+    action_relative_to: str = ""
+    """"": absolute actions (the paper). An observation key (e.g. ``cursor_on_board``, whose frame the actions'
+    first dims share): actions are learned and predicted as offsets from that key's value at the current step,
+    which a small model fits far more precisely (see README, "Relative actions")."""
     chunk_len: int = 10
     """N: actions per action token, and steps between observation tokens (BPP's prompt chunk Δt)."""
     max_tokens: int = 256
@@ -63,6 +67,8 @@ PRESETS: dict[str, ICRTConfig] = {
     "cpu": ICRTConfig(obs=CPU_OBS),
     # State-only in the board's frame, as BPP's cpu-board preset (not the paper's setting: canvas actions).
     "cpu-board": ICRTConfig(obs=BOARD_OBS, action_key="action_on_board"),
+    # As BPP's cpu-image preset: a 64x64 camera + proprioception, canvas actions.
+    "cpu-image": ICRTConfig(obs=CPU_IMAGE_OBS),
     # The paper's setting: 224x224 images through a ResNet-18 (GroupNorm), as BPP's paper preset. The ICRT paper's
     # transformer is a Llama-2-style 12-layer, D=768 model (RMSNorm, SwiGLU, rotary positions); this one has the
     # same size with LayerNorm, GELU and learned positions.

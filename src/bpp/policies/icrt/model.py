@@ -105,10 +105,15 @@ class ICRTModel(PolicyModel):
         features = torch.cat(self.obs_encoder(obs), dim=-1)
         return self.obs_proj(features) + self.type_embed[segment + OBS]
 
-    def action_tokens(self, actions: torch.Tensor, valid: torch.Tensor, segment: int) -> torch.Tensor:
-        """Raw actions (B, L, A) with `valid` (B, L) -> one token per chunk of N steps (B, ceil(L / N), D)."""
+    def action_tokens(
+        self, actions: torch.Tensor, valid: torch.Tensor, segment: int, origin: torch.Tensor | None
+    ) -> torch.Tensor:
+        """Raw actions (B, L, A) with `valid` (B, L) -> one token per chunk of N steps (B, ceil(L / N), D).
+
+        `origin` (B, L or 1, P): where relative actions start (``cfg.action_relative_to``; None if absolute).
+        """
         N = self.cfg.chunk_len
-        a = self.normalizer.normalize(self.cfg.action_key, actions) * valid[..., None]
+        a = self.normalize_actions(actions, origin) * valid[..., None]
         a = torch.cat([a, valid[..., None].float()], dim=-1)
         a = F.pad(a, (0, 0, 0, -a.shape[1] % N))
         return self.action_proj(rearrange(a, "b (n t) c -> b n (t c)", t=N)) + self.type_embed[segment + ACTION]
@@ -118,7 +123,8 @@ class ICRTModel(PolicyModel):
         N = self.cfg.chunk_len
         valid = demo["valid"].bool()
         obs = self.obs_tokens({k: v[:, ::N] for k, v in demo["obs"].items()}, segment)
-        actions = self.action_tokens(demo["action"], valid, segment)
+        origin = self.chunk_origins(demo["obs"], N)
+        actions = self.action_tokens(demo["action"], valid, segment, origin)
         tokens = rearrange(torch.stack([obs, actions], dim=2), "b n two d -> b (n two) d")
         return tokens, repeat(valid[:, ::N], "b n -> b (n two)", two=2)  # a chunk exists where its first step does
 
@@ -139,11 +145,19 @@ class ICRTModel(PolicyModel):
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
         """Mean L1 error of the normalised actions over the valid rollout steps (teacher forcing).
 
-        batch: ``{"context": prompt (Bp, Lp), "obs": {key: (B, L, ...)}, "action": (B, L, A), "valid": (B, L)}``,
-        B whole demonstrations padded to the longest. `generator` is unused: the loss draws no noise (dropout draws
+        batch: ``{"context": prompts (G, Lp), "context_index": (B,), "obs": {key: (B, L, ...)}, "action": (B, L, A),
+        "valid": (B, L)}``, B whole demonstrations padded to the longest, rollout i of the task of prompt
+        ``context_index[i]``. `generator` is unused: the loss draws no noise (dropout draws
         from the global generator, which the training loop seeds per step).
         """
-        ctx = self.encode_context(batch["context"])
+        prompt = batch["context"]
+        if "context_index" in batch and prompt["valid"].shape[0] > 1:  # several tasks: each rollout its own prompt
+            index = batch["context_index"]
+            prompt = {
+                "obs": {k: v[index] for k, v in prompt["obs"].items()},
+                **{k: prompt[k][index] for k in ("action", "valid")},
+            }
+        ctx = self.encode_context(prompt)
         # A rollout longer than what fits after the prompt is cut: only its first chunks are learned from.
         steps = (self.cfg.max_tokens - int(ctx.valid.sum(1).max())) // 2 * self.cfg.chunk_len
         obs = {k: v[:, :steps] for k, v in batch["obs"].items()}
@@ -151,7 +165,7 @@ class ICRTModel(PolicyModel):
         predicted = rearrange(
             self.rollout_chunks(ctx, {"obs": obs, "action": actions, "valid": valid}), "b n t a -> b (n t) a"
         )
-        target = self.normalizer.normalize(self.cfg.action_key, actions)
+        target = self.normalize_actions(actions, self.chunk_origins(obs, self.cfg.chunk_len))
         error = (predicted[:, : target.shape[1]] - target).abs() * valid[..., None]
         return error.sum() / (valid.sum() * self.action_dim).clamp_min(1)
 
@@ -222,9 +236,10 @@ class ICRTModel(PolicyModel):
             out, ctx.cache = self.run(new, new_valid, ctx.cache)
         ctx.tokens, ctx.valid = tokens, valid
         chunk = rearrange(self.head(out[:, -1]), "b (t a) -> b t a", t=self.cfg.chunk_len)
-        actions = self.normalizer.unnormalize(self.cfg.action_key, chunk)
+        origin = self.action_origin(obs)
+        actions = self.unnormalize_actions(chunk, origin)
         executed = torch.ones(actions.shape[:2], dtype=torch.bool, device=actions.device)
-        ctx.pending = self.action_tokens(actions, executed, ROLLOUT)
+        ctx.pending = self.action_tokens(actions, executed, ROLLOUT, origin)
         return {"action": actions}
 
     def window(self, tokens: torch.Tensor, valid: torch.Tensor, prompt_slots: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,0 +1,36 @@
+"""Every method's CPU-sized presets build and train one step on DrawAnything data (the paper presets are too
+large for the suite; BPP's is checked for size in test_bpp)."""
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.envs.draw.dataset import generate
+from bpp.policies.registry import METHODS, get_method
+from bpp.utils import to_torch
+
+CASES = [(m, p) for m in METHODS for p in get_method(m).presets if p != "paper"]
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """Two tasks with instructions, so that every method (Language too) can draw batches from it."""
+    cfg = replace(DATA_PRESETS["debug"], num_tasks=2, demos_per_task=2, describe=True)
+    return generate(cfg, tmp_path_factory.mktemp("data") / "presets.zarr", workers=1, progress=False)
+
+
+@pytest.mark.parametrize(("method", "preset"), CASES, ids=[f"{m}-{p}" for m, p in CASES])
+def test_preset_builds_and_takes_a_finite_loss(store, method, preset):
+    torch.manual_seed(0)
+    m = get_method(method)
+    cfg = m.preset(preset)
+    model = m.model_cls(cfg, store.stats)
+    spec = model.data_spec()
+    assert set(spec.image_keys) == set(cfg.obs.image_keys)
+    batch = to_torch(PromptBatchDataset(store, spec, batch_size=2, seed=0)[0], "cpu")
+    loss = model(batch, torch.Generator().manual_seed(0))
+    assert loss.ndim == 0 and math.isfinite(loss.item())

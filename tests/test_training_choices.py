@@ -1,0 +1,120 @@
+"""Two training choices for small budgets: several tasks per batch, and actions relative to the robot's state."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, train
+from bpp.utils import to_torch
+
+RELATIVE = {"bpp": "agent_pos", "goal_image": "agent_pos", "icrt": "agent_pos"}
+
+
+def _model(store, method: str, **overrides):
+    torch.manual_seed(0)
+    m = get_method(method)
+    return m.model_cls(replace(m.preset("debug"), **overrides), store.stats)
+
+
+def test_grouped_batches_take_each_sample_from_its_own_tasks_other_demos(debug_store):
+    model = _model(debug_store, "bpp")
+    ds = PromptBatchDataset(debug_store, model.data_spec(), batch_size=12, seed=0, tasks_per_batch=4)
+    batch = ds[7]
+    assert batch["task"].shape == (4,) and len(set(batch["task"].tolist())) == 4  # distinct tasks
+    np.testing.assert_array_equal(batch["context_index"], np.repeat(np.arange(4), 3))
+    ctx = batch["context"]
+    assert ctx["action"].shape[0] == 4 and ctx["valid"].shape[0] == 4
+    lengths = ctx["valid"].sum(1)
+    assert lengths.max() == ctx["valid"].shape[1] and not ctx["valid"].all()  # padded to the longest prompt
+    task_of = debug_store.column("task_index")
+    for g, task in enumerate(batch["task"]):
+        # The context is a demonstration of the group's task ...
+        prompt_eps = [
+            e for e in debug_store.task_episodes()[task] if debug_store.episode(e)["action"].shape[0] == lengths[g]
+        ]
+        assert prompt_eps
+        first = ctx["action"][g, 0]
+        prompt_ep = [e for e in prompt_eps if np.array_equal(debug_store.episode(e)["action"][0], first)]
+        assert len(prompt_ep) == 1 and task_of[prompt_ep[0]] == task
+        # ... and the group's windows come from the task's other demonstrations.
+        for i in np.flatnonzero(batch["context_index"] == g):
+            window = batch["action"][i]
+            sources = [
+                e
+                for e in debug_store.task_episodes()[task]
+                if any(np.array_equal(window[-1], a) for a in debug_store.episode(e)["action"])
+            ]
+            assert sources and prompt_ep[0] not in sources
+    assert ds[7]["context"]["action"].tobytes() == ctx["action"].tobytes()  # deterministic
+
+
+def test_batch_size_must_split_into_tasks(debug_store):
+    model = _model(debug_store, "bpp")
+    with pytest.raises(ValueError, match="multiple of tasks_per_batch"):
+        PromptBatchDataset(debug_store, model.data_spec(), batch_size=10, tasks_per_batch=4)
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "icrt"])
+def test_grouped_loss_equals_the_loss_with_one_context_per_sample(debug_store, method):
+    """Encoding G contexts once and selecting per sample is exactly the same as giving each sample its own copy."""
+    model = _model(debug_store, method).eval()
+    spec = model.data_spec()
+    batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=1, tasks_per_batch=4)[0], "cpu")
+    index = batch["context_index"]
+    repeated = dict(batch)
+    repeated["context"] = {
+        k: ({kk: vv[index] for kk, vv in v.items()} if isinstance(v, dict) else v[index])
+        for k, v in batch["context"].items()
+    }
+    repeated["context_index"] = torch.arange(8)
+    grouped = model(batch, torch.Generator().manual_seed(0))
+    each = model(repeated, torch.Generator().manual_seed(0))
+    torch.testing.assert_close(grouped, each, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "icrt"])
+def test_relative_actions_round_trip(debug_store, method):
+    model = _model(debug_store, method, action_relative_to=RELATIVE[method])
+    assert model.relative_dims == 2
+    actions = torch.rand(3, 16, 3) * 400
+    origin = torch.rand(3, 1, 2) * 400
+    x = model.normalize_actions(actions, origin)
+    torch.testing.assert_close(model.unnormalize_actions(x, origin), actions, rtol=1e-5, atol=1e-3)
+    # Offsets, not positions: moving the actions and the origin together changes nothing but the pen stays absolute.
+    shifted = actions.clone()
+    shifted[..., :2] += 50
+    torch.testing.assert_close(model.normalize_actions(shifted, origin + 50), x, rtol=1e-5, atol=1e-5)
+    assert torch.allclose(x[..., 2], model.normalizer.normalize("action", actions)[..., 2])
+
+
+def test_relative_actions_need_an_observed_key(debug_store):
+    with pytest.raises(ValueError, match="must be an observed low-dimensional key"):
+        _model(debug_store, "bpp", action_relative_to="no_such_key")
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "icrt"])
+def test_relative_grouped_training_saves_loads_and_acts(debug_store, tmp_path, method):
+    m = get_method(method)
+    cfg = TrainConfig(
+        data=debug_store.path,
+        out=tmp_path / "run",
+        method=method,
+        steps=2,
+        batch_size=4,
+        tasks_per_batch=2,
+        save_every=2,
+        workers=0,
+        warmup_steps=1,
+    )
+    train(cfg, replace(m.preset("debug"), action_relative_to=RELATIVE[method]), progress=False)
+    agent = PolicyAgent.from_checkpoint(tmp_path / "run")
+    assert agent.model.relative_dims == 2
+    from bpp.evaluation.draw import rollout
+
+    result = rollout(agent, debug_store, 0, 0.3, seed=0, max_steps=30)
+    assert 0 < result.steps <= 30 and np.isfinite(result.best_chamfer)
