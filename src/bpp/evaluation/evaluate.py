@@ -121,11 +121,15 @@ def run_protocol(
 ) -> list[TaskResult]:
     """Evaluate `checkpoint` on `tasks` of `store`; tasks are spread over `workers` processes (0: all cores).
 
-    Each process runs a task's rollouts as one batch through a one-thread agent.
+    Each process runs a task's rollouts as one batch through one agent, with ``OMP_NUM_THREADS`` torch threads if
+    set, else the cores divided among the processes.
     """
     workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
     jobs = [(t, i < video_tasks) for i, t in enumerate(tasks)]
-    args = (str(checkpoint), str(store.path), protocol, 1 if workers > 1 else max(1, (os.cpu_count() or 1)))
+    # torch threads per worker: OMP_NUM_THREADS if the user set it (e.g. to leave cores to a training run: more
+    # threads than free cores slows torch down many times over), else the cores shared among the workers.
+    threads = int(os.environ.get("OMP_NUM_THREADS") or 0) or max(1, (os.cpu_count() or 1) // workers)
+    args = (str(checkpoint), str(store.path), protocol, threads)
     bar = tqdm(total=len(tasks) * protocol.rollouts, desc=desc, unit="rollout", disable=not progress)
     out: dict[int, TaskResult] = {}
     if workers == 1:
