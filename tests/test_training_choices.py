@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.prompt_dataset import PromptBatchDataset, index_contexts
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
@@ -67,10 +67,7 @@ def test_grouped_loss_equals_the_loss_with_one_context_per_sample(debug_store, m
     batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=1, tasks_per_batch=4)[0], "cpu")
     index = batch["context_index"]
     repeated = dict(batch)
-    repeated["context"] = {
-        k: ({kk: vv[index] for kk, vv in v.items()} if isinstance(v, dict) else v[index])
-        for k, v in batch["context"].items()
-    }
+    repeated["context"] = index_contexts(batch["context"], index)
     repeated["context_index"] = torch.arange(8)
     grouped = model(batch, torch.Generator().manual_seed(0))
     each = model(repeated, torch.Generator().manual_seed(0))

@@ -78,6 +78,15 @@ def collate_contexts(items: list) -> object:
     return np.concatenate(arrays, axis=0)
 
 
+def index_contexts(context, index):
+    """Rows `index` (B,) of a batched context (nested dicts of arrays or tensors along axis 0; lists of strings)."""
+    if isinstance(context, Mapping):
+        return {k: index_contexts(v, index) for k, v in context.items()}
+    if isinstance(context, list):
+        return [context[int(i)] for i in index]
+    return context[index]
+
+
 class PromptBatchDataset(torch.utils.data.Dataset):
     """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "context_index": (B,),
     "task": (G,)}`` (numpy).
@@ -198,7 +207,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index), self.rank])
         groups, per_group = self.tasks_per_batch, self.batch_size // self.tasks_per_batch
-        if groups == 1:
+        if groups == 1:  # the draw of earlier versions, so their runs resume onto the same batches
             tasks = [self.tasks[int(rng.integers(len(self.tasks)))]]
         else:  # distinct tasks while there are enough of them
             tasks = rng.choice(self.tasks, size=groups, replace=groups > len(self.tasks)).tolist()

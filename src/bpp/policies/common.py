@@ -50,6 +50,10 @@ class Normalizer(nn.Module):
     def width(self, key: str) -> int:
         return getattr(self, f"{key}__scale").numel()
 
+    def scale(self, key: str) -> torch.Tensor:
+        """Normalised units per raw unit of `key`, (width,)."""
+        return getattr(self, f"{key}__scale")
+
     def _params(self, key: str, x: torch.Tensor):
         if key not in self.keys:
             raise NormalizationError(f"no normalisation statistics for {key!r}; known keys: {self.keys}")
@@ -273,7 +277,7 @@ class PolicyModel(nn.Module):
     def _relative_scale(self) -> torch.Tensor:
         # Offsets are scaled by the absolute actions' range: an offset as large as that whole range maps to 1, so
         # a T-step chunk at the demonstrations' speeds stays inside the sampler's [-1, 1] clip.
-        return getattr(self.normalizer, f"{self.cfg.action_key}__scale")[: self.relative_dims] / 2
+        return self.normalizer.scale(self.cfg.action_key)[: self.relative_dims] / 2
 
     def normalize_actions(self, actions: torch.Tensor, origin: torch.Tensor | None) -> torch.Tensor:
         """Raw actions (..., T, A) -> the model's normalised action space.

@@ -19,9 +19,9 @@ class ICRTConfig:
     obs: ObsConfig = field(default_factory=ObsConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observation key (e.g. ``cursor_on_board``, whose frame the actions'
-    first dims share): actions are learned and predicted as offsets from that key's value at the current step,
-    which a small model fits far more precisely (see README, "Relative actions")."""
+    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
+    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
     chunk_len: int = 10
     """N: actions per action token, and steps between observation tokens (BPP's prompt chunk Δt)."""
     max_tokens: int = 256

@@ -46,6 +46,7 @@ from einops import rearrange, repeat
 from torch import nn
 from torch.nn import functional as F
 
+from bpp.data.prompt_dataset import index_contexts
 from bpp.nn.causal import CausalTransformer, KVCache
 from bpp.policies.common import PolicyModel, validate_demo_context
 from bpp.policies.icrt.config import ICRTConfig
@@ -152,11 +153,7 @@ class ICRTModel(PolicyModel):
         """
         prompt = batch["context"]
         if "context_index" in batch and prompt["valid"].shape[0] > 1:  # several tasks: each rollout its own prompt
-            index = batch["context_index"]
-            prompt = {
-                "obs": {k: v[index] for k, v in prompt["obs"].items()},
-                **{k: prompt[k][index] for k in ("action", "valid")},
-            }
+            prompt = index_contexts(prompt, batch["context_index"])
         ctx = self.encode_context(prompt)
         # A rollout longer than what fits after the prompt is cut: only its first chunks are learned from.
         steps = (self.cfg.max_tokens - int(ctx.valid.sum(1).max())) // 2 * self.cfg.chunk_len

@@ -45,9 +45,9 @@ class LanguageConfig:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observation key (e.g. ``cursor_on_board``, whose frame the actions'
-    first dims share): actions are learned and predicted as offsets from that key's value at the current step,
-    which a small model fits far more precisely (see README, "Relative actions")."""
+    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
+    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
     text_encoder: Literal["scratch"] = "scratch"
     """scratch: a byte-level transformer trained from scratch with the policy (the paper fine-tunes CLIP's text
     encoder; no pretrained text encoder can be downloaded here, and none ships in a package we can use)."""
