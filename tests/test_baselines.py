@@ -11,6 +11,7 @@ from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.envs.draw.dataset import DrawDataConfig, generate
 from bpp.envs.draw.procedural import describe_parts
 from bpp.evaluation.draw import context_for, rollout, rollout_batch
+from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.common import ContextError, ObsConfig
 from bpp.policies.goal_image import PRESETS as GOAL_PRESETS
@@ -85,6 +86,51 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
     assert 0 < result.steps <= 20 and 0 < result.best_chamfer <= result.final_chamfer
     again = rollout(agent, store, 1, 0.3, seed=0, max_steps=20)
     assert (again.steps, again.best_chamfer) == (result.steps, result.best_chamfer)
+
+
+@pytest.mark.parametrize(("text_encoder", "tokenizer"), [("scratch", "pretrained"), ("pretrained", "pretrained")])
+def test_language_text_encoder_choices_train_save_load_and_act(described_store, tmp_path, text_encoder, tokenizer):
+    cfg = replace(LANGUAGE_PRESETS["debug"], text_encoder=text_encoder, tokenizer=tokenizer)
+    run = tmp_path / "run"
+    train_cfg = TrainConfig(
+        data=described_store.path, out=run, method="language", steps=2, batch_size=4, workers=0, warmup_steps=1
+    )
+    train(train_cfg, cfg, progress=False)
+    agent = PolicyAgent.from_checkpoint(run)
+    assert agent.model.cfg == cfg and isinstance(agent.model.tokenizer, PretrainedTokenizer)
+    encoder = agent.model.text_encoder
+    if text_encoder == "pretrained":
+        assert isinstance(encoder, PretrainedTextEncoder) and encoder.dim == 384
+        # Fine-tuned: the checkpoint's encoder differs from the packaged weights it started from.
+        packaged = PretrainedTextEncoder(pretrained_text_dir()).state_dict()
+        moved = [k for k, v in encoder.state_dict().items() if not torch.equal(v, packaged[k])]
+        assert moved
+    result = rollout(agent, described_store, 1, 0.3, seed=0, max_steps=12)
+    assert 0 < result.steps <= 12
+
+
+def test_packaged_pretrained_text_encoder_loads_offline_and_knows_english(monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    folder = pretrained_text_dir()
+    tokenizer, encoder = PretrainedTokenizer(folder), PretrainedTextEncoder(folder).eval()
+    assert tokenizer.vocab_size == 30522 and tokenizer.num_tokens("draw an oval") == 5  # [CLS] draw an oval [SEP]
+    texts = [
+        "draw a line, then draw an oval",
+        "first a straight stroke and after it an ellipse",
+        "the weather in Paris is nice today",
+    ]
+    with torch.no_grad():
+        emb = torch.nn.functional.normalize(encoder(*tokenizer(texts, encoder.max_tokens)), dim=-1)
+    sim = emb @ emb.T
+    # Trained weights put a paraphrase far nearer than an unrelated sentence (random weights put all three close).
+    assert sim[0, 1] > sim[0, 2] + 0.25 and sim[0, 1] > sim[1, 2] + 0.25
+
+
+def test_language_text_encoder_choices_are_checked():
+    with pytest.raises(ValueError, match="needs its own tokenizer"):
+        replace(LANGUAGE_PRESETS["debug"], text_encoder="pretrained", tokenizer="bytes")
+    with pytest.raises(FileNotFoundError, match="not a pretrained text encoder"):
+        pretrained_text_dir("/nonexistent/model")
 
 
 @pytest.mark.parametrize("method", METHODS)

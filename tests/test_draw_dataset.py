@@ -1,8 +1,9 @@
 import numpy as np
+import pytest
 
 from bpp.envs.draw.dataset import PRESETS, episode_paths, generate, render_episode, task_drawing
 from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+from bpp.envs.draw.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
 
 
 def test_store_contents(debug_store):
@@ -17,6 +18,7 @@ def test_store_contents(debug_store):
         "board_pose",
         "cursor_on_board",
         "action_on_board",
+        "ink_length",
     }
     assert s["state"].dtype == np.float64 and s["action"].dtype == np.float32
     for key in ("action", "agent_pos", "pen_down", "board_pose"):
@@ -53,8 +55,13 @@ def test_images_are_exactly_reproducible_from_the_store(debug_store):
             np.testing.assert_array_equal(obs["pen_down"], ep["pen_down"][t])
             np.testing.assert_array_equal(obs["board_pose"], ep["board_pose"][t])
             np.testing.assert_array_equal(obs["cursor_on_board"], ep["cursor_on_board"][t])
+            np.testing.assert_array_equal(obs["ink_length"], ep["ink_length"][t])
             obs, *_ = env.step(action)
         assert len(episode_paths(debug_store, episode)) == len(env.paths)
+        # The ink length grows only while the pen is down, and ends at the drawn length of the stored paths.
+        assert np.all(np.diff(ep["ink_length"][:, 0]) >= 0) and ep["ink_length"][0, 0] == 0
+        drawn = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in episode_paths(debug_store, episode))
+        assert obs["ink_length"][0] == pytest.approx(drawn / BOARD_SIZE, rel=0.05)
 
 
 def test_human_evaluation_set(tmp_path):

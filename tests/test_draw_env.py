@@ -24,7 +24,7 @@ def test_observation_layout_and_seeding():
     obs1, info1 = env.reset(seed=3)
     obs2, info2 = env.reset(seed=3)
     assert obs1["image"].shape == (96, 96, 3) and obs1["image"].dtype == np.uint8
-    assert set(obs1) == {"image", "agent_pos", "pen_down", "board_pose", "cursor_on_board"}
+    assert set(obs1) == {"image", "agent_pos", "pen_down", "board_pose", "cursor_on_board", "ink_length"}
     assert info1["board_angle"] == info2["board_angle"]
     for k in obs1:
         np.testing.assert_array_equal(obs1[k], obs2[k])

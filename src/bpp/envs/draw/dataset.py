@@ -14,7 +14,7 @@ from tqdm import tqdm
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate, replay_paths
 from bpp.envs.draw.drawing import Drawing
-from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose
+from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose, ink_lengths
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.envs.draw.viz import episode_frames
@@ -106,6 +106,7 @@ def episode_steps(demo: Demonstration) -> dict[str, np.ndarray]:
         "board_pose": np.repeat(board_pose(demo.board_angle)[None], n, axis=0),
         "cursor_on_board": canvas_to_unit(demo.states[:, 0:2], demo.board_angle).astype(np.float32),
         "action_on_board": action_to_board(demo.actions, demo.board_angle).astype(np.float32),
+        "ink_length": ink_lengths(demo.states[:, 0:2], demo.states[:, 4])[:, None].astype(np.float32),
     }
 
 

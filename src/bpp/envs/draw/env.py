@@ -12,6 +12,7 @@ from bpp.envs.draw import physics
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.geometry import (
     BOARD_CENTER,
+    BOARD_SIZE,
     CANVAS_SIZE,
     MAX_BOARD_ANGLE,
     canvas_to_unit,
@@ -30,6 +31,16 @@ STILL_RADIUS = 20.0
 
 ACTION_FRAMES = {"action": "canvas", "action_on_board": "board"}
 """Stored action keys and the frame the environment must interpret them in (its ``action_frame``)."""
+
+
+def ink_lengths(positions: np.ndarray, pen_down: np.ndarray) -> np.ndarray:
+    """(T,) ink drawn before each of T states, in board sides: the summed length of every step that ended pen down.
+
+    ``positions`` (T, 2) canvas px and ``pen_down`` (T,) of successive states; the ``ink_length`` observation.
+    """
+    step = np.linalg.norm(np.diff(np.asarray(positions, dtype=np.float64), axis=0), axis=-1)
+    inked = step * (np.asarray(pen_down)[1:] > 0.5)
+    return np.concatenate([[0.0], np.cumsum(inked)]) / BOARD_SIZE
 
 
 def board_pose(angle: float) -> np.ndarray:
@@ -58,7 +69,10 @@ class DrawEnv(gym.Env):
         ``pen_down``   (1,) float32, 1 if the pen is down (the last action's pen);
         ``board_pose`` (2,) float32, (cos, sin) of the board angle;
         ``cursor_on_board`` (2,) float32, the cursor in the board's own unit frame (what the image shows: where
-        the cursor is on the board), for state-only policies.
+        the cursor is on the board), for state-only policies;
+        ``ink_length`` (1,) float32, how much ink is on the board, in board sides (see :func:`ink_lengths`): the
+        progress a camera sees as drawn ink, for state-only policies, which otherwise cannot tell a stroke's
+        first pass from a later one.
     Action: (3,) ``[x, y, pen]`` — an absolute target in canvas px and a pen flag (down if > 0.5), as in the
     paper. With ``action_frame="board"`` the target is given in the board's unit frame instead (the frame of
     ``cursor_on_board``; stored demonstrations carry it as ``action_on_board``): a rotation-free representation
@@ -103,6 +117,7 @@ class DrawEnv(gym.Env):
             "pen_down": spaces.Box(0.0, 1.0, (1,), np.float32),
             "board_pose": spaces.Box(-1.0, 1.0, (2,), np.float32),
             "cursor_on_board": spaces.Box(-2.0, 3.0, (2,), np.float32),
+            "ink_length": spaces.Box(0.0, 1000.0, (1,), np.float32),  # far above any episode's ink
         }
         if image_size is not None:
             obs["image"] = spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
@@ -132,6 +147,7 @@ class DrawEnv(gym.Env):
         self.state = physics.initial_state(np.asarray(cursor, dtype=np.float64))
         self.steps = 0
         self.positions = [self.state[:2].copy()]
+        self.ink_px = 0.0
         self.paths: list[np.ndarray] = []  # canvas polylines inked so far, one per pen-down step
         self.renderer = None if self.image_size is None else SceneRenderer(self.image_size, self.board_angle)
         self._video = None if self.render_mode is None else SceneRenderer(self.render_size, self.board_angle)
@@ -170,6 +186,7 @@ class DrawEnv(gym.Env):
         self.steps += 1
         self.positions.append(self.state[:2].copy())
         if self.state[4] > 0.5:
+            self.ink_px += float(np.linalg.norm(self.positions[-1] - self.positions[-2]))
             self.paths.append(path)
             if self.renderer is not None:
                 self.renderer.add_ink(path)
@@ -197,6 +214,7 @@ class DrawEnv(gym.Env):
             "pen_down": np.array([self.state[4]], dtype=np.float32),
             "board_pose": board_pose(self.board_angle),
             "cursor_on_board": canvas_to_unit(self.state[:2], self.board_angle).astype(np.float32),
+            "ink_length": np.array([self.ink_px / BOARD_SIZE], dtype=np.float32),
         }
         if self.renderer is not None:
             obs["image"] = self.renderer.frame(self.state[:2])

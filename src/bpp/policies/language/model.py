@@ -1,5 +1,5 @@
 """The Language baseline: BPP's diffusion action decoder, conditioned on the observation history and an encoding
-of the task's instruction (a text encoder trained with the policy) in place of the prompt encoder.
+of the task's instruction (a text encoder trained or fine-tuned with the policy) in place of the prompt encoder.
 
 Tensor shapes at the boundaries (B: batch; Bt: instruction batch, 1 or B; To, T, A):
 
@@ -13,7 +13,13 @@ from collections.abc import Mapping
 
 import torch
 
-from bpp.nn.text import ByteTokenizer, TextTransformer
+from bpp.nn.text import (
+    ByteTokenizer,
+    PretrainedTextEncoder,
+    PretrainedTokenizer,
+    TextTransformer,
+    pretrained_text_dir,
+)
 from bpp.policies.common import ContextDiffusionPolicy, ContextError
 from bpp.policies.language.config import LanguageConfig
 
@@ -27,11 +33,16 @@ class LanguageModel(ContextDiffusionPolicy):
     def __init__(self, cfg: LanguageConfig, stats: Mapping[str, Mapping[str, list[float]]]):
         super().__init__(cfg, stats)
         t = cfg.text
-        self.tokenizer = ByteTokenizer()
-        self.text_encoder = TextTransformer(
-            self.tokenizer.vocab_size, t.dim, t.layers, t.heads, t.mlp_dim, t.max_tokens, t.dropout
-        )
-        self.build_head(t.dim)
+        pretrained = "pretrained" in (cfg.text_encoder, cfg.tokenizer)
+        folder = pretrained_text_dir(cfg.pretrained_text_model) if pretrained else None
+        self.tokenizer = ByteTokenizer() if cfg.tokenizer == "bytes" else PretrainedTokenizer(folder)
+        if cfg.text_encoder == "pretrained":
+            self.text_encoder = PretrainedTextEncoder(folder)
+        else:
+            self.text_encoder = TextTransformer(
+                self.tokenizer.vocab_size, t.dim, t.layers, t.heads, t.mlp_dim, t.max_tokens, t.dropout
+            )
+        self.build_head(self.text_encoder.dim)
 
     def validate_context(self, context: Mapping) -> dict:
         """Check a raw instruction ``{"text": str}`` and batch it; clear errors if bad."""
@@ -42,13 +53,15 @@ class LanguageModel(ContextDiffusionPolicy):
             raise ContextError(f"the instruction must be a str, got {type(text).__name__}")
         if not text.strip():
             raise ContextError("this task has no instruction; Language is not offered for it")
-        tokens, limit = self.tokenizer.num_tokens(text), self.cfg.text.max_tokens
+        tokens, limit = self.tokenizer.num_tokens(text), self.text_encoder.max_tokens
         if tokens > limit:
-            raise ContextError(f"the instruction is {tokens} tokens (UTF-8 bytes + 2); this model accepts {limit}")
+            raise ContextError(
+                f"the instruction is {tokens} tokens ({self.tokenizer.unit}); this model accepts {limit}"
+            )
         return {"text": [text]}
 
     def encode_context(self, context: Mapping) -> torch.Tensor:
         """Instructions ``{"text": [str] * Bt}`` -> instruction embeddings (Bt, D), once per rollout."""
-        ids, valid = self.tokenizer(context["text"], self.cfg.text.max_tokens)
-        device = self.text_encoder.pos.device
+        ids, valid = self.tokenizer(context["text"], self.text_encoder.max_tokens)
+        device = next(self.text_encoder.parameters()).device
         return self.text_encoder(ids.to(device), valid.to(device))
