@@ -10,7 +10,7 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import tyro
 
@@ -359,6 +359,7 @@ class Eval:
       bpp eval runs/bpp-cpu --tasks train --num-tasks 20      (training drawings)
       bpp eval runs/bpp-cpu --drawings house.svg star.json    (your own drawings)
       bpp eval runs/seed0 runs/seed1 runs/seed2               (mean ± std over checkpoints)
+      bpp eval runs/bpp-cpu --prompts other-task              (control: prompted with another task's demo)
     """
 
     checkpoints: tyro.conf.Positional[tuple[Path, ...]]
@@ -373,6 +374,9 @@ class Eval:
     """Rollouts per task; prompts cycle through each task's demonstrations."""
     seed: int = 0
     max_steps: int = 400
+    prompts: Literal["own", "other-task"] = "own"
+    """own: the paper's protocol. other-task: a control, each rollout prompted with another task's demonstration
+    and scored against its own task's drawing (a policy that follows its prompt must score far worse)."""
     workers: int = 0
     """Processes (0: one per core)."""
     videos: int = 2
@@ -387,7 +391,7 @@ def eval_cmd(args: Eval) -> None:
     from bpp.evaluation.report import markdown_table
     from bpp.utils import write_json_atomic
 
-    protocol = Protocol(rollouts=args.rollouts, seed=args.seed, max_steps=args.max_steps)
+    protocol = Protocol(rollouts=args.rollouts, seed=args.seed, max_steps=args.max_steps, prompts=args.prompts)
     runs = []
     for i, ckpt in enumerate(args.checkpoints):
         store, tasks, label = resolve_task_set(args.tasks, ckpt, args.drawings, args.data_dir, args.num_tasks)

@@ -70,9 +70,12 @@ def rollout_batch(
     max_steps: int = 400,
     record_frames: Sequence[bool] | None = None,
     render_size: int = 256,
+    prompt_episodes: Sequence[int] | None = None,
 ) -> list[DrawRollout]:
     """Rollout i is prompted with demonstration `episodes[i]` and draws on a board at `angles[i]`, seeded by
     `seeds[i]` (cursor start and policy noise). All rollouts step together; a finished one stops stepping.
+    It is scored against `episodes[i]`'s drawing; `prompt_episodes` prompts it with other demonstrations instead
+    (a control: :class:`bpp.evaluation.evaluate.Protocol`'s ``prompts="other-task"``).
     """
     model = agent.model
     spec = model.data_spec()
@@ -93,7 +96,10 @@ def rollout_batch(
         o, _ = env.reset(seed=int(seed), options={"board_angle": float(angle), "target": prompt_target(store, ep)})
         envs.append(env)
         obs.append(o)
-    agent.reset_batch([context_for(model, store, ep) for ep in episodes], seeds)
+    prompts = episodes if prompt_episodes is None else prompt_episodes
+    if len(prompts) != n:
+        raise ValueError(f"{len(prompts)} prompt episodes for {n} rollouts")
+    agent.reset_batch([context_for(model, store, ep) for ep in prompts], seeds)
     frames = [[env.render()] if rec else [] for env, rec in zip(envs, record_frames, strict=True)]
     done = np.zeros(n, dtype=bool)
     infos: list[dict] = [{"best_chamfer": env.best_chamfer, "chamfer": env.chamfer} for env in envs]

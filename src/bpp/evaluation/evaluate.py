@@ -4,6 +4,10 @@ The protocol follows the paper: for every task, `rollouts` rollouts (32 by defau
 the task's demonstrations, each on a board at its own seeded angle; a rollout scores the best Chamfer distance it
 reached during the episode; scores are averaged per task, then over tasks. Rollout ``r`` of task ``t`` draws its
 board angle and seed from ``(seed, t, r)`` alone, so every method and checkpoint sees the same rollouts.
+
+A control, ``prompts="other-task"``: each rollout is prompted with a demonstration of another task but scored
+against its own task's demonstration, exactly as before. A policy that follows its prompt scores far worse under
+it; one that draws something generic scores about the same.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from tqdm import tqdm
@@ -32,17 +37,33 @@ class Protocol:
     """Rollouts per task; prompts cycle through the task's demonstrations."""
     seed: int = 0
     max_steps: int = 400
+    prompts: Literal["own", "other-task"] = "own"
+    """own: the paper's protocol. other-task: a control; rollout r of task t is prompted with the demonstration of
+    task (t + 1 + r) mod #tasks that the paper's protocol would give that task, and scored against t's own."""
+
+    def __post_init__(self):
+        if self.prompts not in ("own", "other-task"):
+            raise ValueError(f"prompts must be 'own' or 'other-task', got {self.prompts!r}")
 
     def plan(self, store: EpisodeStore, task: int) -> list[dict]:
-        """The rollouts of `task`: prompt episode, board angle and seed of each."""
-        demos = store.task_episodes()[task]
+        """The rollouts of `task`: target episode (whose drawing scores it), prompt episode, board angle and seed."""
+        episodes = store.task_episodes()
+        if self.prompts == "other-task" and len(episodes) < 2:
+            raise ValueError("an other-task prompt control needs a store with at least 2 tasks")
+        demos = episodes[task]
         plan = []
         for r in range(self.rollouts):
             rng = np.random.default_rng([self.seed, task, r])
+            target = int(demos[r % len(demos)])
+            prompt = target
+            if self.prompts == "other-task":
+                other = episodes[(task + 1 + r % (len(episodes) - 1)) % len(episodes)]
+                prompt = int(other[r % len(other)])
             plan.append(
                 {
                     "rollout": r,
-                    "prompt_episode": int(demos[r % len(demos)]),
+                    "target_episode": target,
+                    "prompt_episode": prompt,
                     "board_angle": float(rng.uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE)),
                     "seed": int(rng.integers(2**31)),
                 }
@@ -88,11 +109,12 @@ def _run_task(job: tuple[int, bool]) -> TaskResult:
     results = rollout_batch(
         agent,
         store,
-        [p["prompt_episode"] for p in plan],
+        [p["target_episode"] for p in plan],
         [p["board_angle"] for p in plan],
         [p["seed"] for p in plan],
         max_steps=protocol.max_steps,
         record_frames=[r == 0 for r in range(len(plan))],
+        prompt_episodes=[p["prompt_episode"] for p in plan],
     )
     rows = [
         {**p, "best_chamfer": r.best_chamfer, "final_chamfer": r.final_chamfer, "steps": r.steps}

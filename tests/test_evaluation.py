@@ -1,0 +1,67 @@
+"""The evaluation protocol and its other-task prompt control."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+import bpp.evaluation.draw as draw_eval
+from bpp.evaluation.draw import rollout_batch
+from bpp.evaluation.evaluate import Protocol, evaluate
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.bpp import PRESETS, BPPModel
+from bpp.train import TrainConfig, train
+
+
+def test_protocol_cycles_prompts_and_the_control_changes_only_the_prompt(debug_store):
+    own, control = Protocol(rollouts=7), Protocol(rollouts=7, prompts="other-task")
+    task_of = {int(e): t for t, eps in enumerate(debug_store.task_episodes()) for e in eps}
+    for task in (0, 5, debug_store.num_tasks - 1):
+        demos = list(debug_store.task_episodes()[task])
+        mine, other = own.plan(debug_store, task), control.plan(debug_store, task)
+        assert [p["prompt_episode"] for p in mine] == [demos[r % len(demos)] for r in range(7)]
+        assert all(p["target_episode"] == p["prompt_episode"] for p in mine)
+        prompted = [task_of[p["prompt_episode"]] for p in other]
+        assert task not in prompted and len(set(prompted)) == 7  # another task every time, a different one per rollout
+        for a, b in zip(mine, other, strict=True):  # the same rollouts otherwise: target, board angle and seed
+            assert (a["target_episode"], a["board_angle"], a["seed"]) == (
+                b["target_episode"],
+                b["board_angle"],
+                b["seed"],
+            )
+    assert control.plan(debug_store, 3) == Protocol(rollouts=7, prompts="other-task").plan(debug_store, 3)
+    with pytest.raises(ValueError, match="prompts must be"):
+        Protocol(prompts="shuffled")
+
+
+def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(debug_store, monkeypatch):
+    torch.manual_seed(0)
+    agent = PolicyAgent(BPPModel(PRESETS["debug"], debug_store.stats).eval())
+    targets, angles, seeds = [0, 4], [0.2, -0.3], [1, 2]
+    plain = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15)
+    same = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=targets)
+    assert [r.best_chamfer for r in plain] == [r.best_chamfer for r in same]
+    prompted, scored = [], []
+    context_for, prompt_target = draw_eval.context_for, draw_eval.prompt_target
+    monkeypatch.setattr(draw_eval, "context_for", lambda m, st, ep: prompted.append(ep) or context_for(m, st, ep))
+    monkeypatch.setattr(draw_eval, "prompt_target", lambda st, ep: scored.append(ep) or prompt_target(st, ep))
+    swapped = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=[9, 30])
+    assert prompted == [9, 30] and scored == targets  # contexts from the prompt episodes, scores on the targets
+    assert [r.best_chamfer for r in swapped] != [r.best_chamfer for r in plain]
+    with pytest.raises(ValueError, match="1 prompt episodes for 2 rollouts"):
+        rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=5, prompt_episodes=[3])
+
+
+def test_evaluate_with_the_control_records_both_episodes(debug_store, tmp_path):
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, PRESETS["debug"], progress=False)
+    protocol = Protocol(rollouts=2, max_steps=12, prompts="other-task")
+    evaluate(run, debug_store, [0, 1], "debug", tmp_path / "eval", protocol, workers=1, videos=0, progress=False)
+    data = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert data["protocol"]["prompts"] == "other-task"
+    episodes = debug_store.task_episodes()
+    for row in data["rollouts"]:
+        assert row["target_episode"] in episodes[row["task"]] and row["prompt_episode"] not in episodes[row["task"]]
+    assert np.isfinite(data["summary"]["chamfer_mean"])
