@@ -28,6 +28,8 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu-board")
     parser.add_argument("--steps", type=int, default=4000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tasks-per-batch", type=int, default=8, help="tasks (prompts) per step, as the benchmark")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads for training (0: torch's default)")
     parser.add_argument("--rollouts", type=int, default=8)
     parser.add_argument("--val-tasks", type=int, default=20, help="unseen procedural tasks (seed 1) evaluated")
     parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
@@ -47,7 +49,16 @@ def main() -> None:
         cfg = DrawDataConfig(num_tasks=tasks, demos_per_task=demos, seed=args.seed)
         store = store_for(args.data_dir / f"diversity-{name}.zarr", cfg)
         run = args.runs / f"{name}-{args.preset}-s{args.seed}"
-        seconds = train_run("bpp", args.preset, store, run, args.steps, args.seed)
+        seconds = train_run(
+            "bpp",
+            args.preset,
+            store,
+            run,
+            args.steps,
+            args.seed,
+            tasks_per_batch=args.tasks_per_batch,
+            threads=args.threads,
+        )
         entry = {"tasks": tasks, "demos_per_task": demos, "run": str(run), "train_s": seconds}
         for key, task_set in (("human", "human"), ("val", str(val_path))):
             eval_store, eval_tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir)
@@ -61,7 +72,8 @@ def main() -> None:
     header = ["split", "tasks", "demos/task", "val Chamfer (px)", "human Chamfer (px)", "train min"]
     table = markdown_table(header, rows)
     (args.out / "table.md").write_text(
-        f"BPP `{args.preset}`, {args.budget} demonstrations per training set, {args.steps} steps, seed {args.seed}, "
+        f"BPP `{args.preset}`, {args.budget} demonstrations per training set, {args.steps} steps of "
+        f"{args.tasks_per_batch} tasks x 64 windows, seed {args.seed}, "
         f"{args.rollouts} rollouts per task.\n\n{table}"
     )
     bar_chart(chart, args.out / "chart.png", "Chamfer distance (px, lower is better)", f"{args.budget} demos")
