@@ -8,7 +8,7 @@ import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig, generate
+from bpp.envs.draw.dataset import DrawDataConfig, generate, render_episode
 from bpp.envs.draw.procedural import describe_parts
 from bpp.evaluation.draw import context_for, rollout, rollout_batch
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
@@ -220,6 +220,22 @@ def test_instruction_encoding_ignores_padding(described_store):
     for i, text in enumerate(texts):
         torch.testing.assert_close(both[i : i + 1], model.encode_context({"text": [text]}), rtol=1e-5, atol=1e-5)
     assert not torch.allclose(both[0], both[1])
+
+
+@pytest.mark.parametrize("observes_images", [False, True])
+def test_goal_images_are_the_prompts_final_frames(debug_store, observes_images):
+    cfg = GOAL_PRESETS["debug"]
+    if observes_images:
+        obs = ObsConfig(image_keys=("image",), image_size=32, image_widths=(8, 16), image_blocks=(1, 1))
+        cfg = replace(cfg, obs=obs)
+    spec = GoalImageModel(cfg, debug_store.stats).data_spec()
+    data = PromptBatchDataset(debug_store, spec, batch_size=4, seed=0, goal_cache_bytes=1)  # room for 1 frame
+    for episode in (3, 20, 3):
+        if observes_images:
+            data._episode_frames(episode, "image", 32)  # as training windows would: the goal comes from these
+        goal = data.context(0, episode)["image"]
+        np.testing.assert_array_equal(goal, render_episode(debug_store, episode, spec.context_image_size)[-1:])
+    assert len(data._goal_cache) == (0 if observes_images else 1)
 
 
 def test_goal_image_with_image_observations_shares_the_camera_encoder(debug_store):

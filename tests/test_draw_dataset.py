@@ -1,7 +1,14 @@
 import numpy as np
 import pytest
 
-from bpp.envs.draw.dataset import PRESETS, episode_paths, generate, render_episode, task_drawing
+from bpp.envs.draw.dataset import (
+    PRESETS,
+    episode_paths,
+    generate,
+    render_episode,
+    render_last_observation,
+    task_drawing,
+)
 from bpp.envs.draw.env import DrawEnv
 from bpp.envs.draw.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
 
@@ -62,6 +69,14 @@ def test_images_are_exactly_reproducible_from_the_store(debug_store):
         assert np.all(np.diff(ep["ink_length"][:, 0]) >= 0) and ep["ink_length"][0, 0] == 0
         drawn = sum(np.linalg.norm(np.diff(p, axis=0), axis=1).sum() for p in episode_paths(debug_store, episode))
         assert obs["ink_length"][0] == pytest.approx(drawn / BOARD_SIZE, rel=0.05)
+
+
+def test_the_last_observation_renders_alone_exactly(debug_store):
+    for episode in (0, 9, 35):
+        for size in (32, 96):
+            np.testing.assert_array_equal(
+                render_last_observation(debug_store, episode, size), render_episode(debug_store, episode, size)[-1]
+            )
 
 
 def test_human_evaluation_set(tmp_path):

@@ -22,7 +22,9 @@ import torch
 
 from bpp.data.store import EpisodeStore
 
-FrameSource = Callable[[EpisodeStore, int, str, int], np.ndarray]
+FrameSource = Callable[..., np.ndarray]
+"""``frames(store, episode, key, size, last_only=False)``: (T, size, size, 3) uint8 frames of an episode's
+observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3)."""
 """(store, episode, image key, size) -> (T, size, size, 3) uint8 frames of that episode."""
 
 ContextKind = Literal["demo", "goal_image", "instruction"]
@@ -31,9 +33,14 @@ ContextKind = Literal["demo", "goal_image", "instruction"]
 def benchmark_frames(benchmark: str) -> FrameSource | None:
     """How a benchmark's stores provide image observations (DrawAnything renders them from the stored state)."""
     if benchmark == "drawanything":
-        from bpp.envs.draw.dataset import render_episode
+        from bpp.envs.draw.dataset import render_episode, render_last_observation
 
-        return lambda store, episode, key, size: render_episode(store, episode, size)
+        def frames(store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False) -> np.ndarray:
+            if last_only:
+                return render_last_observation(store, episode, size)[None]
+            return render_episode(store, episode, size)
+
+        return frames
     return None
 
 
@@ -118,6 +125,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         tasks: Sequence[int] | None = None,
         tasks_per_batch: int = 1,
         frame_cache_episodes: int = 256,
+        goal_cache_bytes: int = 128 << 20,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
         self.spec = spec
@@ -150,6 +158,8 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         self._arrays: dict[str, np.ndarray] | None = None
         self._frame_cache: OrderedDict = OrderedDict()
         self._frame_cache_episodes = frame_cache_episodes
+        self._goal_cache: OrderedDict = OrderedDict()  # final frames alone: the goal images of episodes
+        self._goal_cache_frames = max(1, goal_cache_bytes // (3 * spec.context_image_size**2))
 
     def __len__(self) -> int:
         return self.num_batches
@@ -158,6 +168,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         state = self.__dict__.copy()
         state["_arrays"] = None  # each loader worker loads its own copy
         state["_frame_cache"] = OrderedDict()
+        state["_goal_cache"] = OrderedDict()
         return state
 
     def _data(self) -> dict[str, np.ndarray]:
@@ -173,6 +184,18 @@ class PromptBatchDataset(torch.utils.data.Dataset):
                 self._frame_cache.popitem(last=False)
         self._frame_cache.move_to_end(cache_key)
         return self._frame_cache[cache_key]
+
+    def _goal_frame(self, episode: int, key: str, size: int) -> np.ndarray:
+        """(1, size, size, 3): the episode's final observation, from the episode's cached frames if a policy that
+        observes images has them, else rendered alone and kept in a cache of final frames."""
+        if (episode, key, size) in self._frame_cache:
+            return self._frame_cache[(episode, key, size)][-1:]
+        if episode not in self._goal_cache:
+            self._goal_cache[episode] = self.frames(self.store, episode, key, size, last_only=True)
+            if len(self._goal_cache) > self._goal_cache_frames:
+                self._goal_cache.popitem(last=False)
+        self._goal_cache.move_to_end(episode)
+        return self._goal_cache[episode]
 
     def _gather(self, episodes: np.ndarray, index: np.ndarray) -> dict:
         """Observations of `episodes` (B,) at their step indices `index` (B, N): ``{key: (B, N, ...)}``."""
@@ -200,8 +223,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         if kind == "demo":
             return self.prompt(episode)
         if kind == "goal_image":
-            frames = self._episode_frames(episode, self.spec.context_image_key, self.spec.context_image_size)
-            return {"image": frames[-1:]}
+            return {"image": self._goal_frame(episode, self.spec.context_image_key, self.spec.context_image_size)}
         return {"text": [self.instructions[task]]}
 
     def __getitem__(self, index: int) -> dict:

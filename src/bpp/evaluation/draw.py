@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw.dataset import episode_paths, render_episode
+from bpp.envs.draw.dataset import episode_paths, render_episode, render_last_observation
 from bpp.envs.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.envs.draw.geometry import canvas_to_upright
 
@@ -37,7 +37,7 @@ def context_for(model, store: EpisodeStore, episode: int) -> dict:
     if kind == "demo":
         return demo_context(store, episode, model.obs_keys(), spec.image_keys, spec.image_size, spec.action_key)
     if kind == "goal_image":
-        return {"image": render_episode(store, episode, spec.context_image_size)[-1]}
+        return {"image": render_last_observation(store, episode, spec.context_image_size)}
     if kind == "instruction":
         task = int(store.column("task_index")[episode])
         return {"text": str(store.tasks[task].get("instruction") or "")}

@@ -17,6 +17,7 @@ from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose, ink_lengths
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
+from bpp.envs.draw.render import SceneRenderer
 from bpp.envs.draw.viz import episode_frames
 
 BENCHMARK = "drawanything"
@@ -165,6 +166,16 @@ def episode_paths(store: EpisodeStore, episode: int) -> list[np.ndarray]:
     """Canvas polylines inked by each pen-down step of an episode, by exact replay of the stored physics."""
     ep = store.episode(episode, ("state", "action"))
     return replay_paths(ep["state"], ep["action"].astype(np.float64))
+
+
+def render_last_observation(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
+    """(R, R, 3) uint8: the episode's final observation, identical to ``render_episode(...)[-1]`` but rendering
+    one frame instead of one per step (a goal image)."""
+    ep = store.episode(episode, ("state", "action"))
+    renderer = SceneRenderer(image_size, float(store.column("board_angle")[episode]))
+    for path in replay_paths(ep["state"][:-1], ep["action"][:-1].astype(np.float64)):  # ink before the last step
+        renderer.add_ink(path)
+    return renderer.frame(ep["state"][-1, :2])
 
 
 def render_episode(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
