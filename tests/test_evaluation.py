@@ -65,3 +65,21 @@ def test_evaluate_with_the_control_records_both_episodes(debug_store, tmp_path):
     for row in data["rollouts"]:
         assert row["target_episode"] in episodes[row["task"]] and row["prompt_episode"] not in episodes[row["task"]]
     assert np.isfinite(data["summary"]["chamfer_mean"])
+
+
+def test_evaluate_reuses_results_recorded_before_a_protocol_field_existed(debug_store, tmp_path, capsys):
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, PRESETS["debug"], progress=False)
+    protocol, out = Protocol(rollouts=1, max_steps=8), tmp_path / "eval"
+    evaluate(run, debug_store, [2], "debug", out, protocol, workers=1, videos=0, progress=False)
+    results = out / "results.json"
+    data = json.loads(results.read_text())
+    del data["protocol"]["prompts"]  # as written by a version without the control
+    results.write_text(json.dumps(data))
+    capsys.readouterr()
+    evaluate(run, debug_store, [2], "debug", out, protocol, workers=1, videos=0, progress=False)
+    assert "reusing" in capsys.readouterr().out
+    control = Protocol(rollouts=1, max_steps=8, prompts="other-task")
+    evaluate(run, debug_store, [2], "debug", out, control, workers=1, videos=0, progress=False)
+    assert "reusing" not in capsys.readouterr().out

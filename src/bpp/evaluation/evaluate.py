@@ -295,6 +295,14 @@ def _run_dir(checkpoint: Path) -> Path:
 
 
 # ------------------------------------------------------------------------------------------- one call
+def _same_protocol(recorded: dict | None, protocol: Protocol) -> bool:
+    """Whether results recorded under `recorded` were run with `protocol` (fields added since default as before)."""
+    try:
+        return recorded is not None and Protocol(**recorded) == protocol
+    except TypeError:  # a field this version does not know
+        return False
+
+
 def evaluate(
     checkpoint: Path,
     store: EpisodeStore,
@@ -322,7 +330,7 @@ def evaluate(
         and previous is not None
         and previous.get("checkpoint") == str(ckpt)
         and previous.get("store") == str(store.path)
-        and previous.get("protocol") == asdict(protocol)
+        and _same_protocol(previous.get("protocol"), protocol)
         and [t["task"] for t in previous["tasks"]] == tasks
     ):
         print(f"[eval] reusing {out / 'results.json'}")
