@@ -1,18 +1,20 @@
 """Inference latency of every method on this CPU, measured over whole 400-step DrawAnything rollouts.
 
-    python bench/method_latency.py --data data/draw/cpu.zarr --preset cpu [--methods bpp goal_image icrt]
+    python bench/method_latency.py --data data/draw/cpu.zarr --preset cpu [--methods bpp goal_image icrt language]
 
 For each method (untrained weights: latency does not depend on training): `reset` (the task context is encoded
 once per rollout) and then `act` for 400 steps of a real env rollout with early stopping off. Reported: the
 latency of the `act` calls that run the network (p50 / p95), the per-step cost amortised over all 400 `act`
 calls, and, for ICRT, how the latency of a network call grows with the rollout history (its KV cache grows by
-two tokens per chunk).
+two tokens per chunk). Language runs once per ``--text-encoders`` choice, on a store whose tasks carry instructions
+(``--language-data``, e.g. written by ``bpp draw generate --describe``).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -52,16 +54,31 @@ def main() -> None:
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
     parser.add_argument("--steps", type=int, default=400)
+    parser.add_argument("--language-data", default="", help="a store with instructions (for --methods language)")
+    parser.add_argument("--text-encoders", nargs="+", default=["scratch", "pretrained"], help="Language's encoders")
     args = parser.parse_args()
-    store = EpisodeStore(args.data)
+    stores = {"": EpisodeStore(args.data)}
+    if "language" in args.methods:
+        if not args.language_data:
+            parser.error("--methods language needs --language-data: a store made with `bpp draw generate --describe`")
+        stores["language"] = EpisodeStore(args.language_data)
+    runs = [(name, None) for name in args.methods if name != "language"]
+    runs += [("language", encoder) for encoder in args.text_encoders if "language" in args.methods]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, preset {args.preset}")
     header = "| method | params | reset (context encoding) | network call p50 / p95 | calls | per step, amortised |"
     print("\n" + header + "\n| --- | ---: | ---: | ---: | ---: | ---: |")
     growth = {}
-    for name in args.methods:
+    for name, text_encoder in runs:
         method = get_method(name)
+        cfg = method.preset(args.preset)
+        if text_encoder is not None:
+            cfg = replace(cfg, text_encoder=text_encoder, tokenizer="pretrained")
+            label = f"{name} ({text_encoder} text encoder)"
+        else:
+            label = name
+        store = stores.get(name, stores[""])
         torch.manual_seed(0)
-        model = method.model_cls(method.preset(args.preset), store.stats).eval()
+        model = method.model_cls(cfg, store.stats).eval()
         agent = PolicyAgent(model)
         rollout_timings(agent, store, 24)  # warm-up
         reset_s, times = rollout_timings(agent, store, args.steps)
@@ -70,7 +87,7 @@ def main() -> None:
         total = sum(t for _, t in times) * 1e3
         params = sum(p.numel() for p in model.parameters()) / 1e6
         print(
-            f"| {name} | {params:.1f}M | {reset_s * 1e3:.1f} ms | {np.percentile(calls, 50):.1f} / "
+            f"| {label} | {params:.1f}M | {reset_s * 1e3:.1f} ms | {np.percentile(calls, 50):.1f} / "
             f"{np.percentile(calls, 95):.1f} ms | {len(calls)} | {total / len(times):.2f} ms |"
         )
         if name == "icrt":
