@@ -124,6 +124,8 @@ def test_packaged_pretrained_text_encoder_loads_offline_and_knows_english(monkey
     sim = emb @ emb.T
     # Trained weights put a paraphrase far nearer than an unrelated sentence (random weights put all three close).
     assert sim[0, 1] > sim[0, 2] + 0.25 and sim[0, 1] > sim[1, 2] + 0.25
+    encoder(*tokenizer(texts, encoder.max_tokens)).sum().backward()
+    assert all(p.grad is not None for p in encoder.parameters())  # every weight fine-tunes (DDP needs it)
 
 
 def test_language_text_encoder_choices_are_checked():

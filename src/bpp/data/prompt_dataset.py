@@ -25,7 +25,6 @@ from bpp.data.store import EpisodeStore
 FrameSource = Callable[..., np.ndarray]
 """``frames(store, episode, key, size, last_only=False)``: (T, size, size, 3) uint8 frames of an episode's
 observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3)."""
-"""(store, episode, image key, size) -> (T, size, size, 3) uint8 frames of that episode."""
 
 ContextKind = Literal["demo", "goal_image", "instruction"]
 

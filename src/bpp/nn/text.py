@@ -126,7 +126,11 @@ class PretrainedTextEncoder(nn.Module):
         super().__init__()
         from transformers import AutoModel
 
-        self.model = AutoModel.from_pretrained(folder, local_files_only=True)
+        try:  # BERT-family models carry a [CLS] pooler that mean pooling leaves unused (DDP requires every
+            # parameter to take part), so it is not built
+            self.model = AutoModel.from_pretrained(folder, local_files_only=True, add_pooling_layer=False)
+        except TypeError:  # architectures without that option
+            self.model = AutoModel.from_pretrained(folder, local_files_only=True)
         config = self.model.config
         self.dim = config.hidden_size
         self.max_tokens = config.max_position_embeddings
