@@ -125,12 +125,21 @@ class PretrainedTextEncoder(nn.Module):
     def __init__(self, folder: Path):
         super().__init__()
         from transformers import AutoModel
+        from transformers.utils import logging as hf_logging
 
+        # Quietly: the report of the pooler weights left out below and a per-load progress bar are noise here.
+        verbosity, bars = hf_logging.get_verbosity(), hf_logging.is_progress_bar_enabled()
+        hf_logging.set_verbosity_error()
+        hf_logging.disable_progress_bar()
         try:  # BERT-family models carry a [CLS] pooler that mean pooling leaves unused (DDP requires every
             # parameter to take part), so it is not built
             self.model = AutoModel.from_pretrained(folder, local_files_only=True, add_pooling_layer=False)
         except TypeError:  # architectures without that option
             self.model = AutoModel.from_pretrained(folder, local_files_only=True)
+        finally:
+            hf_logging.set_verbosity(verbosity)
+            if bars:
+                hf_logging.enable_progress_bar()
         config = self.model.config
         self.dim = config.hidden_size
         self.max_tokens = config.max_position_embeddings
