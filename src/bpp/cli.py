@@ -251,8 +251,9 @@ def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
     ]
     if args.preset == "cpu-board":
         lines.append(
-            "Note: the `cpu-board` preset observes the cursor and acts in the board's own frame (state only), which "
-            "removes the need to learn rotations from data; the paper's setting is images and canvas actions "
+            "Note: the `cpu-board` preset observes the cursor, the pen and the length of ink drawn so far and acts "
+            "in the board's own frame (state only), which removes the need to learn rotations from data; the "
+            "paper's setting is images and canvas actions "
             "(`--preset cpu` is state-only with canvas actions). See BENCHMARKS.md."
         )
     (args.out_dir / "report.md").write_text("\n".join(lines) + "\n")
