@@ -27,7 +27,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_task_set
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
-from bpp.utils import write_json_atomic
+from bpp.utils import to_dict, write_json_atomic
 
 NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
 
@@ -50,6 +50,13 @@ def train_run(
     threads: int = 0,
 ) -> float:
     """Train (or finish, or reuse) one run; returns its training wall time in seconds (summed over sessions)."""
+    model_cfg = get_method(method).preset(preset)
+    recorded = run / "config.json"
+    if recorded.is_file() and json.loads(recorded.read_text()).get("model_config") != to_dict(model_cfg):
+        raise SystemExit(
+            f"{run} was trained with another {method} configuration than today's `{preset}` preset (a preset "
+            "changed since); delete it or pass another --runs folder"
+        )
     timing = run / "train_seconds.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
     with contextlib.suppress(OSError, ValueError):
@@ -70,7 +77,7 @@ def train_run(
         resume=resume,
         save_every=500,
     )
-    train(cfg, get_method(method).preset(preset))
+    train(cfg, model_cfg)
     spent += time.perf_counter() - t0
     write_json_atomic(timing, {"seconds": spent})
     return spent
