@@ -57,31 +57,28 @@ def main() -> None:
     parser.add_argument("--language-data", default="", help="a store with instructions (for --methods language)")
     parser.add_argument("--text-encoders", nargs="+", default=["scratch", "pretrained"], help="Language's encoders")
     args = parser.parse_args()
-    stores = {"": EpisodeStore(args.data)}
+    store = language_store = EpisodeStore(args.data)
+    runs = [(name, None) for name in args.methods if name != "language"]
     if "language" in args.methods:
         if not args.language_data:
             parser.error("--methods language needs --language-data: a store made with `bpp draw generate --describe`")
-        stores["language"] = EpisodeStore(args.language_data)
-    runs = [(name, None) for name in args.methods if name != "language"]
-    runs += [("language", encoder) for encoder in args.text_encoders if "language" in args.methods]
+        language_store = EpisodeStore(args.language_data)
+        runs += [("language", encoder) for encoder in args.text_encoders]
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, preset {args.preset}")
     header = "| method | params | reset (context encoding) | network call p50 / p95 | calls | per step, amortised |"
     print("\n" + header + "\n| --- | ---: | ---: | ---: | ---: | ---: |")
     growth = {}
     for name, text_encoder in runs:
         method = get_method(name)
-        cfg = method.preset(args.preset)
+        cfg, label, data = method.preset(args.preset), name, store
         if text_encoder is not None:
             cfg = replace(cfg, text_encoder=text_encoder, tokenizer="pretrained")
-            label = f"{name} ({text_encoder} text encoder)"
-        else:
-            label = name
-        store = stores.get(name, stores[""])
+            label, data = f"{name} ({text_encoder} text encoder)", language_store
         torch.manual_seed(0)
-        model = method.model_cls(cfg, store.stats).eval()
+        model = method.model_cls(cfg, data.stats).eval()
         agent = PolicyAgent(model)
-        rollout_timings(agent, store, 24)  # warm-up
-        reset_s, times = rollout_timings(agent, store, args.steps)
+        rollout_timings(agent, data, 24)  # warm-up
+        reset_s, times = rollout_timings(agent, data, args.steps)
         every = agent.n_action_steps
         calls = np.array([t for step, t in times if step % every == 0]) * 1e3
         total = sum(t for _, t in times) * 1e3

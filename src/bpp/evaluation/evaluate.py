@@ -38,8 +38,8 @@ class Protocol:
     seed: int = 0
     max_steps: int = 400
     prompts: Literal["own", "other-task"] = "own"
-    """own: the paper's protocol. other-task: a control; rollout r of task t is prompted with the demonstration of
-    task (t + 1 + r) mod #tasks that the paper's protocol would give that task, and scored against t's own."""
+    """own: the paper's protocol. other-task: a control; rollout r of task t (of n) is prompted with demonstration
+    r mod (its demos) of task (t + 1 + r mod (n - 1)) mod n, never t itself, and scored against t's own."""
 
     def __post_init__(self):
         if self.prompts not in ("own", "other-task"):

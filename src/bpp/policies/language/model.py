@@ -33,9 +33,9 @@ class LanguageModel(ContextDiffusionPolicy):
     def __init__(self, cfg: LanguageConfig, stats: Mapping[str, Mapping[str, list[float]]]):
         super().__init__(cfg, stats)
         t = cfg.text
-        pretrained = "pretrained" in (cfg.text_encoder, cfg.tokenizer)
-        folder = pretrained_text_dir(cfg.pretrained_text_model) if pretrained else None
-        self.tokenizer = ByteTokenizer() if cfg.tokenizer == "bytes" else PretrainedTokenizer(folder)
+        # The config ensures a pretrained encoder comes with its own (pretrained) tokenizer.
+        folder = pretrained_text_dir(cfg.pretrained_text_model) if cfg.tokenizer == "pretrained" else None
+        self.tokenizer = ByteTokenizer() if folder is None else PretrainedTokenizer(folder)
         if cfg.text_encoder == "pretrained":
             self.text_encoder = PretrainedTextEncoder(folder)
         else:
