@@ -2,11 +2,14 @@
 
     python bench/draw_cpu_benchmark.py                                  # defaults below; ~1.5 h on 2 cores
     python bench/draw_cpu_benchmark.py --methods bpp icrt --seeds 0 1 2 --steps bpp=6000 icrt=4000
+    python bench/draw_cpu_benchmark.py --seeds 0 1 2 --report-only    # table of whatever has finished training
 
 Generates the data (procedural training tasks, the unseen human-made drawings), trains every method x seed on the
 same training store (skipping runs that already finished, resuming killed ones), evaluates each with the paper's
 protocol on the unseen drawings and on training drawings, and writes a Markdown table, a JSON file and a bar chart
-into --out. Training wall time is measured and reported per run. Re-running reuses everything already done.
+into --out. Training wall time is measured and reported per run. Re-running reuses everything already done, so
+several invocations can train different methods or seeds side by side (one core each), and a last `--report-only`
+call gathers them into one table.
 """
 
 from __future__ import annotations
@@ -59,9 +62,8 @@ def train_run(
         )
     timing = run / "train_seconds.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
-    with contextlib.suppress(OSError, ValueError):
-        if read_state(resolve_checkpoint(run))["step"] >= steps:
-            return spent
+    if trained_to(run, steps):
+        return spent
     resume = (run / "checkpoints" / "last").is_file()
     t0 = time.perf_counter()
     cfg = TrainConfig(
@@ -81,6 +83,13 @@ def train_run(
     spent += time.perf_counter() - t0
     write_json_atomic(timing, {"seconds": spent})
     return spent
+
+
+def trained_to(run: Path, steps: int) -> bool:
+    """Whether `run` holds a checkpoint of at least `steps` training steps."""
+    with contextlib.suppress(OSError, ValueError):
+        return read_state(resolve_checkpoint(run))["step"] >= steps
+    return False
 
 
 def _per_method(items: list[str]) -> dict[str, int]:
@@ -109,7 +118,12 @@ def main() -> None:
     parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
     parser.add_argument("--runs", type=Path, default=Path("runs/bench"))
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
-    parser.add_argument("--workers", type=int, default=0)
+    parser.add_argument("--workers", type=int, default=0, help="evaluation processes (0: one per core)")
+    parser.add_argument(
+        "--report-only",
+        action="store_true",
+        help="train nothing: evaluate and tabulate the runs that have finished training, skip the others",
+    )
     args = parser.parse_args()
     steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
     batch = {m: 64 for m in args.methods} | _per_method(args.batch)
@@ -121,6 +135,9 @@ def main() -> None:
     for method in args.methods:
         for seed in args.seeds:
             run = args.runs / f"{method}-{args.preset}-s{seed}"
+            if args.report_only and not (trained_to(run, steps[method]) and (run / "train_seconds.json").is_file()):
+                print(f"skipping {run}: not trained to {steps[method]} steps")
+                continue
             seconds = train_run(
                 method,
                 args.preset,
@@ -143,14 +160,18 @@ def main() -> None:
             write_json_atomic(args.out / "results.json", results)
 
     chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
+    means = {}
     for method in args.methods:
         entries = [e for e in results.values() if e["method"] == method]
+        if not entries:
+            continue
         human = np.array([e["human"] for e in entries])
         trained = np.array([e["train"] for e in entries])
         sd = lambda x: float(x.std(ddof=1)) if len(x) > 1 else 0.0  # noqa: E731
         chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), sd(human))
         chart["training drawings"][NAMES[method]] = (float(trained.mean()), sd(trained))
         minutes = np.mean([e["train_s"] for e in entries]) / 60
+        means[method] = human.mean()
         rows.append(
             (
                 NAMES[method],
@@ -163,6 +184,13 @@ def main() -> None:
         )
     header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps x batch", "train min"]
     table = markdown_table(header, rows)
+    ratios = [
+        f"BPP / {NAMES[m]} on the unseen drawings: {means['bpp'] / means[m]:.2f} (target at most {target})"
+        for m, target in (("goal_image", 0.3), ("icrt", 0.75))
+        if "bpp" in means and m in means
+    ]
+    if ratios:
+        table += "\n" + "\n".join(f"- {r}" for r in ratios) + "\n"
     (args.out / "table.md").write_text(
         f"DrawAnything-Sim on a CPU, preset `{args.preset}`, {args.num_tasks} tasks x 5 demos, "
         f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "

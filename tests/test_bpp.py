@@ -293,6 +293,23 @@ def test_image_observations_train_and_act(debug_store):
     assert result.steps == 13
 
 
+def test_rendered_frames_are_cached_within_a_byte_budget(debug_store):
+    from bpp.envs.draw.dataset import render_episode
+
+    frames = {e: render_episode(debug_store, e, 16) for e in (0, 1, 2)}
+    budget = frames[0].nbytes + max(frames[1].nbytes, frames[2].nbytes)  # room for two of the three episodes
+    ds = PromptBatchDataset(
+        debug_store,
+        DataSpec(lowdim_keys=tuple(KEYS), image_keys=("image",), image_size=16),
+        batch_size=8,
+        seed=0,
+        frame_cache_bytes=budget,
+    )
+    for e in (0, 1, 0, 2):  # 0 used last before 2 arrives: 1 is the one evicted
+        np.testing.assert_array_equal(ds._episode_frames(e, "image", 16), frames[e])
+    assert [k[0] for k in ds._frame_cache] == [0, 2] and ds._frame_cache_size == frames[0].nbytes + frames[2].nbytes
+
+
 def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):
     """Prompts of different lengths batched with padding + masks act exactly like each prompt alone."""
     model = _model(debug_store).eval()

@@ -60,6 +60,9 @@ class TrainConfig:
     """Continue the run in `out` from its last checkpoint."""
     threads: int = 0
     """torch CPU threads per process (0: torch's default)."""
+    frame_cache_gb: float = 4.0
+    """Rendered image observations each loader process keeps (DrawAnything renders them from the stored state;
+    all 64x64 frames of 500 tasks x 5 demos take 2.9 GB, and rendering them anew dominates a CPU step)."""
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1:
@@ -140,6 +143,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         seed=cfg.seed,
         rank=rank,
         tasks_per_batch=cfg.tasks_per_batch,
+        frame_cache_bytes=int(cfg.frame_cache_gb * 2**30),
     )
     loader = torch.utils.data.DataLoader(
         dataset,

@@ -123,7 +123,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         rank: int = 0,
         tasks: Sequence[int] | None = None,
         tasks_per_batch: int = 1,
-        frame_cache_episodes: int = 256,
+        frame_cache_bytes: int = 4 << 30,
         goal_cache_bytes: int = 128 << 20,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
@@ -156,7 +156,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         self.starts, self.ends = self.store.episode_starts, self.store.episode_ends
         self._arrays: dict[str, np.ndarray] | None = None
         self._frame_cache: OrderedDict = OrderedDict()
-        self._frame_cache_episodes = frame_cache_episodes
+        self._frame_cache_bytes, self._frame_cache_size = frame_cache_bytes, 0
         self._goal_cache: OrderedDict = OrderedDict()  # final frames alone: the goal images of episodes
         self._goal_cache_frames = max(1, goal_cache_bytes // (3 * spec.context_image_size**2))
 
@@ -166,7 +166,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     def __getstate__(self):
         state = self.__dict__.copy()
         state["_arrays"] = None  # each loader worker loads its own copy
-        state["_frame_cache"] = OrderedDict()
+        state["_frame_cache"], state["_frame_cache_size"] = OrderedDict(), 0
         state["_goal_cache"] = OrderedDict()
         return state
 
@@ -176,11 +176,15 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         return self._arrays
 
     def _episode_frames(self, episode: int, key: str, size: int) -> np.ndarray:
+        """All image observations of `episode`, rendered once and kept while they fit the byte budget (rendering
+        dominates a training step that observes images otherwise)."""
         cache_key = (episode, key, size)
         if cache_key not in self._frame_cache:
-            self._frame_cache[cache_key] = self.frames(self.store, episode, key, size)
-            if len(self._frame_cache) > self._frame_cache_episodes:
-                self._frame_cache.popitem(last=False)
+            frames = self.frames(self.store, episode, key, size)
+            self._frame_cache[cache_key] = frames
+            self._frame_cache_size += frames.nbytes
+            while self._frame_cache_size > self._frame_cache_bytes and len(self._frame_cache) > 1:
+                self._frame_cache_size -= self._frame_cache.popitem(last=False)[1].nbytes
         self._frame_cache.move_to_end(cache_key)
         return self._frame_cache[cache_key]
 
