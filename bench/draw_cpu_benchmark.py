@@ -160,7 +160,6 @@ def main() -> None:
             write_json_atomic(args.out / "results.json", results)
 
     chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
-    means = {}
     for method in args.methods:
         entries = [e for e in results.values() if e["method"] == method]
         if not entries:
@@ -171,7 +170,6 @@ def main() -> None:
         chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), sd(human))
         chart["training drawings"][NAMES[method]] = (float(trained.mean()), sd(trained))
         minutes = np.mean([e["train_s"] for e in entries]) / 60
-        means[method] = human.mean()
         rows.append(
             (
                 NAMES[method],
@@ -184,10 +182,11 @@ def main() -> None:
         )
     header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps x batch", "train min"]
     table = markdown_table(header, rows)
+    unseen = chart["unseen human drawings"]  # {name: (mean, std)}
     ratios = [
-        f"BPP / {NAMES[m]} on the unseen drawings: {means['bpp'] / means[m]:.2f} (target at most {target})"
-        for m, target in (("goal_image", 0.3), ("icrt", 0.75))
-        if "bpp" in means and m in means
+        f"BPP / {name} on the unseen drawings: {unseen['BPP'][0] / unseen[name][0]:.2f} (target at most {target})"
+        for name, target in (("Goal-Image", 0.3), ("ICRT", 0.75))
+        if "BPP" in unseen and name in unseen
     ]
     if ratios:
         table += "\n" + "\n".join(f"- {r}" for r in ratios) + "\n"

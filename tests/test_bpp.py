@@ -307,7 +307,7 @@ def test_rendered_frames_are_cached_within_a_byte_budget(debug_store):
     )
     for e in (0, 1, 0, 2):  # 0 used last before 2 arrives: 1 is the one evicted
         np.testing.assert_array_equal(ds._episode_frames(e, "image", 16), frames[e])
-    assert [k[0] for k in ds._frame_cache] == [0, 2] and ds._frame_cache_size == frames[0].nbytes + frames[2].nbytes
+    assert [k[0] for k in ds._frame_cache] == [0, 2] and ds._frame_cache.nbytes == frames[0].nbytes + frames[2].nbytes
 
 
 def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):

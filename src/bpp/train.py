@@ -62,7 +62,7 @@ class TrainConfig:
     """torch CPU threads per process (0: torch's default)."""
     frame_cache_gb: float = 4.0
     """Rendered image observations each loader process keeps (DrawAnything renders them from the stored state;
-    all 64x64 frames of 500 tasks x 5 demos take 2.9 GB, and rendering them anew dominates a CPU step)."""
+    all 64x64 frames of 500 tasks x 5 demos take about 3 GB, and rendering them anew dominates a CPU step)."""
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1:

@@ -29,6 +29,40 @@ observations from camera `key`; with ``last_only``, just the final observation, 
 ContextKind = Literal["demo", "goal_image", "instruction"]
 
 
+class ArrayCache:
+    """Arrays by key within a byte budget, the least recently used dropped first (the newest is always kept).
+    Pickles empty: each loader worker fills its own."""
+
+    def __init__(self, budget: int):
+        self.budget, self.nbytes, self._items = budget, 0, OrderedDict()
+
+    def get(self, key, make: Callable[[], np.ndarray]) -> np.ndarray:
+        """The array under `key`, made by `make()` if absent."""
+        if key not in self._items:
+            self._items[key] = value = make()
+            self.nbytes += value.nbytes
+            while self.nbytes > self.budget and len(self._items) > 1:
+                self.nbytes -= self._items.popitem(last=False)[1].nbytes
+        self._items.move_to_end(key)
+        return self._items[key]
+
+    def peek(self, key) -> np.ndarray | None:
+        """The array under `key` if cached, without making it or counting it as used."""
+        return self._items.get(key)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __iter__(self):
+        return iter(self._items)
+
+    def __getstate__(self):
+        return {"budget": self.budget}
+
+    def __setstate__(self, state):
+        self.__init__(state["budget"])
+
+
 def benchmark_frames(benchmark: str) -> FrameSource | None:
     """How a benchmark's stores provide image observations (DrawAnything renders them from the stored state)."""
     if benchmark == "drawanything":
@@ -155,10 +189,8 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         self.task_episodes = by_task
         self.starts, self.ends = self.store.episode_starts, self.store.episode_ends
         self._arrays: dict[str, np.ndarray] | None = None
-        self._frame_cache: OrderedDict = OrderedDict()
-        self._frame_cache_bytes, self._frame_cache_size = frame_cache_bytes, 0
-        self._goal_cache: OrderedDict = OrderedDict()  # final frames alone: the goal images of episodes
-        self._goal_cache_frames = max(1, goal_cache_bytes // (3 * spec.context_image_size**2))
+        self._frame_cache = ArrayCache(frame_cache_bytes)  # all frames of episodes, by (episode, camera, size)
+        self._goal_cache = ArrayCache(goal_cache_bytes)  # final frames alone: the goal images of episodes
 
     def __len__(self) -> int:
         return self.num_batches
@@ -166,8 +198,6 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     def __getstate__(self):
         state = self.__dict__.copy()
         state["_arrays"] = None  # each loader worker loads its own copy
-        state["_frame_cache"], state["_frame_cache_size"] = OrderedDict(), 0
-        state["_goal_cache"] = OrderedDict()
         return state
 
     def _data(self) -> dict[str, np.ndarray]:
@@ -178,27 +208,15 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     def _episode_frames(self, episode: int, key: str, size: int) -> np.ndarray:
         """All image observations of `episode`, rendered once and kept while they fit the byte budget (rendering
         dominates a training step that observes images otherwise)."""
-        cache_key = (episode, key, size)
-        if cache_key not in self._frame_cache:
-            frames = self.frames(self.store, episode, key, size)
-            self._frame_cache[cache_key] = frames
-            self._frame_cache_size += frames.nbytes
-            while self._frame_cache_size > self._frame_cache_bytes and len(self._frame_cache) > 1:
-                self._frame_cache_size -= self._frame_cache.popitem(last=False)[1].nbytes
-        self._frame_cache.move_to_end(cache_key)
-        return self._frame_cache[cache_key]
+        return self._frame_cache.get((episode, key, size), lambda: self.frames(self.store, episode, key, size))
 
     def _goal_frame(self, episode: int, key: str, size: int) -> np.ndarray:
         """(1, size, size, 3): the episode's final observation, from the episode's cached frames if a policy that
         observes images has them, else rendered alone and kept in a cache of final frames."""
-        if (episode, key, size) in self._frame_cache:
-            return self._frame_cache[(episode, key, size)][-1:]
-        if episode not in self._goal_cache:
-            self._goal_cache[episode] = self.frames(self.store, episode, key, size, last_only=True)
-            if len(self._goal_cache) > self._goal_cache_frames:
-                self._goal_cache.popitem(last=False)
-        self._goal_cache.move_to_end(episode)
-        return self._goal_cache[episode]
+        frames = self._frame_cache.peek((episode, key, size))
+        if frames is not None:
+            return frames[-1:]
+        return self._goal_cache.get(episode, lambda: self.frames(self.store, episode, key, size, last_only=True))
 
     def _gather(self, episodes: np.ndarray, index: np.ndarray) -> dict:
         """Observations of `episodes` (B,) at their step indices `index` (B, N): ``{key: (B, N, ...)}``."""
