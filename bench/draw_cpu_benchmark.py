@@ -120,6 +120,13 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
     parser.add_argument("--workers", type=int, default=0, help="evaluation processes (0: one per core)")
     parser.add_argument(
+        "--n-action-steps",
+        type=int,
+        default=0,
+        help="actions executed per inference by the methods with a diffusion decoder (0: their Ta); ICRT's "
+        "context is built one whole chunk at a time, so it always executes its chunk",
+    )
+    parser.add_argument(
         "--report-only",
         action="store_true",
         help="train nothing: evaluate and tabulate the runs that have finished training, skip the others",
@@ -130,7 +137,8 @@ def main() -> None:
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
     store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
-    protocol = Protocol(rollouts=args.rollouts)
+    plain = Protocol(rollouts=args.rollouts)
+    replanning = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps)
     rows, results = [], {}
     for method in args.methods:
         for seed in args.seeds:
@@ -151,6 +159,8 @@ def main() -> None:
             )
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
+            protocol = replanning if hasattr(get_method(method).preset(args.preset), "diffusion") else plain
+            entry["n_action_steps"] = protocol.n_action_steps
             for task_set, num in (("human", 0), ("train", args.train_tasks)):
                 store, tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir, num_tasks=num)
                 out = args.out / run.name / task_set
@@ -190,10 +200,13 @@ def main() -> None:
     ]
     if ratios:
         table += "\n" + "\n".join(f"- {r}" for r in ratios) + "\n"
+    executed = ""
+    if args.n_action_steps:
+        executed = f" The diffusion-decoder methods execute {args.n_action_steps} actions per inference."
     (args.out / "table.md").write_text(
         f"DrawAnything-Sim on a CPU, preset `{args.preset}`, {args.num_tasks} tasks x 5 demos, "
         f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "
-        f"mean ± std over seeds.\n\n{table}"
+        f"mean ± std over seeds.{executed}\n\n{table}"
     )
     bar_chart(
         chart, args.out / "chart.png", "Chamfer distance (px, lower is better)", f"DrawAnything-Sim, {args.preset}"

@@ -83,3 +83,35 @@ def test_evaluate_reuses_results_recorded_before_a_protocol_field_existed(debug_
     control = Protocol(rollouts=1, max_steps=8, prompts="other-task")
     evaluate(run, debug_store, [2], "debug", out, control, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out
+
+
+def test_agent_overrides_set_denoising_steps_and_replanning(debug_store, tmp_path, capsys):
+    from bpp.policies.icrt import PRESETS as ICRT_PRESETS
+    from bpp.policies.icrt import ICRTModel
+
+    model = BPPModel(PRESETS["debug"], debug_store.stats).eval()
+    calls = []
+    model.head.net.register_forward_hook(lambda *_: calls.append(1))
+    for steps, executed in ((None, None), (2, 3)):
+        agent = PolicyAgent(model, n_action_steps=executed, num_inference_steps=steps)
+        calls.clear()
+        rollout_batch(agent, debug_store, [0], [0.1], [1], max_steps=9)
+        per_call = steps or PRESETS["debug"].diffusion.num_inference_steps
+        inferences = -(-9 // (executed or PRESETS["debug"].horizons.n_action_steps))
+        assert len(calls) == per_call * inferences
+    with pytest.raises(ValueError, match="no diffusion decoder"):
+        PolicyAgent(ICRTModel(ICRT_PRESETS["debug"], debug_store.stats), num_inference_steps=4)
+    with pytest.raises(ValueError, match="inference steps must be in"):
+        PolicyAgent(model, num_inference_steps=10_000)
+
+    run, out = tmp_path / "run", tmp_path / "eval"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, PRESETS["debug"], progress=False)
+    tuned = Protocol(rollouts=1, max_steps=8, n_action_steps=2, inference_steps=3)
+    evaluate(run, debug_store, [2], "debug", out, tuned, workers=1, videos=0, progress=False)
+    assert json.loads((out / "results.json").read_text())["protocol"]["inference_steps"] == 3
+    assert "2 actions per inference, 3 denoising steps" in (out / "results.md").read_text()
+    capsys.readouterr()
+    plain = Protocol(rollouts=1, max_steps=8)
+    evaluate(run, debug_store, [2], "debug", out, plain, workers=1, videos=0, progress=False)
+    assert "reusing" not in capsys.readouterr().out

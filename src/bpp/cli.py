@@ -378,6 +378,10 @@ class Eval:
     prompts: Literal["own", "other-task"] = "own"
     """own: the paper's protocol. other-task: a control, each rollout prompted with another task's demonstration
     and scored against its own task's drawing (a policy that follows its prompt must score far worse)."""
+    n_action_steps: int = 0
+    """Actions executed per inference (0: the checkpoint's Ta; fewer replans more often)."""
+    inference_steps: int = 0
+    """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
     workers: int = 0
     """Processes (0: one per core)."""
     videos: int = 2
@@ -392,7 +396,14 @@ def eval_cmd(args: Eval) -> None:
     from bpp.evaluation.report import markdown_table
     from bpp.utils import write_json_atomic
 
-    protocol = Protocol(rollouts=args.rollouts, seed=args.seed, max_steps=args.max_steps, prompts=args.prompts)
+    protocol = Protocol(
+        rollouts=args.rollouts,
+        seed=args.seed,
+        max_steps=args.max_steps,
+        prompts=args.prompts,
+        n_action_steps=args.n_action_steps,
+        inference_steps=args.inference_steps,
+    )
     runs = []
     for i, ckpt in enumerate(args.checkpoints):
         store, tasks, label = resolve_task_set(args.tasks, ckpt, args.drawings, args.data_dir, args.num_tasks)

@@ -40,10 +40,20 @@ class Protocol:
     prompts: Literal["own", "other-task"] = "own"
     """own: the paper's protocol. other-task: a control; rollout r of task t (of n) is prompted with demonstration
     r mod (its demos) of task (t + 1 + r mod (n - 1)) mod n, never t itself, and scored against t's own."""
+    n_action_steps: int = 0
+    """Actions executed per inference (0: the checkpoint's Ta)."""
+    inference_steps: int = 0
+    """Denoising steps per inference of a diffusion decoder (0: the checkpoint's own)."""
 
     def __post_init__(self):
         if self.prompts not in ("own", "other-task"):
             raise ValueError(f"prompts must be 'own' or 'other-task', got {self.prompts!r}")
+        if self.n_action_steps < 0 or self.inference_steps < 0:
+            raise ValueError("n_action_steps and inference_steps must be >= 0 (0: the checkpoint's own)")
+
+    def agent_options(self) -> dict:
+        """The :class:`~bpp.policies.agent.PolicyAgent` overrides this protocol asks for."""
+        return {"n_action_steps": self.n_action_steps or None, "num_inference_steps": self.inference_steps or None}
 
     def plan(self, store: EpisodeStore, task: int) -> list[dict]:
         """The rollouts of `task`: target episode (whose drawing scores it), prompt episode, board angle and seed."""
@@ -95,7 +105,7 @@ def _init_worker(checkpoint: str, store_path: str, protocol: Protocol, threads: 
     from bpp.policies.agent import PolicyAgent
 
     torch.set_num_threads(threads)
-    _WORKER["agent"] = PolicyAgent.from_checkpoint(checkpoint, record_attention=True)
+    _WORKER["agent"] = PolicyAgent.from_checkpoint(checkpoint, record_attention=True, **protocol.agent_options())
     _WORKER["store"] = EpisodeStore(store_path)
     _WORKER["protocol"] = protocol
 
@@ -287,6 +297,13 @@ def _open_or_generate(path: Path, make) -> EpisodeStore:
         return make()
 
 
+def _overrides(protocol: Protocol) -> str:
+    """The agent overrides of `protocol` as a phrase for the report ("" if none)."""
+    parts = [f"{protocol.n_action_steps} actions per inference"] * bool(protocol.n_action_steps)
+    parts += [f"{protocol.inference_steps} denoising steps"] * bool(protocol.inference_steps)
+    return "".join(f", {p}" for p in parts)
+
+
 def _run_dir(checkpoint: Path) -> Path:
     from bpp.checkpoint import resolve_checkpoint
 
@@ -349,7 +366,7 @@ def evaluate(
     if attended:
         from bpp.checkpoint import read_state
 
-        n_action_steps = read_state(ckpt)["model_config"]["horizons"]["n_action_steps"]
+        n_action_steps = protocol.n_action_steps or read_state(ckpt)["model_config"]["horizons"]["n_action_steps"]
         report.write_attention(
             attended[0].attention,
             n_action_steps,
@@ -362,7 +379,8 @@ def evaluate(
     table = report.markdown_table(["task", "Chamfer mean (px)", "std over rollouts", "rollouts"], rows)
     (out / "results.md").write_text(
         f"# {name} on {label}\n\nCheckpoint `{ckpt}`; {s['tasks']} tasks x {protocol.rollouts} rollouts, "
-        f"seed {protocol.seed}; best Chamfer per rollout (px at 512), averaged per task then over tasks.\n\n"
+        f"seed {protocol.seed}{_overrides(protocol)}; best Chamfer per rollout (px at 512), averaged per task then "
+        "over tasks.\n\n"
         f"**Chamfer {s['chamfer_mean']:.2f} px** (std over tasks {s['chamfer_std_over_tasks']:.2f}, "
         f"s.e.m. {s['chamfer_sem_over_tasks']:.2f}); median rollout {s['chamfer_median_rollout']:.2f} px; "
         f"{100 * s['rollouts_under_5px']:.0f}% of rollouts under 5 px. {meta['seconds']:.0f} s.\n\n{table}"

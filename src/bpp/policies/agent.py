@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,8 @@ class PolicyAgent:
         model: a policy model (see the module docstring for the contract).
         device: where to run the model.
         n_action_steps: actions executed per inference (default: the model's Ta).
+        num_inference_steps: denoising steps per inference for models with a diffusion decoder (default: the
+            model's own); fewer is faster, more may be more precise.
         record_attention: keep the prompt attention of every inference in :attr:`attention_log`
             (models that have none ignore it).
     """
@@ -40,9 +43,12 @@ class PolicyAgent:
         model,
         device: str | torch.device = "cpu",
         n_action_steps: int | None = None,
+        num_inference_steps: int | None = None,
         record_attention: bool = False,
     ):
         self.model = model.to(device).eval()
+        if num_inference_steps is not None:
+            set_inference_steps(model, num_inference_steps)
         self.device = torch.device(device)
         h = model.cfg.horizons
         self.n_obs_steps, self.horizon = h.n_obs_steps, h.horizon
@@ -112,3 +118,14 @@ class PolicyAgent:
         if self.record_attention and "attention" in out:
             self.attention_log.append(out["attention"].cpu().numpy())
         return out["action"].cpu().numpy()
+
+
+def set_inference_steps(model, steps: int) -> None:
+    """Make `model`'s diffusion decoder denoise in `steps` steps at inference (training is unaffected)."""
+    head = getattr(model, "head", None)
+    cfg = getattr(head, "cfg", None)
+    if not hasattr(cfg, "num_inference_steps"):
+        raise ValueError(f"{type(model).__name__} has no diffusion decoder: it takes no number of inference steps")
+    if not 1 <= steps <= cfg.num_train_steps:
+        raise ValueError(f"inference steps must be in [1, {cfg.num_train_steps}] (the training steps), got {steps}")
+    head.cfg = replace(cfg, num_inference_steps=steps)
