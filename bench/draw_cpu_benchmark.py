@@ -137,10 +137,10 @@ def main() -> None:
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
     store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
-    plain = Protocol(rollouts=args.rollouts)
-    replanning = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps)
     rows, results = [], {}
     for method in args.methods:
+        replans = hasattr(get_method(method).preset(args.preset), "diffusion")  # ICRT executes whole chunks
+        protocol = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps if replans else 0)
         for seed in args.seeds:
             run = args.runs / f"{method}-{args.preset}-s{seed}"
             if args.report_only and not (trained_to(run, steps[method]) and (run / "train_seconds.json").is_file()):
@@ -159,7 +159,6 @@ def main() -> None:
             )
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
-            protocol = replanning if hasattr(get_method(method).preset(args.preset), "diffusion") else plain
             entry["n_action_steps"] = protocol.n_action_steps
             for task_set, num in (("human", 0), ("train", args.train_tasks)):
                 store, tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir, num_tasks=num)

@@ -299,9 +299,12 @@ def _open_or_generate(path: Path, make) -> EpisodeStore:
 
 def _overrides(protocol: Protocol) -> str:
     """The agent overrides of `protocol` as a phrase for the report ("" if none)."""
-    parts = [f"{protocol.n_action_steps} actions per inference"] * bool(protocol.n_action_steps)
-    parts += [f"{protocol.inference_steps} denoising steps"] * bool(protocol.inference_steps)
-    return "".join(f", {p}" for p in parts)
+    text = ""
+    if protocol.n_action_steps:
+        text += f", {protocol.n_action_steps} actions per inference"
+    if protocol.inference_steps:
+        text += f", {protocol.inference_steps} denoising steps"
+    return text
 
 
 def _run_dir(checkpoint: Path) -> Path:

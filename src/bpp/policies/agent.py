@@ -15,13 +15,13 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from bpp.data.prompt_dataset import collate_contexts
+from bpp.policies.common import DiffusionHead
 from bpp.utils import to_torch
 
 
@@ -48,7 +48,9 @@ class PolicyAgent:
     ):
         self.model = model.to(device).eval()
         if num_inference_steps is not None:
-            set_inference_steps(model, num_inference_steps)
+            if not isinstance(getattr(model, "head", None), DiffusionHead):
+                raise ValueError(f"{type(model).__name__} has no diffusion decoder: it takes no inference steps")
+            model.head.set_inference_steps(num_inference_steps)
         self.device = torch.device(device)
         h = model.cfg.horizons
         self.n_obs_steps, self.horizon = h.n_obs_steps, h.horizon
@@ -118,14 +120,3 @@ class PolicyAgent:
         if self.record_attention and "attention" in out:
             self.attention_log.append(out["attention"].cpu().numpy())
         return out["action"].cpu().numpy()
-
-
-def set_inference_steps(model, steps: int) -> None:
-    """Make `model`'s diffusion decoder denoise in `steps` steps at inference (training is unaffected)."""
-    head = getattr(model, "head", None)
-    cfg = getattr(head, "cfg", None)
-    if not hasattr(cfg, "num_inference_steps"):
-        raise ValueError(f"{type(model).__name__} has no diffusion decoder: it takes no number of inference steps")
-    if not 1 <= steps <= cfg.num_train_steps:
-        raise ValueError(f"inference steps must be in [1, {cfg.num_train_steps}] (the training steps), got {steps}")
-    head.cfg = replace(cfg, num_inference_steps=steps)

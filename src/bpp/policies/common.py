@@ -4,7 +4,7 @@ of a policy that conditions that head on observations plus a task context (:clas
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -183,6 +183,14 @@ class DiffusionHead(nn.Module):
         )
         noisy = self.train_scheduler.add_noise(actions, noise, steps)
         return nn.functional.mse_loss(self.net(noisy, steps, cond), noise)
+
+    def set_inference_steps(self, steps: int) -> None:
+        """Denoise in `steps` DDIM/DDPM steps at inference from now on (training is unaffected)."""
+        if not 1 <= steps <= self.cfg.num_train_steps:
+            raise ValueError(
+                f"inference steps must be in [1, {self.cfg.num_train_steps}] (the training steps), got {steps}"
+            )
+        self.cfg = replace(self.cfg, num_inference_steps=steps)
 
     @torch.no_grad()
     def sample(self, cond: torch.Tensor, shape: tuple[int, int], noise: torch.Tensor | None = None, generator=None):
