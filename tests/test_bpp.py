@@ -9,6 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from bpp.checkpoint import prune_checkpoints, resolve_checkpoint
 from bpp.data.prompt_dataset import DataSpec, PromptBatchDataset
 from bpp.evaluation.draw import prompt_from_store, rollout
 from bpp.policies.agent import PolicyAgent
@@ -164,8 +165,9 @@ def test_paper_preset_size():
     assert 0.9 * 151e6 < unet < 1.1 * 151e6
 
 
-def _train(store, out, steps, save_every, resume=False):
+def _train(store, out, steps, save_every, resume=False, keep_checkpoints=3):
     cfg = TrainConfig(
+        keep_checkpoints=keep_checkpoints,
         data=store.path,
         out=out,
         steps=steps,
@@ -194,6 +196,19 @@ def test_resume_reproduces_an_uninterrupted_run(debug_store, tmp_path):
             torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
     with pytest.raises(FileExistsError, match="--resume"):
         _train(debug_store, part, steps=6, save_every=3)
+
+
+def test_only_the_newest_checkpoints_stay_on_disk(debug_store, tmp_path):
+    ckpt = _train(debug_store, tmp_path / "run", steps=5, save_every=1, keep_checkpoints=2)
+    folders = sorted(p.name for p in (tmp_path / "run" / "checkpoints").iterdir() if p.is_dir())
+    assert folders == ["step_00000004", "step_00000005"]
+    assert ckpt.name == "step_00000005"
+    everything = _train(debug_store, tmp_path / "all", steps=3, save_every=1, keep_checkpoints=0)
+    assert len([p for p in everything.parent.iterdir() if p.is_dir()]) == 3
+    # `last` may name an older folder (a run rolled back by hand): that one is never deleted.
+    (tmp_path / "run" / "checkpoints" / "last").write_text("step_00000004")
+    assert prune_checkpoints(tmp_path / "run" / "checkpoints", keep=1) == [tmp_path / "run/checkpoints/step_00000005"]
+    assert resolve_checkpoint(tmp_path / "run").name == "step_00000004"
 
 
 def test_checkpoint_round_trip_acts_in_the_env(debug_store, tmp_path):

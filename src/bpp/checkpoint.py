@@ -7,7 +7,9 @@ A run directory::
     <run>/checkpoints/last            the name of the newest complete checkpoint folder
 
 A checkpoint folder is written under a temporary name and renamed when complete, then ``last`` is replaced
-atomically, so a crash at any moment leaves the previous checkpoint loadable.
+atomically, so a crash at any moment leaves the previous checkpoint loadable. Only then are checkpoints beyond
+the newest few deleted (each holds the model twice and the optimizer state, so a long CPU run would otherwise
+fill a disk with gigabytes of them).
 """
 
 from __future__ import annotations
@@ -54,9 +56,16 @@ def _unflatten_optimizer(tensors: dict[str, torch.Tensor], skeleton: dict) -> di
 
 
 def save_checkpoint(
-    run_dir: str | Path, step: int, model: torch.nn.Module, ema: torch.nn.Module, optimizer, meta: dict[str, Any]
+    run_dir: str | Path,
+    step: int,
+    model: torch.nn.Module,
+    ema: torch.nn.Module,
+    optimizer,
+    meta: dict[str, Any],
+    keep: int = 0,
 ) -> Path:
-    """Write checkpoint `step` (complete or not at all) and point ``last`` at it."""
+    """Write checkpoint `step` (complete or not at all), point ``last`` at it, then keep only the newest `keep`
+    checkpoints (0: keep all)."""
     ckpt_dir = Path(run_dir) / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
     name = f"step_{step:08d}"
@@ -82,7 +91,22 @@ def save_checkpoint(
     last_tmp = ckpt_dir / f".last.tmp-{os.getpid()}"
     last_tmp.write_text(name)
     os.replace(last_tmp, ckpt_dir / "last")
+    if keep:
+        prune_checkpoints(ckpt_dir, keep)
     return final
+
+
+def prune_checkpoints(ckpt_dir: str | Path, keep: int) -> list[Path]:
+    """Delete all but the newest `keep` step folders of `ckpt_dir` (never the one ``last`` names); returns them."""
+    if keep < 1:
+        raise ValueError(f"keep must be at least 1, got {keep}")
+    ckpt_dir = Path(ckpt_dir)
+    last = (ckpt_dir / "last").read_text().strip()
+    steps = sorted(p for p in ckpt_dir.glob("step_*") if p.is_dir() and p.name != last)
+    removed = steps[: max(len(steps) - (keep - 1), 0)]
+    for path in removed:
+        shutil.rmtree(path)
+    return removed
 
 
 def resolve_checkpoint(path: str | Path) -> Path:

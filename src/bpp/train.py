@@ -56,6 +56,8 @@ class TrainConfig:
     """bf16 autocast where the device supports it well (CUDA); CPUs train in fp32."""
     log_every: int = 25
     save_every: int = 500
+    keep_checkpoints: int = 3
+    """Newest checkpoints kept on disk (0: all). One is about 4x the model's size (weights, EMA, optimizer)."""
     resume: bool = False
     """Continue the run in `out` from its last checkpoint."""
     threads: int = 0
@@ -67,6 +69,8 @@ class TrainConfig:
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1:
             raise ValueError(f"steps and batch_size must be positive, got {self.steps}, {self.batch_size}")
+        if self.keep_checkpoints < 0:
+            raise ValueError(f"keep_checkpoints must be 0 (all) or positive, got {self.keep_checkpoints}")
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -197,7 +201,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
             writer.add_scalar("train/samples_per_s", rate, step + 1)
         if (step + 1) % cfg.save_every == 0 or step + 1 == cfg.steps:
             if main:
-                save_checkpoint(run, step + 1, model, ema, optimizer, meta)
+                save_checkpoint(run, step + 1, model, ema, optimizer, meta, keep=cfg.keep_checkpoints)
             if world > 1:
                 dist.barrier()
     bar.close()
