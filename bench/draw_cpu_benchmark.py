@@ -92,6 +92,23 @@ def trained_to(run: Path, steps: int) -> bool:
     return False
 
 
+def _seed_averaged(per_seed: list[dict[str, float]]) -> dict[str, float]:
+    """Each drawing's task mean, averaged over the seeds that evaluated it."""
+    return {task: float(np.mean([seed[task] for seed in per_seed])) for task in per_seed[0]}
+
+
+def _paired(a: str, b: str, drawings: dict[str, dict[str, float]]) -> str:
+    """`a` minus `b` paired over the drawings both evaluated: the mean difference, its standard error and the count
+    of drawings where `a` is better (lower)."""
+    common = sorted(drawings[a].keys() & drawings[b].keys())
+    diff = np.array([drawings[a][t] - drawings[b][t] for t in common])
+    sem = diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else 0.0
+    return (
+        f"{a} minus {b}, paired over the {len(diff)} unseen drawings (each averaged over seeds): "
+        f"{diff.mean():+.2f} ± {sem:.2f} px (s.e.m.); {a} is better on {int((diff < 0).sum())} of them"
+    )
+
+
 def _per_method(items: list[str]) -> dict[str, int]:
     """["bpp=6000", "icrt=4000"] -> {"bpp": 6000, "icrt": 4000}."""
     return {k: int(v) for k, v in (item.split("=", 1) for item in items)}
@@ -165,10 +182,13 @@ def main() -> None:
                 out = args.out / run.name / task_set
                 data = evaluate(run, store, tasks, label, out, protocol, args.workers)
                 entry[task_set] = data["summary"]["chamfer_mean"]
+                entry[f"{task_set}_median_rollout"] = data["summary"]["chamfer_median_rollout"]
+                entry[f"{task_set}_per_task"] = {t["task"]: t["chamfer_mean"] for t in data["tasks"]}
             results[f"{method}/s{seed}"] = entry
             write_json_atomic(args.out / "results.json", results)
 
     chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
+    drawings: dict[str, dict[str, float]] = {}  # method name -> unseen drawing -> Chamfer averaged over seeds
     for method in args.methods:
         entries = [e for e in results.values() if e["method"] == method]
         if not entries:
@@ -179,24 +199,36 @@ def main() -> None:
         chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), sd(human))
         chart["training drawings"][NAMES[method]] = (float(trained.mean()), sd(trained))
         minutes = np.mean([e["train_s"] for e in entries]) / 60
+        medians = np.mean([e["human_median_rollout"] for e in entries])
+        drawings[NAMES[method]] = _seed_averaged([e["human_per_task"] for e in entries])
         rows.append(
             (
                 NAMES[method],
                 f"{trained.mean():.2f} ± {sd(trained):.2f}",
                 f"{human.mean():.2f} ± {sd(human):.2f}",
+                f"{medians:.2f}",
                 len(entries),
                 f"{steps[method]} x {batch[method]}",
                 f"{minutes:.1f}",
             )
         )
-    header = ["method", "training drawings (px)", "unseen human drawings (px)", "seeds", "steps x batch", "train min"]
+    header = [
+        "method",
+        "training drawings (px)",
+        "unseen human drawings (px)",
+        "median unseen rollout",
+        "seeds",
+        "steps x batch",
+        "train min",
+    ]
     table = markdown_table(header, rows)
     unseen = chart["unseen human drawings"]  # {name: (mean, std)}
     ratios = [
-        f"BPP / {name} on the unseen drawings: {unseen['BPP'][0] / unseen[name][0]:.2f} (target at most {target})"
+        f"BPP / {name} on the unseen drawings: {unseen['BPP'][0] / unseen[name][0]:.3f} (target at most {target})"
         for name, target in (("Goal-Image", 0.3), ("ICRT", 0.75))
         if "BPP" in unseen and name in unseen
     ]
+    ratios += [_paired("BPP", name, drawings) for name in ("Goal-Image", "ICRT") if {"BPP", name} <= drawings.keys()]
     if ratios:
         table += "\n" + "\n".join(f"- {r}" for r in ratios) + "\n"
     executed = ""
