@@ -92,6 +92,11 @@ def trained_to(run: Path, steps: int) -> bool:
     return False
 
 
+def _mean_sd(x: np.ndarray) -> str:
+    """'mean ± std over seeds', or the bare value of a single seed (it has no spread to show)."""
+    return f"{x.mean():.2f} ± {x.std(ddof=1):.2f}" if len(x) > 1 else f"{x.mean():.2f}"
+
+
 def _seed_averaged(per_seed: list[dict[str, float]]) -> dict[str, float]:
     """Each drawing's task mean, averaged over the seeds that evaluated it."""
     return {task: float(np.mean([seed[task] for seed in per_seed])) for task in per_seed[0]}
@@ -204,8 +209,8 @@ def main() -> None:
         rows.append(
             (
                 NAMES[method],
-                f"{trained.mean():.2f} ± {sd(trained):.2f}",
-                f"{human.mean():.2f} ± {sd(human):.2f}",
+                _mean_sd(trained),
+                _mean_sd(human),
                 f"{medians:.2f}",
                 len(entries),
                 f"{steps[method]} x {batch[method]}",
