@@ -98,7 +98,7 @@ def _mean_sd(x: np.ndarray) -> str:
 
 
 def _seed_averaged(per_seed: list[dict[str, float]]) -> dict[str, float]:
-    """Each drawing's task mean, averaged over the seeds that evaluated it."""
+    """Each drawing's task mean, averaged over seeds (every seed evaluates the same drawings)."""
     return {task: float(np.mean([seed[task] for seed in per_seed])) for task in per_seed[0]}
 
 
@@ -228,14 +228,14 @@ def main() -> None:
     ]
     table = markdown_table(header, rows)
     unseen = chart["unseen human drawings"]  # {name: (mean, std)}
-    ratios = [
+    findings = [
         f"BPP / {name} on the unseen drawings: {unseen['BPP'][0] / unseen[name][0]:.3f} (target at most {target})"
         for name, target in (("Goal-Image", 0.3), ("ICRT", 0.75))
         if "BPP" in unseen and name in unseen
     ]
-    ratios += [_paired("BPP", name, drawings) for name in ("Goal-Image", "ICRT") if {"BPP", name} <= drawings.keys()]
-    if ratios:
-        table += "\n" + "\n".join(f"- {r}" for r in ratios) + "\n"
+    findings += [_paired("BPP", name, drawings) for name in ("Goal-Image", "ICRT") if {"BPP", name} <= drawings.keys()]
+    if findings:
+        table += "\n" + "\n".join(f"- {line}" for line in findings) + "\n"
     executed = ""
     if args.n_action_steps:
         executed = f" The diffusion-decoder methods execute {args.n_action_steps} actions per inference."
