@@ -92,9 +92,14 @@ def trained_to(run: Path, steps: int) -> bool:
     return False
 
 
+def _sd(x: np.ndarray) -> float:
+    """Standard deviation over seeds (0 for a single seed)."""
+    return float(x.std(ddof=1)) if len(x) > 1 else 0.0
+
+
 def _mean_sd(x: np.ndarray) -> str:
     """'mean ± std over seeds', or the bare value of a single seed (it has no spread to show)."""
-    return f"{x.mean():.2f} ± {x.std(ddof=1):.2f}" if len(x) > 1 else f"{x.mean():.2f}"
+    return f"{x.mean():.2f} ± {_sd(x):.2f}" if len(x) > 1 else f"{x.mean():.2f}"
 
 
 def _seed_averaged(per_seed: list[dict[str, float]]) -> dict[str, float]:
@@ -200,9 +205,8 @@ def main() -> None:
             continue
         human = np.array([e["human"] for e in entries])
         trained = np.array([e["train"] for e in entries])
-        sd = lambda x: float(x.std(ddof=1)) if len(x) > 1 else 0.0  # noqa: E731
-        chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), sd(human))
-        chart["training drawings"][NAMES[method]] = (float(trained.mean()), sd(trained))
+        chart["unseen human drawings"][NAMES[method]] = (float(human.mean()), _sd(human))
+        chart["training drawings"][NAMES[method]] = (float(trained.mean()), _sd(trained))
         minutes = np.mean([e["train_s"] for e in entries]) / 60
         medians = np.mean([e["human_median_rollout"] for e in entries])
         drawings[NAMES[method]] = _seed_averaged([e["human_per_task"] for e in entries])

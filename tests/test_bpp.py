@@ -167,12 +167,12 @@ def test_paper_preset_size():
 
 def _train(store, out, steps, save_every, resume=False, keep_checkpoints=3):
     cfg = TrainConfig(
-        keep_checkpoints=keep_checkpoints,
         data=store.path,
         out=out,
         steps=steps,
         batch_size=8,
         save_every=save_every,
+        keep_checkpoints=keep_checkpoints,
         log_every=2,
         workers=0,
         warmup_steps=2,
