@@ -14,13 +14,13 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
+from bpp.evaluation.draw import prompt_target, rollout
 
 from bpp.checkpoint import resolve_checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.envs.draw.env import DrawEnv
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
 from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes
-from bpp.evaluation.draw import prompt_target, rollout
 from bpp.policies.agent import PolicyAgent
 
 

@@ -16,10 +16,10 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from bpp.evaluation.draw import prompt_from_store
 
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
-from bpp.evaluation.draw import prompt_from_store
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.config import PRESETS
 from bpp.policies.bpp.model import BPPModel

@@ -18,10 +18,10 @@ from dataclasses import replace
 
 import numpy as np
 import torch
+from bpp.evaluation.draw import context_for
 
 from bpp.data.store import EpisodeStore
 from bpp.envs.draw.env import ACTION_FRAMES, DrawEnv
-from bpp.evaluation.draw import context_for
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 

@@ -10,17 +10,15 @@ from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.envs.draw.dataset import DrawDataConfig, generate, render_episode
 from bpp.envs.draw.procedural import describe_parts
-from bpp.evaluation.draw import context_for, rollout, rollout_batch
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.common import ContextError, ObsConfig
-from bpp.policies.goal_image import PRESETS as GOAL_PRESETS
+from bpp.policies.common import ContextError
 from bpp.policies.goal_image import GoalImageModel
-from bpp.policies.language import PRESETS as LANGUAGE_PRESETS
 from bpp.policies.language import LanguageModel
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import from_dict, to_dict, to_torch
+from helpers import config, context_for, obs_config, rollout, rollout_batch
 
 METHODS = ["goal_image", "language"]
 
@@ -41,7 +39,7 @@ def store_for(debug_store, described_store):
 def _model(method: str, store, cfg=None):
     torch.manual_seed(0)
     m = get_method(method)
-    return m.model_cls(cfg or m.preset("debug"), store.stats)
+    return m.model_cls(cfg or config(m.name), store.stats)
 
 
 def test_registered_with_presets_that_round_trip_through_json():
@@ -50,7 +48,10 @@ def test_registered_with_presets_that_round_trip_through_json():
         assert {"debug", "cpu", "paper"} <= set(m.presets)
         for cfg in m.presets.values():
             assert from_dict(m.config_cls, to_dict(cfg)) == cfg
-    assert GOAL_PRESETS["paper"].shares_camera_encoder and not GOAL_PRESETS["cpu"].shares_camera_encoder
+    assert (
+        config("goal_image", "paper", "paper").shares_camera_encoder
+        and not config("goal_image", "cpu").shares_camera_encoder
+    )
 
 
 def test_describe_gives_each_task_its_parts_in_words(debug_store, described_store):
@@ -79,7 +80,7 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
         workers=0,
         warmup_steps=1,
     )
-    train(cfg, get_method(method).preset("debug"), progress=False)
+    train(cfg, config(method), progress=False)
     agent = PolicyAgent.from_checkpoint(tmp_path / "run")
     assert agent.model.method == method
     result = rollout(agent, store, 1, 0.3, seed=0, max_steps=20)
@@ -90,7 +91,7 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
 
 @pytest.mark.parametrize(("text_encoder", "tokenizer"), [("scratch", "pretrained"), ("pretrained", "pretrained")])
 def test_language_text_encoder_choices_train_save_load_and_act(described_store, tmp_path, text_encoder, tokenizer):
-    cfg = replace(LANGUAGE_PRESETS["debug"], text_encoder=text_encoder, tokenizer=tokenizer)
+    cfg = replace(config("language"), text_encoder=text_encoder, tokenizer=tokenizer)
     run = tmp_path / "run"
     train_cfg = TrainConfig(
         data=described_store.path, out=run, method="language", steps=2, batch_size=4, workers=0, warmup_steps=1
@@ -130,7 +131,7 @@ def test_packaged_pretrained_text_encoder_loads_offline_and_knows_english(monkey
 
 def test_language_text_encoder_choices_are_checked():
     with pytest.raises(ValueError, match="needs its own tokenizer"):
-        replace(LANGUAGE_PRESETS["debug"], text_encoder="pretrained", tokenizer="bytes")
+        replace(config("language"), text_encoder="pretrained", tokenizer="bytes")
     with pytest.raises(FileNotFoundError, match="not a pretrained text encoder"):
         pretrained_text_dir("/nonexistent/model")
 
@@ -215,10 +216,10 @@ def test_language_is_not_offered_for_tasks_without_instructions(debug_store):
 
 
 def test_instruction_encoding_ignores_padding(described_store):
-    model = LanguageModel(LANGUAGE_PRESETS["debug"], described_store.stats).eval()
+    model = LanguageModel(config("language"), described_store.stats).eval()
     texts = ["draw a line", "draw a curve, then lift the pen and move, then draw an oval"]
     both = model.encode_context({"text": texts})
-    assert both.shape == (2, LANGUAGE_PRESETS["debug"].text.dim)
+    assert both.shape == (2, config("language").text.dim)
     for i, text in enumerate(texts):
         torch.testing.assert_close(both[i : i + 1], model.encode_context({"text": [text]}), rtol=1e-5, atol=1e-5)
     assert not torch.allclose(both[0], both[1])
@@ -226,28 +227,28 @@ def test_instruction_encoding_ignores_padding(described_store):
 
 @pytest.mark.parametrize("observes_images", [False, True])
 def test_goal_images_are_the_prompts_final_frames(debug_store, observes_images):
-    cfg = GOAL_PRESETS["debug"]
+    cfg = config("goal_image")
     if observes_images:
-        obs = ObsConfig(image_keys=("image",), image_size=32, image_widths=(8, 16), image_blocks=(1, 1))
+        obs = obs_config(image_keys=("image",), image_size=32, image_widths=(8, 16), image_blocks=(1, 1))
         cfg = replace(cfg, obs=obs)
     spec = GoalImageModel(cfg, debug_store.stats).data_spec()
     data = PromptBatchDataset(debug_store, spec, batch_size=4, seed=0, goal_cache_bytes=1)  # room for 1 frame
     for episode in (3, 20, 3):
         if observes_images:
             data._episode_frames(episode, "image", 32)  # as training windows would: the goal comes from these
-        goal = data.context(0, episode)["image"]
+        goal = data.context(episode)["image"]
         np.testing.assert_array_equal(goal, render_episode(debug_store, episode, spec.context_image_size)[-1:])
     assert len(data._goal_cache) == (0 if observes_images else 1)
 
 
 def test_goal_image_with_image_observations_shares_the_camera_encoder(debug_store):
-    obs = ObsConfig(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
-    cfg = replace(GOAL_PRESETS["debug"], obs=obs)
+    obs = obs_config(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
+    cfg = replace(config("goal_image"), obs=obs)
     model = GoalImageModel(cfg, debug_store.stats)
     camera = model.obs_encoder.cameras["image"]
     assert model.goal_network() is camera
     assert not any(k.startswith("goal_encoder") for k in model.state_dict())  # the weights are stored once
-    own = GoalImageModel(GOAL_PRESETS["debug"], debug_store.stats)  # state-only: a goal encoder of its own
+    own = GoalImageModel(config("goal_image"), debug_store.stats)  # state-only: a goal encoder of its own
     assert any(k.startswith("goal_encoder") for k in own.state_dict())
     batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=4, seed=0)[0]
     assert batch["obs"]["image"].shape == (4, 2, 32, 32, 3) and batch["context"]["image"].shape == (1, 32, 32, 3)

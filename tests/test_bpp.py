@@ -11,13 +11,13 @@ from safetensors.torch import load_file
 
 from bpp.checkpoint import prune_checkpoints, resolve_checkpoint
 from bpp.data.prompt_dataset import DataSpec, PromptBatchDataset
-from bpp.evaluation.draw import prompt_from_store, rollout
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.bpp.config import PRESETS, PromptConfig
+from bpp.policies.bpp.config import PromptConfig
 from bpp.policies.bpp.model import BPPModel, PromptError
 from bpp.policies.common import count_parameters
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
+from helpers import config, obs_config, prompt_from_store, rollout
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 
@@ -28,7 +28,7 @@ def _dataset(store, **kw):
 
 def _model(store, cfg=None):
     torch.manual_seed(0)
-    return BPPModel(cfg or PRESETS["debug"], store.stats)
+    return BPPModel(cfg or config("bpp"), store.stats)
 
 
 def test_batches_are_deterministic_and_from_one_task(debug_store):
@@ -146,7 +146,7 @@ def test_bad_prompts_are_refused_with_a_reason(debug_store, mutate, message):
     ],
 )
 def test_prompt_ablations_train_and_act(debug_store, prompt_cfg):
-    cfg = replace(PRESETS["debug"], prompt=prompt_cfg)
+    cfg = replace(config("bpp"), prompt=prompt_cfg)
     model = _model(debug_store, cfg)
     batch = to_torch(_dataset(debug_store)[0], "cpu")
     model.compute_loss(batch).backward()
@@ -157,7 +157,7 @@ def test_prompt_ablations_train_and_act(debug_store, prompt_cfg):
 
 def test_paper_preset_size():
     stats = {k: {"min": [0.0] * n, "max": [1.0] * n} for k, n in [("agent_pos", 2), ("pen_down", 1), ("action", 3)]}
-    model = BPPModel(PRESETS["paper"], stats)
+    model = BPPModel(config("bpp", "paper", "paper"), stats)
     prompt_encoder = count_parameters(model.prompt_encoder)
     unet = count_parameters(model.head)
     print(f"paper preset: prompt encoder {prompt_encoder / 1e6:.1f}M, action decoder {unet / 1e6:.1f}M")
@@ -178,7 +178,7 @@ def _train(store, out, steps, save_every, resume=False, keep_checkpoints=3):
         warmup_steps=2,
         resume=resume,
     )
-    return train(cfg, PRESETS["debug"], progress=False)
+    return train(cfg, config("bpp"), progress=False)
 
 
 def test_resume_reproduces_an_uninterrupted_run(debug_store, tmp_path):
@@ -293,10 +293,9 @@ def test_rollout_command_writes_pictures(debug_store, tmp_path):
 
 
 def test_image_observations_train_and_act(debug_store):
-    from bpp.policies.common import ObsConfig
 
-    obs = ObsConfig(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
-    cfg = replace(PRESETS["debug"], obs=obs)
+    obs = obs_config(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
+    cfg = replace(config("bpp"), obs=obs)
     model = _model(debug_store, cfg)
     ds = _dataset(debug_store, image_keys=("image",), image_size=32)
     batch = ds[0]
@@ -329,7 +328,7 @@ def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):
     """Prompts of different lengths batched with padding + masks act exactly like each prompt alone."""
     model = _model(debug_store).eval()
     ds = _dataset(debug_store)
-    p1, p2 = ds.prompt(0), ds.prompt(7)
+    p1, p2 = ds.context(0), ds.context(7)
     l1, l2 = p1["action"].shape[1], p2["action"].shape[1]
     assert l1 != l2
     length = max(l1, l2)
@@ -359,7 +358,7 @@ def test_padded_prompts_of_different_lengths_match_unpadded(debug_store):
 
 def test_batched_rollouts_match_single_rollouts(debug_store):
     """Rollouts stepped together in one batch give exactly what each gives alone (per-rollout noise seeds)."""
-    from bpp.evaluation.draw import rollout_batch
+    from helpers import rollout_batch
 
     agent = PolicyAgent(_model(debug_store).eval())
     episodes, angles, seeds = [0, 4, 9], [0.3, -0.5, 0.1], [11, 12, 13]
@@ -372,11 +371,10 @@ def test_batched_rollouts_match_single_rollouts(debug_store):
 
 def test_fourier_embeddings_train_and_act(debug_store):
     """The state-only presets' nonlinear input embeddings: every module gets a gradient and the model acts."""
-    from bpp.policies.common import ObsConfig
 
     cfg = replace(
-        PRESETS["debug"],
-        obs=ObsConfig(lowdim_fourier_octaves=3, lowdim_features=16),
+        config("bpp"),
+        obs=obs_config(lowdim_fourier_octaves=3, lowdim_features=16),
         prompt=PromptConfig(num_sinks=2, action_fourier_octaves=3),
     )
     model = _model(debug_store, cfg)

@@ -87,6 +87,6 @@ def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
     assert "mean ± std over checkpoints" in (tmp_path / "eval" / "summary.md").read_text()
     drawing = tmp_path / "tri.json"
     drawing.write_text('{"drawings": [{"id": "tri", "strokes": [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8], [0.2, 0.2]]]}]}')
-    out = _bpp("eval", str(tmp_path / "run0"), "--drawings", str(drawing), "--out", str(tmp_path / "mine"), *common)
+    out = _bpp("eval", str(tmp_path / "run0"), "--files", str(drawing), "--out", str(tmp_path / "mine"), *common)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "drawings: tri.json" in (tmp_path / "mine" / "results.md").read_text()

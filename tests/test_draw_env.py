@@ -4,8 +4,8 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import bpp.envs  # noqa: F401  (registers the environments)
-from bpp.envs import DRAW_ENV_ID
 from bpp.envs.draw.demonstrator import demonstrate
+from bpp.envs.draw.env import ENV_ID as DRAW_ENV_ID
 from bpp.envs.draw.env import DrawEnv
 from bpp.envs.draw.geometry import canvas_to_upright
 from bpp.envs.draw.human import glyph_drawing

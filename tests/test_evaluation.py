@@ -6,12 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-import bpp.evaluation.draw as draw_eval
-from bpp.evaluation.draw import rollout_batch
+import bpp.envs.benchmark as contract
+import bpp.envs.draw.rollouts as draw_rollouts
+from bpp.envs.benchmark import TaskSet
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.bpp import PRESETS, BPPModel
+from bpp.policies.bpp import BPPModel
 from bpp.train import TrainConfig, train
+from helpers import config, rollout_batch
 
 
 def test_protocol_cycles_prompts_and_the_control_changes_only_the_prompt(debug_store):
@@ -19,7 +22,7 @@ def test_protocol_cycles_prompts_and_the_control_changes_only_the_prompt(debug_s
     task_of = {int(e): t for t, eps in enumerate(debug_store.task_episodes()) for e in eps}
     for task in (0, 5, debug_store.num_tasks - 1):
         demos = list(debug_store.task_episodes()[task])
-        mine, other = own.plan(debug_store, task), control.plan(debug_store, task)
+        mine, other = own.plan(debug_store, task, BENCHMARK), control.plan(debug_store, task, BENCHMARK)
         assert [p["prompt_episode"] for p in mine] == [demos[r % len(demos)] for r in range(7)]
         assert all(p["target_episode"] == p["prompt_episode"] for p in mine)
         prompted = [task_of[p["prompt_episode"]] for p in other]
@@ -30,22 +33,23 @@ def test_protocol_cycles_prompts_and_the_control_changes_only_the_prompt(debug_s
                 b["board_angle"],
                 b["seed"],
             )
-    assert control.plan(debug_store, 3) == Protocol(rollouts=7, prompts="other-task").plan(debug_store, 3)
+    again = Protocol(rollouts=7, prompts="other-task")
+    assert control.plan(debug_store, 3, BENCHMARK) == again.plan(debug_store, 3, BENCHMARK)
     with pytest.raises(ValueError, match="prompts must be"):
         Protocol(prompts="shuffled")
 
 
 def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(debug_store, monkeypatch):
     torch.manual_seed(0)
-    agent = PolicyAgent(BPPModel(PRESETS["debug"], debug_store.stats).eval())
+    agent = PolicyAgent(BPPModel(config("bpp"), debug_store.stats).eval())
     targets, angles, seeds = [0, 4], [0.2, -0.3], [1, 2]
     plain = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15)
     same = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=targets)
     assert [r.best_chamfer for r in plain] == [r.best_chamfer for r in same]
     prompted, scored = [], []
-    context_for, prompt_target = draw_eval.context_for, draw_eval.prompt_target
-    monkeypatch.setattr(draw_eval, "context_for", lambda m, st, ep: prompted.append(ep) or context_for(m, st, ep))
-    monkeypatch.setattr(draw_eval, "prompt_target", lambda st, ep: scored.append(ep) or prompt_target(st, ep))
+    task_context, prompt_target = contract.task_context, draw_rollouts.prompt_target
+    monkeypatch.setattr(contract, "task_context", lambda st, ep, *a: prompted.append(ep) or task_context(st, ep, *a))
+    monkeypatch.setattr(draw_rollouts, "prompt_target", lambda st, ep: scored.append(ep) or prompt_target(st, ep))
     swapped = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=[9, 30])
     assert prompted == [9, 30] and scored == targets  # contexts from the prompt episodes, scores on the targets
     assert [r.best_chamfer for r in swapped] != [r.best_chamfer for r in plain]
@@ -56,62 +60,79 @@ def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(
 def test_evaluate_with_the_control_records_both_episodes(debug_store, tmp_path):
     run = tmp_path / "run"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, PRESETS["debug"], progress=False)
+    train(cfg, config("bpp"), progress=False)
     protocol = Protocol(rollouts=2, max_steps=12, prompts="other-task")
-    evaluate(run, debug_store, [0, 1], "debug", tmp_path / "eval", protocol, workers=1, videos=0, progress=False)
+    evaluate(
+        run, TaskSet(debug_store, "debug"), [0, 1], tmp_path / "eval", protocol, workers=1, videos=0, progress=False
+    )
     data = json.loads((tmp_path / "eval" / "results.json").read_text())
     assert data["protocol"]["prompts"] == "other-task"
     episodes = debug_store.task_episodes()
     for row in data["rollouts"]:
         assert row["target_episode"] in episodes[row["task"]] and row["prompt_episode"] not in episodes[row["task"]]
-    assert np.isfinite(data["summary"]["chamfer_mean"])
+    assert np.isfinite(data["summary"]["score_mean"])
 
 
 def test_evaluate_reuses_results_recorded_before_a_protocol_field_existed(debug_store, tmp_path, capsys):
     run = tmp_path / "run"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, PRESETS["debug"], progress=False)
+    train(cfg, config("bpp"), progress=False)
     protocol, out = Protocol(rollouts=1, max_steps=8), tmp_path / "eval"
-    evaluate(run, debug_store, [2], "debug", out, protocol, workers=1, videos=0, progress=False)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, protocol, workers=1, videos=0, progress=False)
     results = out / "results.json"
     data = json.loads(results.read_text())
     del data["protocol"]["prompts"]  # as written by a version without the control
     results.write_text(json.dumps(data))
     capsys.readouterr()
-    evaluate(run, debug_store, [2], "debug", out, protocol, workers=1, videos=0, progress=False)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, protocol, workers=1, videos=0, progress=False)
     assert "reusing" in capsys.readouterr().out
     control = Protocol(rollouts=1, max_steps=8, prompts="other-task")
-    evaluate(run, debug_store, [2], "debug", out, control, workers=1, videos=0, progress=False)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out
 
 
 def test_agent_overrides_set_denoising_steps_and_replanning(debug_store, tmp_path, capsys):
-    from bpp.policies.icrt import PRESETS as ICRT_PRESETS
     from bpp.policies.icrt import ICRTModel
 
-    model = BPPModel(PRESETS["debug"], debug_store.stats).eval()
+    model = BPPModel(config("bpp"), debug_store.stats).eval()
     calls = []
     model.head.net.register_forward_hook(lambda *_: calls.append(1))
     for steps, executed in ((None, None), (2, 3)):
         agent = PolicyAgent(model, n_action_steps=executed, num_inference_steps=steps)
         calls.clear()
         rollout_batch(agent, debug_store, [0], [0.1], [1], max_steps=9)
-        per_call = steps or PRESETS["debug"].diffusion.num_inference_steps
-        inferences = -(-9 // (executed or PRESETS["debug"].horizons.n_action_steps))
+        per_call = steps or config("bpp").diffusion.num_inference_steps
+        inferences = -(-9 // (executed or config("bpp").horizons.n_action_steps))
         assert len(calls) == per_call * inferences
     with pytest.raises(ValueError, match="no diffusion decoder"):
-        PolicyAgent(ICRTModel(ICRT_PRESETS["debug"], debug_store.stats), num_inference_steps=4)
+        PolicyAgent(ICRTModel(config("icrt"), debug_store.stats), num_inference_steps=4)
     with pytest.raises(ValueError, match="inference steps must be in"):
         PolicyAgent(model, num_inference_steps=10_000)
 
     run, out = tmp_path / "run", tmp_path / "eval"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, PRESETS["debug"], progress=False)
+    train(cfg, config("bpp"), progress=False)
     tuned = Protocol(rollouts=1, max_steps=8, n_action_steps=2, inference_steps=3)
-    evaluate(run, debug_store, [2], "debug", out, tuned, workers=1, videos=0, progress=False)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, tuned, workers=1, videos=0, progress=False)
     assert json.loads((out / "results.json").read_text())["protocol"]["inference_steps"] == 3
     assert "2 actions per inference, 3 denoising steps" in (out / "results.md").read_text()
     capsys.readouterr()
     plain = Protocol(rollouts=1, max_steps=8)
-    evaluate(run, debug_store, [2], "debug", out, plain, workers=1, videos=0, progress=False)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, plain, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out
+
+
+def test_bpp_eval_reads_each_checkpoint_once(debug_store, tmp_path, monkeypatch):
+    import bpp.checkpoint as checkpoint
+    from bpp.cli import main
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    reads = []
+    load_file, read_state = checkpoint.load_file, checkpoint.read_state
+    monkeypatch.setattr(checkpoint, "load_file", lambda path: reads.append(path.name) or load_file(path))
+    monkeypatch.setattr(checkpoint, "read_state", lambda path: reads.append("state.json") or read_state(path))
+    args = ["eval", str(run), "--tasks", str(debug_store.path), "--num-tasks", "2", "--rollouts", "1"]
+    main([*args, "--max-steps", "5", "--workers", "1", "--videos", "0", "--out", str(tmp_path / "eval")])
+    assert sorted(reads) == ["ema.safetensors", "state.json"]

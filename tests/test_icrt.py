@@ -5,21 +5,21 @@ import pytest
 import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.evaluation.draw import prompt_from_store, rollout
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.common import ObsConfig, PromptError, count_parameters
-from bpp.policies.icrt import PRESETS, ICRTModel
+from bpp.policies.common import PromptError, count_parameters
+from bpp.policies.icrt import ICRTModel
 from bpp.policies.icrt.model import PROMPT, ROLLOUT
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
+from helpers import config, obs_config, prompt_from_store, rollout
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
-N = PRESETS["debug"].chunk_len
+N = config("icrt").chunk_len
 
 
 def _model(store, **overrides):
     torch.manual_seed(0)
-    return ICRTModel(replace(PRESETS["debug"], **overrides), store.stats).eval()
+    return ICRTModel(replace(config("icrt"), **overrides), store.stats).eval()
 
 
 def _observe(episode: dict, t: int) -> dict:
@@ -65,7 +65,7 @@ def test_trains_saves_loads_and_draws(debug_store, tmp_path):
         workers=0,
         warmup_steps=1,
     )
-    ckpt = train(cfg, PRESETS["debug"], progress=False)
+    ckpt = train(cfg, config("icrt"), progress=False)
     assert (ckpt / "ema.safetensors").is_file()
     agent = PolicyAgent.from_checkpoint(tmp_path / "run")
     assert isinstance(agent.model, ICRTModel) and agent.n_action_steps == N
@@ -179,7 +179,10 @@ def test_loss_falls_when_overfitting_one_batch(debug_store):
 
 
 def test_preset_sizes(debug_store):
-    counts = {name: count_parameters(ICRTModel(cfg, debug_store.stats)) for name, cfg in PRESETS.items()}
+    sizes = {"debug": "canvas", "cpu": "canvas", "paper": "paper"}  # size preset -> observations
+    counts = {
+        name: count_parameters(ICRTModel(config("icrt", name, obs), debug_store.stats)) for name, obs in sizes.items()
+    }
     print({name: f"{n / 1e6:.2f}M" for name, n in counts.items()})
     assert counts["debug"] < 1e5
     assert 2e6 < counts["cpu"] < 8e6
@@ -187,7 +190,7 @@ def test_preset_sizes(debug_store):
 
 
 def test_image_observations_train_and_act(debug_store):
-    obs = ObsConfig(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
+    obs = obs_config(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
     model = _model(debug_store, obs=obs)
     batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=2, seed=0)[0]
     assert batch["obs"]["image"].shape[2:] == (32, 32, 3) and batch["context"]["obs"]["image"].shape[0] == 1

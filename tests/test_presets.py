@@ -1,5 +1,6 @@
-"""Every method's CPU-sized presets build and train one step on DrawAnything data (the paper presets are too
-large for the suite; BPP's is checked for size in test_bpp)."""
+"""Every method's debug and CPU size presets, with each DrawAnything observation preset the CPU presets are used
+with, build and train one step (the paper presets are too large for the suite; BPP's is checked for size in
+test_bpp)."""
 
 import math
 from dataclasses import replace
@@ -8,12 +9,14 @@ import pytest
 import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.envs.draw.dataset import generate
 from bpp.policies.registry import METHODS, get_method
 from bpp.utils import to_torch
 
-CASES = [(m, p) for m in METHODS for p in get_method(m).presets if p != "paper"]
+SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "board"), ("cpu", "image64")]
+CASES = [(m, size, obs) for m in METHODS for size, obs in SETTINGS]
 
 
 @pytest.fixture(scope="module")
@@ -23,11 +26,11 @@ def store(tmp_path_factory):
     return generate(cfg, tmp_path_factory.mktemp("data") / "presets.zarr", workers=1, progress=False)
 
 
-@pytest.mark.parametrize(("method", "preset"), CASES, ids=[f"{m}-{p}" for m, p in CASES])
-def test_preset_builds_and_takes_a_finite_loss(store, method, preset):
+@pytest.mark.parametrize(("method", "size", "obs"), CASES, ids=["-".join(c) for c in CASES])
+def test_preset_builds_and_takes_a_finite_loss(store, method, size, obs):
     torch.manual_seed(0)
     m = get_method(method)
-    cfg = m.preset(preset)
+    cfg = m.config(size, obs, BENCHMARK)
     model = m.model_cls(cfg, store.stats)
     spec = model.data_spec()
     assert set(spec.image_keys) == set(cfg.obs.image_keys)

@@ -11,6 +11,7 @@ from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
+from helpers import config
 
 RELATIVE = {"bpp": "agent_pos", "goal_image": "agent_pos", "icrt": "agent_pos"}
 
@@ -18,7 +19,7 @@ RELATIVE = {"bpp": "agent_pos", "goal_image": "agent_pos", "icrt": "agent_pos"}
 def _model(store, method: str, **overrides):
     torch.manual_seed(0)
     m = get_method(method)
-    return m.model_cls(replace(m.preset("debug"), **overrides), store.stats)
+    return m.model_cls(replace(config(m.name), **overrides), store.stats)
 
 
 def test_grouped_batches_take_each_sample_from_its_own_tasks_other_demos(debug_store):
@@ -108,10 +109,10 @@ def test_relative_grouped_training_saves_loads_and_acts(debug_store, tmp_path, m
         workers=0,
         warmup_steps=1,
     )
-    train(cfg, replace(m.preset("debug"), action_relative_to=RELATIVE[method]), progress=False)
+    train(cfg, replace(config(m.name), action_relative_to=RELATIVE[method]), progress=False)
     agent = PolicyAgent.from_checkpoint(tmp_path / "run")
     assert agent.model.relative_dims == 2
-    from bpp.evaluation.draw import rollout
+    from helpers import rollout
 
     result = rollout(agent, debug_store, 0, 0.3, seed=0, max_steps=30)
     assert 0 < result.steps <= 30 and np.isfinite(result.best_chamfer)

@@ -145,14 +145,57 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
     return int(state["step"])
 
 
+class Checkpoint:
+    """One checkpoint read from disk once: its folder, its ``state.json`` and the weights, passed down from there
+    (to build the model in this process or, pickled, in worker processes).
+
+    ``state`` holds ``method``, ``model_config``, ``train_config``, ``stats``, ``dataset`` and ``step``."""
+
+    def __init__(self, path: Path, state: dict, weights: dict[str, dict[str, torch.Tensor]]):
+        self.path, self.state, self.weights = path, state, weights
+
+    @classmethod
+    def load(cls, path: str | Path, use_ema: bool | None = None) -> Checkpoint:
+        """Resolve `path` (run directory or checkpoint folder) and read it; `use_ema` None reads both weight sets."""
+        ckpt = resolve_checkpoint(path)
+        state = read_state(ckpt)
+        names = ["ema", "model"] if use_ema is None else ["ema" if use_ema else "model"]
+        return cls(ckpt, state, {name: load_file(ckpt / f"{name}.safetensors") for name in names})
+
+    @property
+    def method(self) -> str:
+        return self.state["method"]
+
+    @property
+    def step(self) -> int:
+        return int(self.state["step"])
+
+    @property
+    def benchmark(self) -> str:
+        """The benchmark of the store it was trained on."""
+        return self.state["dataset"]["benchmark"]
+
+    @property
+    def run_dir(self) -> Path:
+        return self.path.parent.parent  # <run>/checkpoints/step_N
+
+    def model_config(self):
+        from bpp.policies.registry import get_method
+
+        return from_dict(get_method(self.method).config_cls, self.state["model_config"])
+
+    def build_model(self, device: str | torch.device = "cpu", use_ema: bool = True):
+        """The trained model (config, normalisation statistics and weights), in eval mode."""
+        from bpp.policies.registry import get_method
+
+        name = "ema" if use_ema else "model"
+        if name not in self.weights:
+            raise ValueError(f"{self.path}: {name} weights were not loaded")
+        model = get_method(self.method).model_cls(self.model_config(), self.state["stats"])
+        model.load_state_dict(self.weights[name])
+        return model.to(device).eval()
+
+
 def load_policy(path: str | Path, device: str | torch.device = "cpu", use_ema: bool = True):
     """Rebuild a trained model from a checkpoint (config, normalisation statistics and weights)."""
-    from bpp.policies.registry import get_method
-
-    ckpt = resolve_checkpoint(path)
-    state = read_state(ckpt)
-    method = get_method(state["method"])
-    cfg = from_dict(method.config_cls, state["model_config"])
-    model = method.model_cls(cfg, state["stats"])
-    model.load_state_dict(load_file(ckpt / ("ema.safetensors" if use_ema else "model.safetensors")))
-    return model.to(device).eval()
+    return Checkpoint.load(path, use_ema).build_model(device, use_ema)

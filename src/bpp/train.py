@@ -48,8 +48,9 @@ class TrainConfig:
     ema_decay: float = 0.999
     """Upper bound of the EMA decay (which ramps up as (1 + step) / (10 + step))."""
     seed: int = 0
-    workers: int = 1
-    """Data-loader worker processes per training process (0: load in the training process)."""
+    workers: int = -1
+    """Data-loader worker processes per training process (0: load in the training process; -1: auto, 0 on a CPU,
+    where a loader process competes with torch for the cores, and 2 on a GPU)."""
     device: str = "auto"
     """auto (cuda if available), cpu, cuda, cuda:N."""
     amp: bool = True
@@ -61,16 +62,24 @@ class TrainConfig:
     resume: bool = False
     """Continue the run in `out` from its last checkpoint."""
     threads: int = 0
-    """torch CPU threads per process (0: torch's default)."""
+    """torch CPU threads per process (0: auto; on a CPU, the usable cores minus one, at least 1, and minus the
+    loader workers: torch's threads wait for each other at every operation, so with as many threads as cores any
+    other busy program slowed training 30-fold here, while one core left free costs about a third alone; see
+    BENCHMARKS.md)."""
     frame_cache_gb: float = 4.0
-    """Rendered image observations each loader process keeps (DrawAnything renders them from the stored state;
-    all 64x64 frames of 500 tasks x 5 demos take about 3 GB, and rendering them anew dominates a CPU step)."""
+    """Image observations each loader process keeps once its benchmark has rendered or read them (a benchmark may
+    render frames from stored state; all 64x64 frames of 2500 demonstrations take about 3 GB, and rendering them anew
+    dominates a CPU step)."""
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1:
             raise ValueError(f"steps and batch_size must be positive, got {self.steps}, {self.batch_size}")
         if self.keep_checkpoints < 0:
             raise ValueError(f"keep_checkpoints must be 0 (all) or positive, got {self.keep_checkpoints}")
+        if self.workers < -1 or self.threads < 0:
+            raise ValueError(
+                f"workers must be >= -1 (auto) and threads >= 0 (auto), got {self.workers}, {self.threads}"
+            )
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -96,6 +105,16 @@ def _setup_distributed(requested: str) -> tuple[int, int, torch.device]:
     return rank, world, device
 
 
+def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
+    """(loader workers, torch threads; 0: torch's default) for `cfg`'s auto settings on `device`."""
+    workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else 2)
+    threads = cfg.threads
+    if not threads and device.type == "cpu":
+        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        threads = max(1, cores - 1 - workers)
+    return workers, threads
+
+
 @torch.no_grad()
 def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
     for e, p in zip(ema.parameters(), model.parameters(), strict=True):
@@ -107,8 +126,9 @@ def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> N
 def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     """Train `cfg.method` with `model_cfg` on `cfg.data`; returns the final checkpoint folder."""
     rank, world, device = _setup_distributed(cfg.device)
-    if cfg.threads:
-        torch.set_num_threads(cfg.threads)
+    workers, threads = cpu_plan(cfg, device)
+    if threads:
+        torch.set_num_threads(threads)
     main = rank == 0
     run = Path(cfg.out)
     has_ckpt = (run / "checkpoints" / "last").is_file()
@@ -136,7 +156,10 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         run.mkdir(parents=True, exist_ok=True)
         write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
         print(f"[train] {cfg.method}: {count_parameters(model) / 1e6:.2f}M parameters; {store}")
-        print(f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}")
+        print(
+            f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}; "
+            f"{threads or torch.get_num_threads()} torch threads, {workers} loader workers"
+        )
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
     dataset = PromptBatchDataset(
@@ -153,9 +176,9 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         dataset,
         batch_size=None,
         sampler=range(start, cfg.steps),
-        num_workers=cfg.workers,
+        num_workers=workers,
         persistent_workers=False,
-        prefetch_factor=4 if cfg.workers else None,
+        prefetch_factor=4 if workers else None,
     )
     writer = None
     if main:

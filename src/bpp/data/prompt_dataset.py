@@ -12,21 +12,17 @@ demonstration prompt, the prompt's goal image, or the task's instruction). Every
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
 
+from bpp.data.contexts import FrameSource, batch_context, collate_contexts, index_contexts, task_context
+from bpp.data.spec import ContextKind, DataSpec
 from bpp.data.store import EpisodeStore
 
-FrameSource = Callable[..., np.ndarray]
-"""``frames(store, episode, key, size, last_only=False)``: (T, size, size, 3) uint8 frames of an episode's
-observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3)."""
-
-ContextKind = Literal["demo", "goal_image", "instruction"]
+__all__ = ["ArrayCache", "ContextKind", "DataSpec", "FrameSource", "PromptBatchDataset", "index_contexts"]
 
 
 class ArrayCache:
@@ -63,70 +59,6 @@ class ArrayCache:
         self.__init__(state["budget"])
 
 
-def benchmark_frames(benchmark: str) -> FrameSource | None:
-    """How a benchmark's stores provide image observations (DrawAnything renders them from the stored state)."""
-    if benchmark == "drawanything":
-        from bpp.envs.draw.dataset import render_episode, render_last_observation
-
-        def frames(store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False) -> np.ndarray:
-            if last_only:
-                return render_last_observation(store, episode, size)[None]
-            return render_episode(store, episode, size)
-
-        return frames
-    return None
-
-
-@dataclass(frozen=True)
-class DataSpec:
-    """What a method's training batches contain (each model builds one from its config: ``model.data_spec()``)."""
-
-    lowdim_keys: tuple[str, ...]
-    """Per-step low-dimensional keys (observation and proprioception), in the batch's ``obs``."""
-    image_keys: tuple[str, ...] = ()
-    image_size: int = 96
-    action_key: str = "action"
-    n_obs_steps: int = 2
-    horizon: int = 16
-    context: ContextKind = "demo"
-    """demo: a whole demonstration (the prompt); goal_image: its final frame; instruction: the task's text."""
-    context_image_key: str = "image"
-    context_image_size: int = 96
-    """Goal images: which camera and at what size."""
-    samples: Literal["windows", "episodes"] = "windows"
-    """windows: (observation history, action chunk) windows; episodes: whole demonstrations, padded (ICRT)."""
-    max_prompt_steps: int = 800
-    max_episode_steps: int = 400
-    """Whole-episode samples are cut to this length."""
-
-
-def collate_contexts(items: list) -> object:
-    """Stack task contexts (each with batch dimension 1) into one batch.
-
-    Arrays are concatenated along the batch axis; arrays whose time axis (axis 1) differs are zero-padded to
-    the longest first, so a demonstration's ``valid`` mask pads with False. Lists (e.g. instructions) are joined.
-    """
-    first = items[0]
-    if isinstance(first, Mapping):
-        return {k: collate_contexts([item[k] for item in items]) for k in first}
-    if isinstance(first, list):
-        return [x for item in items for x in item]
-    arrays = [np.asarray(a) for a in items]
-    if arrays[0].ndim >= 2:
-        longest = max(a.shape[1] for a in arrays)
-        arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
-    return np.concatenate(arrays, axis=0)
-
-
-def index_contexts(context, index):
-    """Rows `index` (B,) of a batched context (nested dicts of arrays or tensors along axis 0; lists of strings)."""
-    if isinstance(context, Mapping):
-        return {k: index_contexts(v, index) for k, v in context.items()}
-    if isinstance(context, list):
-        return [context[int(i)] for i in index]
-    return context[index]
-
-
 class PromptBatchDataset(torch.utils.data.Dataset):
     """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "context_index": (B,),
     "task": (G,)}`` (numpy).
@@ -157,6 +89,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         rank: int = 0,
         tasks: Sequence[int] | None = None,
         tasks_per_batch: int = 1,
+        frames: FrameSource | None = None,
         frame_cache_bytes: int = 4 << 30,
         goal_cache_bytes: int = 128 << 20,
     ):
@@ -165,16 +98,13 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         missing = [k for k in [*spec.lowdim_keys, spec.action_key] if k not in self.store.keys]
         if missing:
             raise KeyError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
-        needs_frames = bool(spec.image_keys) or spec.context == "goal_image"
-        self.frames = benchmark_frames(self.store.benchmark) if needs_frames else None
-        if needs_frames and self.frames is None:
-            raise ValueError(f"{self.store.path}: benchmark {self.store.benchmark!r} provides no image observations")
-        if spec.context == "instruction":
-            self.instructions = [str(t.get("instruction") or "") for t in self.store.tasks]
-            if not any(self.instructions):
-                raise ValueError(
-                    f"{self.store.path}: its tasks carry no instructions, so a language policy can't train"
-                )
+        if frames is None and (spec.image_keys or spec.context == "goal_image"):
+            from bpp.envs.registry import get_benchmark
+
+            frames = get_benchmark(self.store.benchmark).frames  # how the store's benchmark yields camera frames
+        self.frames = frames
+        if spec.context == "instruction" and not any(str(t.get("instruction") or "") for t in self.store.tasks):
+            raise ValueError(f"{self.store.path}: its tasks carry no instructions, so a language policy can't train")
         if tasks_per_batch < 1 or batch_size % tasks_per_batch:
             raise ValueError(
                 f"batch_size {batch_size} must be a positive multiple of tasks_per_batch {tasks_per_batch}"
@@ -210,13 +140,15 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         dominates a training step that observes images otherwise)."""
         return self._frame_cache.get((episode, key, size), lambda: self.frames(self.store, episode, key, size))
 
-    def _goal_frame(self, episode: int, key: str, size: int) -> np.ndarray:
-        """(1, size, size, 3): the episode's final observation, from the episode's cached frames if a policy that
-        observes images has them, else rendered alone and kept in a cache of final frames."""
+    def _cached_frames(self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False):
+        """The benchmark's frames through the caches. A final frame alone (a goal image) comes from the episode's
+        cached frames if a policy that observes images has them, else is rendered alone and kept."""
+        if not last_only:
+            return self._episode_frames(episode, key, size)
         frames = self._frame_cache.peek((episode, key, size))
         if frames is not None:
             return frames[-1:]
-        return self._goal_cache.get(episode, lambda: self.frames(self.store, episode, key, size, last_only=True))
+        return self._goal_cache.get(episode, lambda: self.frames(store, episode, key, size, last_only=True))
 
     def _gather(self, episodes: np.ndarray, index: np.ndarray) -> dict:
         """Observations of `episodes` (B,) at their step indices `index` (B, N): ``{key: (B, N, ...)}``."""
@@ -231,21 +163,11 @@ class PromptBatchDataset(torch.utils.data.Dataset):
             )
         return obs
 
-    def prompt(self, episode: int) -> dict:
-        """One stored episode as a prompt (capped at ``max_prompt_steps``), batch dimension 1."""
-        length = min(int(self.ends[episode] - self.starts[episode]), self.spec.max_prompt_steps)
-        episodes, index = np.array([episode]), np.arange(length)[None]
-        action = self._data()[self.spec.action_key][self.starts[episodes][:, None] + index]
-        return {"obs": self._gather(episodes, index), "action": action, "valid": np.ones((1, length), dtype=bool)}
-
-    def context(self, task: int, episode: int) -> dict:
-        """The task context a method is conditioned on, from context demonstration `episode` of `task`."""
-        kind = self.spec.context
-        if kind == "demo":
-            return self.prompt(episode)
-        if kind == "goal_image":
-            return {"image": self._goal_frame(episode, self.spec.context_image_key, self.spec.context_image_size)}
-        return {"text": [self.instructions[task]]}
+    def context(self, episode: int) -> dict:
+        """The task context the method is conditioned on, from context demonstration `episode`, batch dimension 1
+        (the same :func:`~bpp.data.contexts.task_context` evaluation uses; prompts cut to ``max_prompt_steps``)."""
+        raw = task_context(self.store, episode, self.spec, self._cached_frames, self.spec.max_prompt_steps)
+        return batch_context(self.spec.context, raw)
 
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index), self.rank])
@@ -260,7 +182,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
             context_episode = int(episodes[rng.integers(len(episodes))])
             others = episodes[episodes != context_episode]
             chosen.append(others[rng.integers(len(others), size=per_group)])
-            contexts.append(self.context(task, context_episode))
+            contexts.append(self.context(context_episode))
         chosen = np.concatenate(chosen)
         batch = self._episodes(chosen) if self.spec.samples == "episodes" else self._windows(chosen, rng)
         batch["context"] = collate_contexts(contexts)

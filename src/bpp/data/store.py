@@ -8,7 +8,7 @@ Layout (a zarr v3 directory)::
       data/<key>         (N, ...) per-step arrays, episodes concatenated in time, chunked and zstd-compressed
       meta/episode_ends  (E,) int64, exclusive end step of each episode
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
-      tasks/<key>        ragged per-task arrays (e.g. a drawing's strokes), with tasks/<key>__ends (K,)
+      tasks/<key>        ragged per-task arrays (e.g. a task's waypoints), with tasks/<key>__ends (K,)
 
 Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
 and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
@@ -81,7 +81,7 @@ class EpisodeWriter:
 
     Args:
         path: the final store path (conventionally ``*.zarr``).
-        benchmark: name of the benchmark that produced the data (e.g. ``"drawanything"``).
+        benchmark: name of the benchmark that produced the data (its registry name).
         config: the generator's resolved configuration, saved for provenance.
         overwrite: replace an existing store (atomically) instead of refusing.
         chunk_steps: time-chunk length of per-step arrays.
@@ -314,11 +314,14 @@ class EpisodeStore:
         return self._cache[key]
 
     def column(self, name: str) -> np.ndarray:
-        """A column of the episode table, shape (E,)."""
-        try:
-            return np.asarray(self._root()[f"meta/{name}"][:])
-        except KeyError:
-            raise KeyError(f"{self.path}: no episode column {name!r}") from None
+        """A column of the episode table, shape (E,) (read once; do not modify it)."""
+        key = f"meta/{name}"
+        if key not in self._cache:
+            try:
+                self._cache[key] = np.asarray(self._root()[key][:])
+            except KeyError:
+                raise KeyError(f"{self.path}: no episode column {name!r}") from None
+        return self._cache[key]
 
     def episode_slice(self, index: int) -> slice:
         if not 0 <= index < self.num_episodes:

@@ -1,8 +1,7 @@
-"""Environments. Importing this package registers them with Gymnasium."""
+"""Benchmarks and their environments (one folder each; see :mod:`bpp.envs.benchmark` for the contract).
 
-import gymnasium as gym
+Importing this package registers the environments with Gymnasium."""
 
-DRAW_ENV_ID = "bpp/DrawAnything-v0"
+from bpp.envs.registry import register_gym_envs
 
-if DRAW_ENV_ID not in gym.registry:
-    gym.register(DRAW_ENV_ID, entry_point="bpp.envs.draw.env:DrawEnv")
+register_gym_envs()

@@ -1,31 +1,35 @@
-"""The DrawAnything-Sim evaluation protocol, run in parallel over the cores; results as JSON and Markdown.
+"""The evaluation protocol for every benchmark, run in parallel over the cores; results as JSON and Markdown.
 
 The protocol follows the paper: for every task, `rollouts` rollouts (32 by default) whose prompts cycle through
-the task's demonstrations, each on a board at its own seeded angle; a rollout scores the best Chamfer distance it
-reached during the episode; scores are averaged per task, then over tasks. Rollout ``r`` of task ``t`` draws its
-board angle and seed from ``(seed, t, r)`` alone, so every method and checkpoint sees the same rollouts.
+the task's demonstrations, each under its own seeded conditions (the benchmark's, e.g. a board angle); a rollout
+gets the benchmark's score (e.g. the best distance to the target it reached, or success); scores are averaged per task,
+then over tasks. Rollout ``r`` of task ``t`` draws its conditions and seed from ``(seed, t, r)`` alone, so every
+method and checkpoint sees the same rollouts.
 
 A control, ``prompts="other-task"``: each rollout is prompted with a demonstration of another task but scored
 against its own task's demonstration, exactly as before. A policy that follows its prompt scores far worse under
-it; one that draws something generic scores about the same.
+it; one that does something generic scores about the same.
+
+A checkpoint is read from disk once (:class:`bpp.checkpoint.Checkpoint`) and handed to the worker processes.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import multiprocessing as mp
 import os
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from tqdm import tqdm
 
+from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+from bpp.envs.benchmark import Benchmark, Metric, TaskSet, run_prompted
+from bpp.envs.registry import get_benchmark
 from bpp.utils import write_json_atomic
 
 
@@ -36,7 +40,8 @@ class Protocol:
     rollouts: int = 32
     """Rollouts per task; prompts cycle through the task's demonstrations."""
     seed: int = 0
-    max_steps: int = 400
+    max_steps: int = 0
+    """Rollout length limit (0: the benchmark's own)."""
     prompts: Literal["own", "other-task"] = "own"
     """own: the paper's protocol. other-task: a control; rollout r of task t (of n) is prompted with demonstration
     r mod (its demos) of task (t + 1 + r mod (n - 1)) mod n, never t itself, and scored against t's own."""
@@ -48,15 +53,18 @@ class Protocol:
     def __post_init__(self):
         if self.prompts not in ("own", "other-task"):
             raise ValueError(f"prompts must be 'own' or 'other-task', got {self.prompts!r}")
-        if self.n_action_steps < 0 or self.inference_steps < 0:
-            raise ValueError("n_action_steps and inference_steps must be >= 0 (0: the checkpoint's own)")
+        if self.n_action_steps < 0 or self.inference_steps < 0 or self.max_steps < 0:
+            raise ValueError("max_steps, n_action_steps and inference_steps must be >= 0 (0: the default)")
+        if self.rollouts < 1:
+            raise ValueError(f"rollouts must be at least 1, got {self.rollouts}")
 
     def agent_options(self) -> dict:
         """The :class:`~bpp.policies.agent.PolicyAgent` overrides this protocol asks for."""
         return {"n_action_steps": self.n_action_steps or None, "num_inference_steps": self.inference_steps or None}
 
-    def plan(self, store: EpisodeStore, task: int) -> list[dict]:
-        """The rollouts of `task`: target episode (whose drawing scores it), prompt episode, board angle and seed."""
+    def plan(self, store: EpisodeStore, task: int, benchmark: Benchmark) -> list[dict]:
+        """The rollouts of `task`: target episode (whose task scores it), prompt episode, the benchmark's conditions
+        and a seed."""
         episodes = store.task_episodes()
         if self.prompts == "other-task" and len(episodes) < 2:
             raise ValueError("an other-task prompt control needs a store with at least 2 tasks")
@@ -69,12 +77,13 @@ class Protocol:
             if self.prompts == "other-task":
                 other = episodes[(task + 1 + r % (len(episodes) - 1)) % len(episodes)]
                 prompt = int(other[r % len(other)])
+            conditions = benchmark.rollout_conditions(rng)
             plan.append(
                 {
                     "rollout": r,
                     "target_episode": target,
                     "prompt_episode": prompt,
-                    "board_angle": float(rng.uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE)),
+                    **conditions,
                     "seed": int(rng.integers(2**31)),
                 }
             )
@@ -86,63 +95,54 @@ class TaskResult:
     task: int
     task_id: str
     rollouts: list[dict]
-    last_frame: np.ndarray | None = field(default=None, repr=False)  # rollout 0, target overlaid
+    last_frame: np.ndarray | None = field(default=None, repr=False)  # rollout 0's outcome
     frames: list | None = field(default=None, repr=False)  # rollout 0's video frames, if asked for
     attention: np.ndarray | None = field(default=None, repr=False)  # rollout 0: (calls, n_chunks + 1)
 
     @property
     def mean(self) -> float:
-        return float(np.mean([r["best_chamfer"] for r in self.rollouts]))
+        return float(np.mean([r["score"] for r in self.rollouts]))
 
 
-# ------------------------------------------------------------------------------------------- workers
+# ------------------------------------------------------------------------------------------- rollouts
 _WORKER: dict = {}
 
 
-def _init_worker(checkpoint: str, store_path: str, protocol: Protocol, threads: int) -> None:
+def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_path: str, protocol: Protocol, threads: int):
     import torch
 
     from bpp.policies.agent import PolicyAgent
 
     torch.set_num_threads(threads)
-    _WORKER["agent"] = PolicyAgent.from_checkpoint(checkpoint, record_attention=True, **protocol.agent_options())
+    model = checkpoint.build_model()
+    _WORKER["agent"] = PolicyAgent(model, record_attention=True, **protocol.agent_options())
+    _WORKER["benchmark"] = benchmark
     _WORKER["store"] = EpisodeStore(store_path)
     _WORKER["protocol"] = protocol
 
 
 def _run_task(job: tuple[int, bool]) -> TaskResult:
-    from bpp.evaluation.draw import rollout_batch
-
     task, video = job
-    agent, store, protocol = _WORKER["agent"], _WORKER["store"], _WORKER["protocol"]
-    plan = protocol.plan(store, task)
-    results = rollout_batch(
-        agent,
-        store,
-        [p["target_episode"] for p in plan],
-        [p["board_angle"] for p in plan],
-        [p["seed"] for p in plan],
-        max_steps=protocol.max_steps,
-        record_frames=[r == 0 for r in range(len(plan))],
-        prompt_episodes=[p["prompt_episode"] for p in plan],
+    agent, benchmark, store, protocol = (_WORKER[k] for k in ("agent", "benchmark", "store", "protocol"))
+    plan = protocol.plan(store, task, benchmark)
+    results, attention = run_prompted(
+        agent, benchmark, store, plan, protocol.max_steps, [r == 0 for r in range(len(plan))]
     )
-    rows = [
-        {**p, "best_chamfer": r.best_chamfer, "final_chamfer": r.final_chamfer, "steps": r.steps}
-        for p, r in zip(plan, results, strict=True)
-    ]
+    rows = [{**p, "score": r.score, **r.extra, "steps": r.steps} for p, r in zip(plan, results, strict=True)]
     first = results[0]
     return TaskResult(
         task,
         str(store.tasks[task]["id"]),
         rows,
-        last_frame=first.frames[-1],
+        last_frame=first.frames[-1] if first.frames else None,
         frames=first.frames if video else None,
-        attention=first.attention,
+        attention=None if attention is None else attention[0],
     )
 
 
 def run_protocol(
-    checkpoint: str | Path,
+    checkpoint: Checkpoint,
+    benchmark: Benchmark,
     store: EpisodeStore,
     tasks: list[int],
     protocol: Protocol,
@@ -156,12 +156,14 @@ def run_protocol(
     Each process runs a task's rollouts as one batch through one agent, with ``OMP_NUM_THREADS`` torch threads if
     set, else the cores divided among the processes.
     """
-    workers = max(1, min(workers or os.cpu_count() or 1, len(tasks)))
+    assert protocol.max_steps > 0, "resolve the benchmark's max_steps first (evaluate does)"
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    workers = max(1, min(workers or cores, len(tasks)))
     jobs = [(t, i < video_tasks) for i, t in enumerate(tasks)]
     # torch threads per worker: OMP_NUM_THREADS if the user set it (e.g. to leave cores to a training run: more
     # threads than free cores slows torch down many times over), else the cores shared among the workers.
-    threads = int(os.environ.get("OMP_NUM_THREADS") or 0) or max(1, (os.cpu_count() or 1) // workers)
-    args = (str(checkpoint), str(store.path), protocol, threads)
+    threads = int(os.environ.get("OMP_NUM_THREADS") or 0) or max(1, cores // workers)
+    args = (checkpoint, benchmark, str(store.path), protocol, threads)
     bar = tqdm(total=len(tasks) * protocol.rollouts, desc=desc, unit="rollout", disable=not progress)
     out: dict[int, TaskResult] = {}
     if workers == 1:
@@ -176,7 +178,7 @@ def run_protocol(
         for result in results:
             out[result.task] = result
             bar.update(len(result.rollouts))
-            bar.set_postfix(chamfer=f"{np.mean([r.mean for r in out.values()]):.2f}")
+            bar.set_postfix(score=f"{np.mean([r.mean for r in out.values()]):.2f}")
     finally:
         bar.close()
         if pool is not None:
@@ -185,46 +187,39 @@ def run_protocol(
 
 
 # ------------------------------------------------------------------------------------------- numbers
-def summarize(results: list[TaskResult]) -> dict:
-    """Mean over tasks of per-task mean best Chamfer, with the spread over tasks."""
+def summarize(results: list[TaskResult], metric: Metric) -> dict:
+    """Mean over tasks of the per-task mean score, with the spread over tasks."""
     means = np.array([r.mean for r in results])
-    scores = np.array([row["best_chamfer"] for r in results for row in r.rollouts])
+    scores = np.array([row["score"] for r in results for row in r.rollouts])
     return {
-        "chamfer_mean": float(means.mean()),
-        "chamfer_std_over_tasks": float(means.std()),
-        "chamfer_sem_over_tasks": float(means.std(ddof=1) / np.sqrt(len(means))) if len(means) > 1 else 0.0,
-        "chamfer_median_rollout": float(np.median(scores)),
-        "rollouts_under_5px": float(np.mean(scores < 5.0)),
+        "score_mean": float(means.mean()),
+        "score_std_over_tasks": float(means.std()),
+        "score_sem_over_tasks": float(means.std(ddof=1) / np.sqrt(len(means))) if len(means) > 1 else 0.0,
+        "score_median_rollout": float(np.median(scores)),
+        "good_rollouts": float(np.mean(metric.good(scores))),
         "tasks": len(results),
         "rollouts": int(scores.size),
     }
 
 
-def results_json(results: list[TaskResult], meta: dict) -> dict:
+def results_json(results: list[TaskResult], meta: dict, metric: Metric) -> dict:
     return {
         **meta,
-        "summary": summarize(results),
-        "tasks": [{"task": r.task, "task_id": r.task_id, "chamfer_mean": r.mean} for r in results],
+        "summary": summarize(results, metric),
+        "tasks": [{"task": r.task, "task_id": r.task_id, "score_mean": r.mean} for r in results],
         "rollouts": [{"task": r.task, "task_id": r.task_id, **row} for r in results for row in r.rollouts],
     }
 
 
 def combine(runs: list[dict]) -> dict:
     """Several checkpoints (e.g. seeds) of one method on one task set: mean ± std of their task-averaged scores."""
-    values = np.array([run["summary"]["chamfer_mean"] for run in runs])
+    values = np.array([run["summary"]["score_mean"] for run in runs])
     return {
         "checkpoints": [run["checkpoint"] for run in runs],
-        "chamfer_per_checkpoint": values.tolist(),
-        "chamfer_mean": float(values.mean()),
-        "chamfer_std": float(values.std(ddof=1)) if len(values) > 1 else 0.0,
+        "score_per_checkpoint": values.tolist(),
+        "score_mean": float(values.mean()),
+        "score_std": float(values.std(ddof=1)) if len(values) > 1 else 0.0,
     }
-
-
-def write_results(results: list[TaskResult], meta: dict, out: Path) -> dict:
-    out.mkdir(parents=True, exist_ok=True)
-    data = results_json(results, meta)
-    write_json_atomic(out / "results.json", data)
-    return data
 
 
 def load_results(out: Path) -> dict | None:
@@ -232,69 +227,41 @@ def load_results(out: Path) -> dict | None:
     return json.loads(path.read_text()) if path.is_file() else None
 
 
-def protocol_meta(checkpoint: Path, store: EpisodeStore, task_set: str, protocol: Protocol, seconds: float) -> dict:
-    from bpp.checkpoint import read_state, resolve_checkpoint
-
-    ckpt = resolve_checkpoint(checkpoint)
-    state = read_state(ckpt)
-    return {
-        "checkpoint": str(ckpt),
-        "method": state["method"],
-        "train_step": int(state["step"]),
-        "task_set": task_set,
-        "store": str(store.path),
-        "protocol": asdict(protocol),
-        "seconds": round(seconds, 1),
-        "date": time.strftime("%Y-%m-%d %H:%M"),
-    }
-
-
 # ------------------------------------------------------------------------------------------- task sets
-def resolve_task_set(
+def resolve_tasks(
     tasks: str,
-    checkpoint: Path,
-    drawings: tuple[Path, ...] = (),
-    data_dir: Path = Path("data/draw"),
+    checkpoint: Checkpoint,
+    files: tuple[Path, ...] = (),
+    data_dir: Path | None = None,
     num_tasks: int = 0,
-) -> tuple[EpisodeStore, list[int], str]:
-    """(store, task indices, label) for a task set name.
+) -> tuple[Benchmark, TaskSet, list[int]]:
+    """(benchmark, task set, task indices) to evaluate `checkpoint` on; the benchmark is the checkpoint's own.
 
-    * ``human``: the 50 built-in unseen human-made drawings (generated into `data_dir` on first use);
     * ``train``: tasks of the store the checkpoint was trained on (50 spread evenly unless `num_tasks`);
-    * a store path: any DrawAnything store (e.g. a validation split of procedural tasks);
-    * with `drawings` (JSON stroke files or SVG): those drawings, demonstrated by the built-in demonstrator.
+    * one of the benchmark's named sets (e.g. ``human``), generated into `data_dir` on first use;
+    * a store path: any store of the same benchmark (e.g. a validation split);
+    * with `files`: the benchmark's tasks from those files in its file format, demonstrated by its demonstrator.
     """
-    from bpp.envs.draw.dataset import PRESETS, DrawDataConfig, generate
-
-    if drawings:
-        cfg = DrawDataConfig(source="files", drawings=tuple(Path(p) for p in drawings))
-        key = hashlib.sha1("\n".join(str(Path(p).resolve()) for p in drawings).encode()).hexdigest()[:10]
-        store = generate(cfg, Path(data_dir) / f"files-{key}.zarr", overwrite=True, progress=False)
-        label = "drawings: " + ", ".join(Path(p).name for p in drawings)
-    elif tasks == "human":
-        path = Path(data_dir) / "human.zarr"
-        store = _open_or_generate(path, lambda: generate(PRESETS["human"], path, overwrite=True))
-        label = "unseen human-made drawings"
+    benchmark = get_benchmark(checkpoint.benchmark)
+    data_dir = Path(data_dir) if data_dir is not None else benchmark.default_data_dir
+    if files:
+        task_set = benchmark.task_set_from_files(tuple(Path(p) for p in files), data_dir)
     elif tasks == "train":
-        config = json.loads((_run_dir(checkpoint) / "config.json").read_text())
-        store = EpisodeStore(config["dataset"]["path"])
+        task_set = TaskSet(EpisodeStore(checkpoint.state["dataset"]["path"]), "training tasks")
         num_tasks = num_tasks or 50
-        label = "training drawings"
+    elif tasks in benchmark.task_sets:
+        task_set = benchmark.task_set(tasks, data_dir)
+    elif Path(tasks).exists() or tasks.endswith(".zarr"):
+        task_set = TaskSet(EpisodeStore(tasks), f"tasks of {Path(tasks).name}")
     else:
-        store = EpisodeStore(tasks)
-        label = f"tasks of {Path(tasks).name}"
+        names = ", ".join(["train", *benchmark.task_sets])
+        raise ValueError(f"--tasks {tasks!r}: not a task set of {benchmark.name} ({names}) nor a store path")
+    store = task_set.store
+    if store.benchmark != benchmark.name:
+        raise ValueError(f"{store.path} holds {store.benchmark} tasks; the checkpoint was trained on {benchmark.name}")
     count = min(num_tasks or store.num_tasks, store.num_tasks)
     chosen = np.unique(np.linspace(0, store.num_tasks - 1, count).round().astype(int)).tolist()
-    return store, chosen, label
-
-
-def _open_or_generate(path: Path, make) -> EpisodeStore:
-    from bpp.data.store import StoreError
-
-    try:
-        return EpisodeStore(path)
-    except StoreError:
-        return make()
+    return benchmark, task_set, chosen
 
 
 def _overrides(protocol: Protocol) -> str:
@@ -307,27 +274,19 @@ def _overrides(protocol: Protocol) -> str:
     return text
 
 
-def _run_dir(checkpoint: Path) -> Path:
-    from bpp.checkpoint import resolve_checkpoint
-
-    ckpt = resolve_checkpoint(checkpoint)
-    return ckpt.parent.parent  # <run>/checkpoints/step_N
-
-
 # ------------------------------------------------------------------------------------------- one call
 def _same_protocol(recorded: dict | None, protocol: Protocol) -> bool:
     """Whether results recorded under `recorded` were run with `protocol` (fields added since default as before)."""
     try:
         return recorded is not None and Protocol(**recorded) == protocol
-    except TypeError:  # a field this version does not know
+    except (TypeError, ValueError):  # a field this version does not know, or a value it refuses
         return False
 
 
 def evaluate(
-    checkpoint: Path,
-    store: EpisodeStore,
+    checkpoint: Checkpoint | str | Path,
+    task_set: TaskSet,
     tasks: list[int],
-    label: str,
     out: Path,
     protocol: Protocol = Protocol(),
     workers: int = 0,
@@ -339,53 +298,68 @@ def evaluate(
     into `out`. With `reuse`, results already in `out` for the same checkpoint, store, tasks and protocol are
     returned without running anything.
     """
-    from bpp.checkpoint import resolve_checkpoint
     from bpp.evaluation import report
 
+    ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else Checkpoint.load(checkpoint, use_ema=True)
+    benchmark = get_benchmark(ckpt.benchmark)
+    store = task_set.store
+    protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
     out = Path(out)
-    ckpt = resolve_checkpoint(checkpoint)
     previous = load_results(out)
     if (
         reuse
         and previous is not None
-        and previous.get("checkpoint") == str(ckpt)
+        and previous.get("checkpoint") == str(ckpt.path)
         and previous.get("store") == str(store.path)
         and _same_protocol(previous.get("protocol"), protocol)
-        and [t["task"] for t in previous["tasks"]] == tasks
+        and [t["task"] for t in previous.get("tasks", [])] == tasks
+        and "score_mean" in previous.get("summary", {})
     ):
         print(f"[eval] reusing {out / 'results.json'}")
         return previous
     t0 = time.perf_counter()
-    results = run_protocol(ckpt, store, tasks, protocol, workers, videos, progress, desc=f"eval {label}")
-    meta = protocol_meta(ckpt, store, label, protocol, time.perf_counter() - t0)
-    data = write_results(results, meta, out)
+    results = run_protocol(ckpt, benchmark, store, tasks, protocol, workers, videos, progress, f"eval {task_set.label}")
+    metric = benchmark.metric
+    meta = {
+        "checkpoint": str(ckpt.path),
+        "method": ckpt.method,
+        "train_step": ckpt.step,
+        "benchmark": benchmark.name,
+        "metric": asdict(metric),
+        "task_set": task_set.label,
+        "store": str(store.path),
+        "protocol": asdict(protocol),
+        "seconds": round(time.perf_counter() - t0, 1),
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    data = results_json(results, meta, metric)
+    write_json_atomic(out / "results.json", data)
     s = data["summary"]
-    name = f"{meta['method']} @ step {meta['train_step']}"
-    report.write_grid(results, store, out / "grid.png", title=f"{name} on {label}: {s['chamfer_mean']:.2f} px")
+    name = f"{ckpt.method} @ step {ckpt.step}"
+    title = f"{name} on {task_set.label}: {metric.format(s['score_mean'])}"
+    report.write_grid(results, benchmark, store, out / "grid.png", title=title)
     for r in results:
         if r.frames:
-            report.write_video(r.frames, out / f"rollout_{r.task_id}")
+            report.write_video(r.frames, out / f"rollout_{report.safe_name(r.task_id)}")
     attended = [r for r in results if r.attention is not None and len(r.attention)]
     if attended:
-        from bpp.checkpoint import read_state
-
-        n_action_steps = protocol.n_action_steps or read_state(ckpt)["model_config"]["horizons"]["n_action_steps"]
+        n_action_steps = protocol.n_action_steps or ckpt.model_config().horizons.n_action_steps
         report.write_attention(
             attended[0].attention,
             n_action_steps,
             out / "attention.png",
             f"{name}: prompt attention, {attended[0].task_id}",
         )
-    rows = [
-        (r.task_id, r.mean, float(np.std([x["best_chamfer"] for x in r.rollouts])), len(r.rollouts)) for r in results
-    ]
-    table = report.markdown_table(["task", "Chamfer mean (px)", "std over rollouts", "rollouts"], rows)
+    rows = [(r.task_id, r.mean, float(np.std([x["score"] for x in r.rollouts])), len(r.rollouts)) for r in results]
+    table = report.markdown_table(["task", f"{metric.name} mean", "std over rollouts", "rollouts"], rows)
+    good = f"; {100 * s['good_rollouts']:.0f}% of {metric.good_label}" if metric.good_label else ""
     (out / "results.md").write_text(
-        f"# {name} on {label}\n\nCheckpoint `{ckpt}`; {s['tasks']} tasks x {protocol.rollouts} rollouts, "
-        f"seed {protocol.seed}{_overrides(protocol)}; best Chamfer per rollout (px at 512), averaged per task then "
+        f"# {name} on {task_set.label}\n\nCheckpoint `{ckpt.path}`; {s['tasks']} tasks x {protocol.rollouts} "
+        f"rollouts, seed {protocol.seed}{_overrides(protocol)}; score: {metric.description}, averaged per task then "
         "over tasks.\n\n"
-        f"**Chamfer {s['chamfer_mean']:.2f} px** (std over tasks {s['chamfer_std_over_tasks']:.2f}, "
-        f"s.e.m. {s['chamfer_sem_over_tasks']:.2f}); median rollout {s['chamfer_median_rollout']:.2f} px; "
-        f"{100 * s['rollouts_under_5px']:.0f}% of rollouts under 5 px. {meta['seconds']:.0f} s.\n\n{table}"
+        f"**{metric.name} {metric.format(s['score_mean'])}** (std over tasks {s['score_std_over_tasks']:.2f}, "
+        f"s.e.m. {s['score_sem_over_tasks']:.2f}); median rollout {metric.format(s['score_median_rollout'])}"
+        f"{good}. {meta['seconds']:.0f} s.\n\n{table}"
     )
     return data

@@ -1,15 +1,16 @@
-"""Pictures and tables of evaluation results: a prompt | rollout grid, rollout videos, prompt-attention heatmaps,
-Markdown tables and bar charts."""
+"""Pictures and tables of evaluation results for any benchmark: a prompt | rollout grid, rollout videos,
+prompt-attention heatmaps, Markdown tables and bar charts."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes, save_animation
+from bpp.media import contact_sheet, save_animation
 
 
 def _pyplot():
@@ -30,24 +31,23 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
-def prompt_picture(store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
-    """The prompt demonstration's ink on its own board (strokes coloured by order)."""
-    ep = store.episode(episode, ("state", "action"))
-    strokes = group_strokes(ep["state"], ep["action"].astype(np.float64))
-    return render_strokes(strokes, float(store.column("board_angle")[episode]), size)
+def safe_name(text: str) -> str:
+    """`text` as a file-name part: letters, digits, '-', '_' and '.' kept, anything else (e.g. '/') as '_'."""
+    return re.sub(r"[^A-Za-z0-9._-]", "_", text).lstrip(".") or "_"
 
 
-def write_grid(results, store: EpisodeStore, path: Path, per_row: int = 3, title: str = "") -> Path:
-    """For each task: the prompt demonstration, then its first rollout at a new angle (target in faint red)."""
+def write_grid(results, benchmark, store: EpisodeStore, path: Path, per_row: int = 3, title: str = "") -> Path:
+    """For each task: the prompt demonstration (the benchmark's picture), then its first rollout's outcome."""
     images, titles = [], []
     for r in results:
         first = r.rollouts[0]
-        images += [prompt_picture(store, first["prompt_episode"]), r.last_frame]
+        images += [benchmark.prompt_picture(store, first["prompt_episode"]), r.last_frame]
         titles += [
             f"{r.task_id}: prompt",
-            f"rollout {np.degrees(first['board_angle']):+.0f}°: {first['best_chamfer']:.1f} px (task {r.mean:.1f})",
+            f"{benchmark.describe_rollout(first)}: {first['score']:.1f} (task {r.mean:.1f})",
         ]
-    return contact_sheet(images, titles, path, columns=2 * per_row, title=title)
+    keep = [i for i, image in enumerate(images) if image is not None]
+    return contact_sheet([images[i] for i in keep], [titles[i] for i in keep], path, columns=2 * per_row, title=title)
 
 
 def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, title: str = "") -> Path:

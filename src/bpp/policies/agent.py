@@ -6,9 +6,7 @@ the receding-horizon action queue (Ta of each predicted T-step chunk are execute
 rollout, seeded by the caller, so that every method sees identical seeds and a rollout does not depend on which
 other rollouts share its batch.
 
-Any model that implements the policy contract plugs in (see :mod:`bpp.policies.registry`):
-``obs_keys()``, ``validate_context(raw) -> batch of 1``, ``encode_context(batch) -> context``,
-``predict_action(obs, context, noise=..., return_attention=...) -> {"action": (B, T, A)}``.
+Any model that implements :class:`bpp.policies.registry.PolicyModelContract` plugs in; the agent uses nothing else.
 """
 
 from __future__ import annotations
@@ -20,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.data.prompt_dataset import collate_contexts
-from bpp.policies.common import DiffusionHead
+from bpp.data.contexts import collate_contexts
+from bpp.data.spec import DataSpec
+from bpp.policies.registry import PolicyModelContract
 from bpp.utils import to_torch
 
 
@@ -40,7 +39,7 @@ class PolicyAgent:
 
     def __init__(
         self,
-        model,
+        model: PolicyModelContract,
         device: str | torch.device = "cpu",
         n_action_steps: int | None = None,
         num_inference_steps: int | None = None,
@@ -48,24 +47,23 @@ class PolicyAgent:
     ):
         self.model = model.to(device).eval()
         if num_inference_steps is not None:
-            if not isinstance(getattr(model, "head", None), DiffusionHead):
-                raise ValueError(f"{type(model).__name__} has no diffusion decoder: it takes no inference steps")
-            model.head.set_inference_steps(num_inference_steps)
+            model.set_inference_steps(num_inference_steps)
         self.device = torch.device(device)
         h = model.cfg.horizons
         self.n_obs_steps, self.horizon = h.n_obs_steps, h.horizon
         self.n_action_steps = n_action_steps or h.n_action_steps
-        if not 1 <= self.n_action_steps <= self.horizon - self.n_obs_steps + 1:
-            raise ValueError(f"n_action_steps must be in [1, {self.horizon - self.n_obs_steps + 1}]")
+        model.check_action_steps(self.n_action_steps)
         self.record_attention = record_attention
         self.context = None
         self.obs_keys = list(model.obs_keys())
+        self.data_spec: DataSpec = model.data_spec()
+        """What the model observes (keys, image size) and which action key it outputs."""
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", use_ema: bool = True, **kw) -> PolicyAgent:
-        from bpp.checkpoint import load_policy
+        from bpp.checkpoint import Checkpoint
 
-        return cls(load_policy(path, device, use_ema), device, **kw)
+        return cls(Checkpoint.load(path).build_model(device, use_ema), device, **kw)
 
     # ------------------------------------------------------------ one rollout
     def reset(self, context: Mapping, seed: int = 0) -> None:
@@ -114,7 +112,7 @@ class PolicyAgent:
             to_torch(stacked, self.device),
             self.context,
             noise=noise,
-            generator=self.generators[0],
+            generator=self.generators,  # each rollout its own: a rollout must not depend on its batch
             return_attention=self.record_attention,
         )
         if self.record_attention and "attention" in out:

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from bpp.data.prompt_dataset import DataSpec
+from bpp.data.spec import DataSpec
 from bpp.nn.lowdim import LowDimEncoder
 from bpp.nn.unet1d import ConditionalUnet1D
 from bpp.nn.vision import ResNetGN
@@ -73,13 +73,17 @@ class Normalizer(nn.Module):
 
 @dataclass(frozen=True)
 class ObsConfig:
-    """Which observation entries a policy sees, and how images are encoded."""
+    """Which observation entries a policy sees, and how they are encoded.
+
+    The keys and the image size come from a benchmark's observation preset (:func:`with_observation`); a method's
+    size preset (``debug``, ``cpu``, ``paper``) sets the encoders' sizes.
+    """
 
     image_keys: tuple[str, ...] = ()
     """Camera keys, (H, W, 3) uint8 images (empty: state-only)."""
-    lowdim_keys: tuple[str, ...] = ("board_pose", "cursor_on_board")
+    lowdim_keys: tuple[str, ...] = ()
     """Low-dimensional observation keys other than proprioception (one entry each)."""
-    proprio_keys: tuple[str, ...] = ("agent_pos", "pen_down")
+    proprio_keys: tuple[str, ...] = ()
     """Proprioception keys (one entry each); the prompt can include or drop them as a group."""
     image_size: int = 96
     image_features: int = 256
@@ -193,10 +197,21 @@ class DiffusionHead(nn.Module):
         self.cfg = replace(self.cfg, num_inference_steps=steps)
 
     @torch.no_grad()
-    def sample(self, cond: torch.Tensor, shape: tuple[int, int], noise: torch.Tensor | None = None, generator=None):
-        """Denoise from `noise` (B, T, A) (drawn if None) to normalised actions (B, T, A)."""
+    def sample(
+        self,
+        cond: torch.Tensor,
+        shape: tuple[int, int],
+        noise: torch.Tensor | None = None,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+    ):
+        """Denoise from `noise` (B, T, A) (drawn if None) to normalised actions (B, T, A).
+
+        `generator`: one for the batch, or a list of B, one per sample, so that a sample's result (including the
+        DDPM sampler's per-step noise) does not depend on which other samples share its batch."""
+        from diffusers.utils.torch_utils import randn_tensor
+
         if noise is None:
-            noise = torch.randn((cond.shape[0], *shape), device=cond.device, generator=generator)
+            noise = randn_tensor((cond.shape[0], *shape), generator=generator, device=cond.device)
         scheduler = self.sample_scheduler
         scheduler.set_timesteps(self.cfg.num_inference_steps, device=cond.device)
         x = noise
@@ -222,37 +237,38 @@ class Horizons:
             )
 
 
-# Preset parts that several methods' presets share (each method's config.py names its own presets).
+# Size-preset parts that several methods share (each method's config.py names its own size presets; the keys come
+# from a benchmark's observation preset, see with_observation).
 DEBUG_DIFFUSION = DiffusionConfig(down_dims=(32, 64), step_embed_dim=16, num_train_steps=20, num_inference_steps=4)
 """The tiny action decoder of the ``debug`` presets."""
-CPU_OBS = ObsConfig(lowdim_fourier_octaves=6)
-"""State-only observations (the ``cpu`` presets) with Fourier-feature embeddings of every entry."""
-BOARD_OBS = ObsConfig(
-    lowdim_keys=(), proprio_keys=("cursor_on_board", "pen_down", "ink_length"), lowdim_fourier_octaves=6
-)
-"""State in the board's frame (the ``cpu-board`` presets, which pair it with ``action_key="action_on_board"``):
-the cursor, the pen and the ink drawn so far, the progress an image would show (without it BPP keeps drawing after
-it has finished: 40.4 against 15.9 px on the unseen drawings in BENCHMARKS.md)."""
-CPU_IMAGE_OBS = ObsConfig(
-    image_keys=("image",),
-    lowdim_keys=(),
-    image_size=64,
-    image_features=128,
-    image_widths=(16, 32, 64, 128),
-    lowdim_fourier_octaves=6,
-)
-"""The paper's visual setting at CPU scale (the ``cpu-image`` presets): a 64x64 camera + proprioception only."""
-PAPER_OBS = ObsConfig(
-    image_keys=("image",),
-    lowdim_keys=(),
-    image_size=224,
-    image_features=512,
-    image_widths=(64, 128, 256, 512),
-    image_blocks=(2, 2, 2, 2),
-)
-"""The paper's observations: 224x224 images through ResNet-18 (GroupNorm)."""
+DEBUG_OBS = ObsConfig(image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
+"""The ``debug`` presets' encoders: normalised state, a tiny image encoder."""
+CPU_OBS = ObsConfig(lowdim_fourier_octaves=6, image_features=128, image_widths=(16, 32, 64, 128))
+"""The ``cpu`` presets' encoders: Fourier-feature embeddings of every low-dimensional entry (see bpp.nn.lowdim for
+why), a small ResNet-GN for cameras (64x64 images on a CPU)."""
+PAPER_OBS = ObsConfig(image_features=512, image_widths=(64, 128, 256, 512), image_blocks=(2, 2, 2, 2))
+"""The paper's encoders: ResNet-18 (GroupNorm) for cameras."""
 PAPER_DIFFUSION = DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128)
 """The paper's action decoder: U-Net [256, 512, 1024], kernel 5, step embedding 128."""
+
+
+def with_observation(cfg, preset):
+    """A method config (any with ``obs`` and ``action_key``) that observes and acts as a benchmark's observation
+    preset says (:class:`bpp.data.spec.ObservationPreset`): its keys, image size and action key. The encoders keep
+    the size preset's widths. A config class may define ``observation_overrides(obs) -> dict`` for fields that
+    follow the observations (e.g. Goal-Image's goal size when the goal shares the camera encoder)."""
+    obs = replace(
+        cfg.obs,
+        image_keys=tuple(preset.image_keys),
+        lowdim_keys=tuple(preset.lowdim_keys),
+        proprio_keys=tuple(preset.proprio_keys),
+        image_size=preset.image_size,
+    )
+    fields = {"obs": obs, "action_key": preset.action_key}
+    hook = getattr(cfg, "observation_overrides", None)
+    if hook is not None:
+        fields.update(hook(obs))
+    return replace(cfg, **fields)
 
 
 def count_parameters(module: nn.Module) -> int:
@@ -274,6 +290,11 @@ class PolicyModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         obs = cfg.obs
+        if not obs.entries:
+            raise ValueError(
+                f"{type(self).__name__}: the config observes nothing; combine the size preset with a benchmark's "
+                "observation preset (bpp.policies.registry.Method.config, or bpp train --obs NAME)"
+            )
         self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
         self.action_dim = self.normalizer.width(cfg.action_key)
         self.obs_encoder = ObsEncoder(obs, self.normalizer)
@@ -331,6 +352,19 @@ class PolicyModel(nn.Module):
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
         raise NotImplementedError
 
+    def set_inference_steps(self, steps: int) -> None:
+        """Denoise in `steps` steps per inference from now on; models without a diffusion decoder refuse."""
+        raise ValueError(f"{type(self).__name__} has no diffusion decoder: it takes no inference steps")
+
+    def check_action_steps(self, n_action_steps: int) -> None:
+        """Refuse (ValueError) an agent that would execute `n_action_steps` actions of each predicted chunk."""
+        h = self.cfg.horizons
+        if not 1 <= n_action_steps <= h.horizon - h.n_obs_steps + 1:
+            raise ValueError(
+                f"n_action_steps must be in [1, {h.horizon - h.n_obs_steps + 1}] (horizon T={h.horizon}, "
+                f"To={h.n_obs_steps}), got {n_action_steps}"
+            )
+
     def obs_keys(self) -> list[str]:
         """Per-step observation keys the policy reads (and a demonstration prompt must provide)."""
         return self.cfg.obs.entries
@@ -365,6 +399,9 @@ class ContextDiffusionPolicy(PolicyModel):
 
     ``cfg`` also needs ``diffusion``.
     """
+
+    def set_inference_steps(self, steps: int) -> None:
+        self.head.set_inference_steps(steps)
 
     def build_head(self, context_dim: int) -> None:
         """The action decoder, conditioned on `context_dim` context features + the observation history."""
@@ -415,10 +452,11 @@ class ContextDiffusionPolicy(PolicyModel):
         obs: Mapping[str, torch.Tensor],
         ctx,
         noise: torch.Tensor | None = None,
-        generator: torch.Generator | None = None,
+        generator: torch.Generator | list[torch.Generator] | None = None,
         return_attention: bool = False,
     ) -> dict[str, torch.Tensor]:
-        """Action chunk (B, T, A) in raw units from `noise` (B, T, A) (drawn from `generator` if None).
+        """Action chunk (B, T, A) in raw units from `noise` (B, T, A) (drawn from `generator` if None; a list of B
+        generators draws each sample's noise, and a DDPM sampler's per-step noise, from its own).
 
         With `return_attention`, methods that attend to their context also return ``"attention"``.
         """

@@ -1,22 +1,24 @@
-"""Methods by name. Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`.
+"""Methods by name, and the contract every method's model implements.
 
-A method's package exports ``Config`` (a frozen dataclass: the model's whole configuration, saved in every
-checkpoint), ``Model`` (tensor-only; ``Model(config, stats)``) and ``PRESETS`` (name -> Config, at least
-``debug``, ``cpu`` and ``paper``). The model implements the contract used by :mod:`bpp.train` and
-:class:`bpp.policies.agent.PolicyAgent`:
-
-* ``context_kind``: ``"demo"``, ``"goal_image"`` or ``"instruction"`` (what ``reset(context)`` receives);
-* ``data_spec() -> DataSpec``: what its training batches contain;
-* ``forward(batch, generator) -> loss`` (``compute_loss``);
-* ``obs_keys()``, ``validate_context(raw)``, ``encode_context(batch)``, ``predict_action(obs, context, ...)``;
-* ``action_dim`` and ``cfg.horizons``.
+Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`. A method's package exports
+``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; it has ``obs``
+(:class:`~bpp.policies.common.ObsConfig`), ``action_key`` and ``horizons``), ``Model`` (tensor-only;
+``Model(config, stats)``, satisfying :class:`PolicyModelContract`) and ``PRESETS`` (size name -> Config, at least
+``debug``, ``cpu`` and ``paper``). A size preset observes nothing yet: :meth:`Method.config` combines it with a
+benchmark's observation preset (keys, image size, action key).
 """
 
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+
+from bpp.data.spec import ContextKind, DataSpec
+from bpp.policies.common import with_observation
 
 METHODS: dict[str, str] = {
     "bpp": "bpp.policies.bpp",
@@ -27,6 +29,62 @@ METHODS: dict[str, str] = {
 """Method name -> the package that implements it."""
 
 
+@runtime_checkable
+class PolicyModelContract(Protocol):
+    """What :func:`bpp.train.train` and :class:`bpp.policies.agent.PolicyAgent` use of a model, and nothing more.
+
+    Shapes: B rollouts or samples; To = ``cfg.horizons.n_obs_steps``; T = ``cfg.horizons.horizon``; A = ``action_dim``.
+    """
+
+    method: str
+    context_kind: ContextKind
+    """What ``validate_context`` takes: ``demo``, ``goal_image`` or ``instruction`` (see bpp.data.contexts)."""
+    cfg: Any
+    """The method's Config; ``cfg.horizons`` gives To, T and the default Ta."""
+    action_dim: int
+
+    def data_spec(self) -> DataSpec:
+        """What training batches and task contexts must contain."""
+        ...
+
+    def obs_keys(self) -> list[str]:
+        """Per-step observation keys read at every step."""
+        ...
+
+    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+        """The training loss of a batch from :class:`bpp.data.prompt_dataset.PromptBatchDataset` (a scalar)."""
+        ...
+
+    def validate_context(self, context: Mapping) -> dict:
+        """A raw task context -> the same with batch dimension 1; ContextError naming what is wrong otherwise."""
+        ...
+
+    def encode_context(self, batch: Mapping) -> Any:
+        """Batched contexts (tensors) -> the encoded context, once per rollout."""
+        ...
+
+    def predict_action(
+        self,
+        obs: Mapping[str, torch.Tensor],
+        context: Any,
+        noise: torch.Tensor | None = None,
+        generator: torch.Generator | Sequence[torch.Generator] | None = None,
+        return_attention: bool = False,
+    ) -> dict[str, torch.Tensor]:
+        """Observations ``{key: (B, To, ...)}`` -> ``{"action": (B, T, A)}`` raw (plus ``"attention"`` (B, C) when
+        asked and available). `noise` (B, T, A) and one generator per rollout make a rollout independent of its
+        batch."""
+        ...
+
+    def set_inference_steps(self, steps: int) -> None:
+        """Denoising steps per inference (ValueError if the model has no diffusion decoder)."""
+        ...
+
+    def check_action_steps(self, n_action_steps: int) -> None:
+        """ValueError if executing `n_action_steps` actions per predicted chunk would be wrong for this model."""
+        ...
+
+
 @dataclass(frozen=True)
 class Method:
     name: str
@@ -35,9 +93,25 @@ class Method:
     presets: dict[str, Any]
 
     def preset(self, name: str):
+        """A size preset (observing nothing yet: see :meth:`config`)."""
         if name not in self.presets:
-            raise ValueError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}")
+            hint = ""
+            size, _, obs = name.partition("-")
+            if obs and size in self.presets:
+                hint = f" (presets are sizes now; this one is --preset {size} --obs {obs.replace('image', 'image64')})"
+            raise ValueError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}{hint}")
         return self.presets[name]
+
+    def config(self, size: str, obs: str | None, benchmark) -> Any:
+        """Size preset `size` observing `benchmark`'s observation preset `obs` (None: the benchmark's default for
+        that size)."""
+        base = self.preset(size)
+        name = obs or benchmark.default_observation(size)
+        if name not in benchmark.observations:
+            raise ValueError(
+                f"{benchmark.name} has no observation preset {name!r}; choose from {', '.join(benchmark.observations)}"
+            )
+        return with_observation(base, benchmark.observations[name])
 
 
 def get_method(name: str) -> Method:

@@ -22,6 +22,8 @@ from bpp.envs.draw.geometry import (
 from bpp.envs.draw.metric import ChamferTracker, InkMask, ink_mask
 from bpp.envs.draw.render import SceneRenderer
 
+ENV_ID = "bpp/DrawAnything-v0"
+"""Its Gymnasium id (registered by ``import bpp.envs``; see bpp.envs.registry.GYM_ENVS)."""
 CURSOR_START_RANGE = (50.0, 450.0)
 """At reset the cursor rests at a uniformly random canvas position in this range on each axis, pen up."""
 MAX_EPISODE_STEPS = 400

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Literal
 
 from bpp.policies.common import (
-    BOARD_OBS,
-    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
+    DEBUG_OBS,
     PAPER_DIFFUSION,
     PAPER_OBS,
     DiffusionConfig,
@@ -62,9 +61,9 @@ class BPPConfig:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
-    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
+    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
+    are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     dim: int = 128
     """D: token width of the prompt encoder."""
     layers: int = 2
@@ -80,6 +79,7 @@ class BPPConfig:
 PRESETS: dict[str, BPPConfig] = {
     # Tiny, for tests: seconds on a CPU.
     "debug": BPPConfig(
+        obs=DEBUG_OBS,
         dim=32,
         layers=1,
         heads=2,
@@ -87,20 +87,10 @@ PRESETS: dict[str, BPPConfig] = {
         prompt=PromptConfig(num_sinks=2),
         diffusion=DEBUG_DIFFUSION,
     ),
-    # State-only DrawAnything on a 2-core CPU.
+    # A 2-core CPU: Fourier features for state inputs and prompt actions (see bpp.nn.lowdim), a small image encoder.
     "cpu": BPPConfig(obs=CPU_OBS, prompt=PromptConfig(action_fourier_octaves=6)),
-    # State-only in the board's own frame (cursor and action targets as seen on the board): the prompt's actions
-    # transfer to a new board angle unchanged. Not the paper's setting (canvas actions); labelled wherever used.
-    "cpu-board": BPPConfig(obs=BOARD_OBS, prompt=PromptConfig(action_fourier_octaves=6), action_key="action_on_board"),
-    # The paper's visual setting at CPU scale: a 64x64 camera + proprioception, canvas actions.
-    "cpu-image": BPPConfig(obs=CPU_IMAGE_OBS, prompt=PromptConfig(action_fourier_octaves=6)),
     # The paper's sizes: prompt encoder 6 layers, D=768, MLP 3072, 8 heads; U-Net [256, 512, 1024], kernel 5,
-    # step embedding 128; ResNet-18 (GroupNorm) on 224x224 images.
+    # step embedding 128; ResNet-18 (GroupNorm) for cameras.
     "paper": BPPConfig(obs=PAPER_OBS, dim=768, layers=6, heads=8, mlp_dim=3072, dropout=0.1, diffusion=PAPER_DIFFUSION),
 }
-
-
-def preset(name: str, **overrides) -> BPPConfig:
-    if name not in PRESETS:
-        raise ValueError(f"unknown BPP preset {name!r}; choose from {', '.join(PRESETS)}")
-    return replace(PRESETS[name], **overrides)
+"""Size presets; combine one with a benchmark's observation preset (bpp.policies.registry.Method.config)."""

@@ -5,10 +5,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from bpp.policies.common import (
-    BOARD_OBS,
-    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
+    DEBUG_OBS,
     PAPER_DIFFUSION,
     PAPER_OBS,
     DiffusionConfig,
@@ -31,9 +30,9 @@ class GoalImageConfig:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
-    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
+    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
+    are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     goal_camera: str = "image"
     goal_image_size: int = 96
     """Goal images are (goal_image_size, goal_image_size, 3) uint8; with image observations, obs.image_size."""
@@ -59,6 +58,13 @@ class GoalImageConfig:
                     "with image observations the goal image goes through the camera's own encoder"
                 )
 
+    def observation_overrides(self, obs: ObsConfig) -> dict:
+        """With a camera observed, the goal is that camera's frame at its size (it shares the camera's encoder)."""
+        if not obs.image_keys:
+            return {}
+        camera = self.goal_camera if self.goal_camera in obs.image_keys else obs.image_keys[0]
+        return {"goal_camera": camera, "goal_image_size": obs.image_size}
+
     @property
     def shares_camera_encoder(self) -> bool:
         return bool(self.obs.image_keys)
@@ -67,15 +73,18 @@ class GoalImageConfig:
 PRESETS: dict[str, GoalImageConfig] = {
     # Tiny, for tests: seconds on a CPU.
     "debug": GoalImageConfig(
-        goal_image_size=32, goal_features=16, goal_widths=(8, 16), goal_blocks=(1, 1), diffusion=DEBUG_DIFFUSION
+        obs=DEBUG_OBS,
+        goal_image_size=32,
+        goal_features=16,
+        goal_widths=(8, 16),
+        goal_blocks=(1, 1),
+        diffusion=DEBUG_DIFFUSION,
     ),
-    # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset) + a 96x96 goal image.
+    # A 2-core CPU (encoders as BPP's cpu preset); a 96x96 goal image through its own encoder when the policy
+    # observes no camera.
     "cpu": GoalImageConfig(obs=CPU_OBS),
-    # As BPP's cpu-board preset: state and actions in the board's frame (not the paper's setting).
-    "cpu-board": GoalImageConfig(obs=BOARD_OBS, action_key="action_on_board"),
-    # As BPP's cpu-image preset: a 64x64 camera + proprioception; the goal frame goes through the camera's encoder.
-    "cpu-image": GoalImageConfig(obs=CPU_IMAGE_OBS, goal_image_size=CPU_IMAGE_OBS.image_size),
-    # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm), one encoder for the camera and the goal;
-    # U-Net [256, 512, 1024], kernel 5, step embedding 128.
+    # The paper's sizes: ResNet-18 (GroupNorm), one encoder for the camera and the goal; U-Net [256, 512, 1024],
+    # kernel 5, step embedding 128.
     "paper": GoalImageConfig(obs=PAPER_OBS, goal_image_size=224, diffusion=PAPER_DIFFUSION),
 }
+"""Size presets; combine one with a benchmark's observation preset (bpp.policies.registry.Method.config)."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import BOARD_OBS, CPU_IMAGE_OBS, CPU_OBS, PAPER_OBS, Horizons, ObsConfig
+from bpp.policies.common import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig
 
 
 @dataclass(frozen=True)
@@ -19,9 +19,9 @@ class ICRTConfig:
     obs: ObsConfig = field(default_factory=ObsConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
-    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
+    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
+    are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     chunk_len: int = 10
     """N: actions per action token, and steps between observation tokens (BPP's prompt chunk Δt)."""
     max_tokens: int = 256
@@ -62,15 +62,12 @@ class ICRTConfig:
 
 PRESETS: dict[str, ICRTConfig] = {
     # Tiny, for tests: seconds on a CPU.
-    "debug": ICRTConfig(dim=32, layers=2, heads=2, mlp_dim=64, max_tokens=128),
-    # State-only DrawAnything on a 2-core CPU (about 5M parameters; BPP's cpu preset has 8M, mostly its U-Net).
+    "debug": ICRTConfig(obs=DEBUG_OBS, dim=32, layers=2, heads=2, mlp_dim=64, max_tokens=128),
+    # A 2-core CPU (about 5M parameters; BPP's cpu preset has 8M, mostly its U-Net).
     "cpu": ICRTConfig(obs=CPU_OBS),
-    # State-only in the board's frame, as BPP's cpu-board preset (not the paper's setting: canvas actions).
-    "cpu-board": ICRTConfig(obs=BOARD_OBS, action_key="action_on_board"),
-    # As BPP's cpu-image preset: a 64x64 camera + proprioception, canvas actions.
-    "cpu-image": ICRTConfig(obs=CPU_IMAGE_OBS),
-    # The paper's setting: 224x224 images through a ResNet-18 (GroupNorm), as BPP's paper preset. The ICRT paper's
-    # transformer is a Llama-2-style 12-layer, D=768 model (RMSNorm, SwiGLU, rotary positions); this one has the
-    # same size with LayerNorm, GELU and learned positions.
+    # The paper's setting: ResNet-18 (GroupNorm) for cameras, as BPP's paper preset. The ICRT paper's transformer is
+    # a Llama-2-style 12-layer, D=768 model (RMSNorm, SwiGLU, rotary positions); this one has the same size with
+    # LayerNorm, GELU and learned positions.
     "paper": ICRTConfig(obs=PAPER_OBS, dim=768, layers=12, heads=12, mlp_dim=3072, dropout=0.1),
 }
+"""Size presets; combine one with a benchmark's observation preset (bpp.policies.registry.Method.config)."""

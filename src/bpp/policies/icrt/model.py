@@ -46,7 +46,7 @@ from einops import rearrange, repeat
 from torch import nn
 from torch.nn import functional as F
 
-from bpp.data.prompt_dataset import index_contexts
+from bpp.data.contexts import index_contexts
 from bpp.nn.causal import CausalTransformer, KVCache
 from bpp.policies.common import PolicyModel, validate_demo_context
 from bpp.policies.icrt.config import ICRTConfig
@@ -178,6 +178,15 @@ class ICRTModel(PolicyModel):
         return rearrange(self.head(out[:, ::2]), "b n (t a) -> b n t a", t=self.cfg.chunk_len)
 
     # -------------------------------------------------------------- inference
+    def check_action_steps(self, n_action_steps: int) -> None:
+        """All N actions of a chunk must run: the context records each chunk's N predicted actions as executed."""
+        if n_action_steps != self.cfg.chunk_len:
+            raise ValueError(
+                f"ICRT executes all N={self.cfg.chunk_len} actions of each chunk (its context records them as "
+                f"executed, so replanning earlier would feed it actions that never ran); got n_action_steps="
+                f"{n_action_steps}"
+            )
+
     def context_spec(self) -> dict:
         """Training batches: a prompt demonstration and B whole demonstrations of the same task."""
         return {

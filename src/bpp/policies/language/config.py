@@ -6,10 +6,9 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from bpp.policies.common import (
-    BOARD_OBS,
-    CPU_IMAGE_OBS,
     CPU_OBS,
     DEBUG_DIFFUSION,
+    DEBUG_OBS,
     PAPER_DIFFUSION,
     PAPER_OBS,
     DiffusionConfig,
@@ -47,9 +46,9 @@ class LanguageConfig:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
     action_key: str = "action"
     action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key (e.g. ``cursor_on_board``, in the frame of the
-    actions' first dims): actions are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; on DrawAnything it did not help: BENCHMARKS.md)."""
+    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
+    are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     text_encoder: Literal["scratch", "pretrained"] = "scratch"
     """scratch: a transformer sized by ``text``, trained from scratch with the policy. pretrained: the encoder at
     ``pretrained_text_model``, fine-tuned with the policy (the paper fine-tunes CLIP's text tower, which no
@@ -75,16 +74,15 @@ class LanguageConfig:
 
 PRESETS: dict[str, LanguageConfig] = {
     # Tiny, for tests: seconds on a CPU (a byte tokenizer, so no vocabulary-sized embedding).
-    "debug": LanguageConfig(text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION),
-    # State-only DrawAnything on a 2-core CPU (observations as BPP's cpu preset); a small scratch encoder over
-    # MiniLM's WordPiece tokens.
+    "debug": LanguageConfig(
+        obs=DEBUG_OBS, text=TextEncoderConfig(dim=32, layers=1, heads=2, mlp_dim=64), diffusion=DEBUG_DIFFUSION
+    ),
+    # A 2-core CPU (encoders as BPP's cpu preset); a small scratch encoder over MiniLM's WordPiece tokens.
     "cpu": LanguageConfig(obs=CPU_OBS, tokenizer="pretrained"),
-    # As BPP's cpu-board and cpu-image presets (board-frame state; a 64x64 camera + proprioception).
-    "cpu-board": LanguageConfig(obs=BOARD_OBS, action_key="action_on_board", tokenizer="pretrained"),
-    "cpu-image": LanguageConfig(obs=CPU_IMAGE_OBS, tokenizer="pretrained"),
-    # The paper's sizes: 224x224 images through ResNet-18 (GroupNorm); U-Net [256, 512, 1024]; a pretrained text
-    # encoder fine-tuned with the policy (MiniLM here, CLIP's text tower in the paper).
+    # The paper's sizes: ResNet-18 (GroupNorm) for cameras; U-Net [256, 512, 1024]; a pretrained text encoder
+    # fine-tuned with the policy (MiniLM here, CLIP's text tower in the paper).
     "paper": LanguageConfig(
         obs=PAPER_OBS, text_encoder="pretrained", tokenizer="pretrained", diffusion=PAPER_DIFFUSION
     ),
 }
+"""Size presets; combine one with a benchmark's observation preset (bpp.policies.registry.Method.config)."""

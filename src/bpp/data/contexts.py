@@ -1,0 +1,90 @@
+"""Task contexts: what a method is conditioned on, built from a stored demonstration the same way for training
+and for evaluation (:func:`task_context`), and batched (:func:`batch_context`, :func:`collate_contexts`).
+
+A raw context is what :meth:`PolicyAgent.reset` takes and what ``model.validate_context`` checks:
+
+* ``demo``: ``{"obs": {key: (L, ...)}, "action": (L, A)}``, the whole demonstration (the behavior prompt);
+* ``goal_image``: ``{"image": (H, W, 3) uint8}``, its final observation from one camera;
+* ``instruction``: ``{"text": str}``, the task's instruction.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+
+import numpy as np
+
+from bpp.data.spec import DataSpec
+from bpp.data.store import EpisodeStore
+
+FrameSource = Callable[..., np.ndarray]
+"""``frames(store, episode, key, size, last_only=False)``: (T, size, size, 3) uint8 frames of an episode's
+observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3). Each benchmark
+provides one (see :class:`bpp.envs.benchmark.Benchmark`)."""
+
+
+def task_context(
+    store: EpisodeStore, episode: int, spec: DataSpec, frames: FrameSource | None = None, max_steps: int | None = None
+) -> dict:
+    """The raw task context of kind ``spec.context`` from demonstration `episode` of `store`.
+
+    `frames` renders or reads camera frames (needed for image keys and goal images); `max_steps` cuts a
+    demonstration prompt (training does, to the model's limit; evaluation passes whole prompts to validation).
+    """
+    kind = spec.context
+    if kind == "instruction":
+        task = int(store.column("task_index")[episode])
+        return {"text": str(store.tasks[task].get("instruction") or "")}
+    needs = spec.image_keys if kind == "demo" else (spec.context_image_key,)
+    if needs and frames is None:
+        raise ValueError(f"{store.path}: benchmark {store.benchmark!r} provides no image observations")
+    if kind == "goal_image":
+        return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, last_only=True)[0]}
+    sl = store.episode_slice(episode)
+    stop = sl.stop if max_steps is None else min(sl.stop, sl.start + max_steps)
+    # Copies: the store keeps whole arrays in memory, and a caller may edit its context.
+    obs = {key: store.array(key)[sl.start : stop].copy() for key in spec.lowdim_keys}
+    for key in spec.image_keys:
+        obs[key] = frames(store, episode, key, spec.image_size)[: stop - sl.start].copy()
+    return {"obs": obs, "action": store.array(spec.action_key)[sl.start : stop].copy()}
+
+
+def batch_context(kind: str, context: Mapping) -> dict:
+    """A raw context -> the same with batch dimension 1 (a demonstration gains ``valid`` (1, L), all True)."""
+    if kind == "instruction":
+        return {"text": [context["text"]]}
+    if kind == "goal_image":
+        return {"image": np.asarray(context["image"])[None]}
+    actions = np.asarray(context["action"])
+    return {
+        "obs": {k: np.asarray(v)[None] for k, v in context["obs"].items()},
+        "action": actions[None],
+        "valid": np.ones((1, len(actions)), dtype=bool),
+    }
+
+
+def collate_contexts(items: list) -> object:
+    """Stack task contexts (each with batch dimension 1) into one batch.
+
+    Arrays are concatenated along the batch axis; arrays whose time axis (axis 1) differs are zero-padded to
+    the longest first, so a demonstration's ``valid`` mask pads with False. Lists (e.g. instructions) are joined.
+    """
+    first = items[0]
+    if isinstance(first, Mapping):
+        return {k: collate_contexts([item[k] for item in items]) for k in first}
+    if isinstance(first, list):
+        return [x for item in items for x in item]
+    arrays = [np.asarray(a) for a in items]
+    if arrays[0].ndim >= 2:
+        longest = max(a.shape[1] for a in arrays)
+        arrays = [np.pad(a, [(0, 0), (0, longest - a.shape[1])] + [(0, 0)] * (a.ndim - 2)) for a in arrays]
+    return np.concatenate(arrays, axis=0)
+
+
+def index_contexts(context, index):
+    """Rows `index` (B,) of a batched context (nested dicts of arrays or tensors along axis 0; lists of strings)."""
+    if isinstance(context, Mapping):
+        return {k: index_contexts(v, index) for k, v in context.items()}
+    if isinstance(context, list):
+        return [context[int(i)] for i in index]
+    return context[index]

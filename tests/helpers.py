@@ -1,0 +1,70 @@
+"""Shortcuts the tests share: debug configs observing DrawAnything's state, and single DrawAnything rollouts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from bpp.data.contexts import task_context
+from bpp.data.spec import DataSpec
+from bpp.envs.benchmark import run_prompted
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.policies.registry import get_method
+
+KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
+"""What the ``canvas`` observation preset reads (the debug configs below observe it)."""
+
+
+def config(method: str = "bpp", size: str = "debug", obs: str = "canvas", **overrides):
+    """Method `method`'s size preset observing DrawAnything's observation preset `obs`, with field overrides."""
+    return replace(get_method(method).config(size, obs, BENCHMARK), **overrides)
+
+
+def prompt_from_store(store, episode: int, keys=KEYS, action_key: str = "action") -> dict:
+    """A stored demonstration as a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}``."""
+    return task_context(store, episode, DataSpec(lowdim_keys=tuple(keys), action_key=action_key))
+
+
+def context_for(model, store, episode: int) -> dict:
+    """The raw task context `model` expects, from demonstration `episode` (as evaluation builds it)."""
+    return task_context(store, episode, model.data_spec(), BENCHMARK.frames)
+
+
+@dataclass
+class DrawResult:
+    best_chamfer: float
+    final_chamfer: float
+    steps: int
+    frames: list = field(repr=False)
+    attention: np.ndarray | None = field(default=None, repr=False)
+
+
+def rollout_batch(agent, store, episodes, angles, seeds, max_steps=400, record_frames=None, prompt_episodes=None):
+    """Rollout i prompted with `prompt_episodes[i]` (default `episodes[i]`), scored on `episodes[i]`'s drawing, on a
+    board at `angles[i]`, seeded by `seeds[i]`: the evaluation protocol's runner."""
+    prompts = episodes if prompt_episodes is None else prompt_episodes
+    if len(prompts) != len(episodes):
+        raise ValueError(f"{len(prompts)} prompt episodes for {len(episodes)} rollouts")
+    plan = [
+        {"target_episode": t, "prompt_episode": p, "board_angle": a, "seed": s}
+        for t, p, a, s in zip(episodes, prompts, angles, seeds, strict=True)
+    ]
+    record = record_frames or [False] * len(plan)
+    results, attention = run_prompted(agent, BENCHMARK, store, plan, max_steps, record)
+    return [
+        DrawResult(r.score, r.extra["final_chamfer"], r.steps, r.frames, None if attention is None else attention[i])
+        for i, r in enumerate(results)
+    ]
+
+
+def rollout(agent, store, episode, board_angle, seed=0, max_steps=400, record_frames=False) -> DrawResult:
+    return rollout_batch(agent, store, [episode], [board_angle], [seed], max_steps, [record_frames])[0]
+
+
+def obs_config(**fields):
+    """An ObsConfig observing DrawAnything's ``canvas`` state keys, plus `fields` (e.g. a camera)."""
+    from bpp.policies.common import ObsConfig
+
+    canvas = BENCHMARK.observations["canvas"]
+    return ObsConfig(**{"lowdim_keys": canvas.lowdim_keys, "proprio_keys": canvas.proprio_keys, **fields})

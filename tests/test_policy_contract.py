@@ -1,0 +1,77 @@
+"""The method contract the agent and training loop type against, and the agent's guarantees."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.bpp import BPPModel
+from bpp.policies.bpp.config import BPPConfig, PromptConfig
+from bpp.policies.common import DEBUG_DIFFUSION, ObsConfig
+from bpp.policies.icrt import ICRTModel
+from bpp.policies.registry import METHODS, PolicyModelContract, get_method
+from helpers import KEYS, config, prompt_from_store
+
+
+@pytest.mark.parametrize("method", list(METHODS))
+def test_every_method_satisfies_the_contract(debug_store, method):
+    assert isinstance(get_method(method).model_cls(config(method), debug_store.stats), PolicyModelContract)
+
+
+def test_size_presets_observe_nothing_until_given_a_benchmarks_observations(debug_store):
+    bpp = get_method("bpp")
+    with pytest.raises(ValueError, match="observes nothing"):
+        BPPModel(bpp.preset("cpu"), debug_store.stats)
+    with pytest.raises(ValueError, match="--preset cpu --obs board"):
+        bpp.preset("cpu-board")
+    with pytest.raises(ValueError, match="no observation preset 'pixels'"):
+        bpp.config("cpu", "pixels", BENCHMARK)
+    assert bpp.config("paper", None, BENCHMARK).obs.image_size == 224  # the benchmark's default for that size
+    goal = get_method("goal_image").config("cpu", "image64", BENCHMARK)
+    assert goal.shares_camera_encoder and goal.goal_image_size == 64
+
+
+def test_the_main_jobs_composed_preset_builds_the_model_of_the_old_cpu_board_preset(debug_store):
+    """`--preset cpu --obs board` is the former `cpu-board` preset: only the unused image-encoder widths differ,
+    and the model is the same, weight for weight (so the main job trains the same network)."""
+    old = BPPConfig(
+        obs=ObsConfig(proprio_keys=("cursor_on_board", "pen_down", "ink_length"), lowdim_fourier_octaves=6),
+        prompt=PromptConfig(action_fourier_octaves=6),
+        action_key="action_on_board",
+    )
+    new = config("bpp", "cpu", "board")
+    assert replace(new, obs=replace(new.obs, image_features=256, image_widths=(32, 64, 128, 256))) == old
+    models = []
+    for cfg in (old, new):
+        torch.manual_seed(0)
+        models.append(BPPModel(cfg, debug_store.stats).state_dict())
+    assert models[0].keys() == models[1].keys()
+    assert all(torch.equal(models[0][k], models[1][k]) for k in models[0])
+
+
+def test_icrt_refuses_replanning_before_its_chunk_is_executed(debug_store):
+    model = ICRTModel(config("icrt"), debug_store.stats)
+    with pytest.raises(ValueError, match="executes all N=10 actions"):
+        PolicyAgent(model, n_action_steps=5)
+    assert PolicyAgent(model, n_action_steps=10).n_action_steps == 10
+
+
+def _first_obs(store, episodes):
+    return {k: np.stack([store.episode(e, [k])[k][0] for e in episodes]) for k in KEYS}
+
+
+@pytest.mark.parametrize("sampler", ["ddpm", "ddim"])
+def test_a_rollout_acts_the_same_alone_and_in_a_batch(debug_store, sampler):
+    torch.manual_seed(0)
+    cfg = replace(config("bpp"), diffusion=replace(DEBUG_DIFFUSION, sampler=sampler))
+    agent = PolicyAgent(BPPModel(cfg, debug_store.stats))
+    episodes, seeds = [0, 7, 20], [5, 6, 7]
+    agent.reset_batch([prompt_from_store(debug_store, e) for e in episodes], seeds)
+    together = agent.act_batch(_first_obs(debug_store, episodes))
+    for i, (episode, seed) in enumerate(zip(episodes, seeds, strict=True)):
+        agent.reset(prompt_from_store(debug_store, episode), seed=seed)
+        alone = agent.act_batch(_first_obs(debug_store, [episode]))[0]
+        np.testing.assert_allclose(alone, together[i], rtol=1e-5, atol=1e-4)  # float sums differ by batch
