@@ -14,14 +14,26 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-from bpp.evaluation.draw import prompt_target, rollout
 
 from bpp.checkpoint import resolve_checkpoint
 from bpp.data.store import EpisodeStore
+from bpp.envs.benchmark import RolloutResult, run_prompted
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.env import DrawEnv
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
+from bpp.envs.draw.rollouts import prompt_target
 from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes
 from bpp.policies.agent import PolicyAgent
+
+
+def rollout(
+    agent: PolicyAgent, store: EpisodeStore, episode: int, angle: float, seed: int, record_frames: bool = False
+) -> RolloutResult:
+    """One rollout prompted with demonstration `episode` and scored against its drawing (``score``: the best
+    Chamfer distance), on a board at `angle`, seeded by `seed`: the evaluation protocol's runner."""
+    plan = [{"target_episode": episode, "prompt_episode": episode, "board_angle": angle, "seed": seed}]
+    results, _ = run_prompted(agent, BENCHMARK, store, plan, BENCHMARK.max_steps, [record_frames])
+    return results[0]
 
 
 def replay(store: EpisodeStore, episode: int, angle: float, seed: int) -> float:
@@ -44,7 +56,7 @@ def evaluate(agent, store: EpisodeStore, tasks: int, rollouts: int, seed: int):
             episode = int(by_task[t][k % len(by_task[t])])
             angle = float(rng.uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE))
             r = rollout(agent, store, episode, angle, seed=int(rng.integers(2**31)), record_frames=k == 0)
-            per_task.append(r.best_chamfer)
+            per_task.append(r.score)
             per_task_replay.append(replay(store, episode, angle, 0))
             if k == 0:
                 ep = store.episode(episode, ("state", "action"))
@@ -53,7 +65,7 @@ def evaluate(agent, store: EpisodeStore, tasks: int, rollouts: int, seed: int):
                     float(store.column("board_angle")[episode]),
                     256,
                 )
-                pictures.append((prompt_img, r.frames[-1], store.tasks[t]["id"], r.best_chamfer))
+                pictures.append((prompt_img, r.frames[-1], store.tasks[t]["id"], r.score))
         scores.append(np.mean(per_task))
         replays.append(np.mean(per_task_replay))
     return np.array(scores), np.array(replays), pictures

@@ -1,35 +1,34 @@
 """BPP inference latency and training / data-loading throughput on this machine.
 
-    python bench/bpp_latency.py --data data/draw/cpu.zarr [--presets cpu paper] [--calls 30]
+    python bench/bpp_latency.py --data data/draw/cpu.zarr [--presets cpu paper] [--obs canvas] [--calls 30]
 
-For each preset: the latency of one inference call of ``PolicyAgent`` (prompt encoder once + all DDIM steps;
-``act`` runs it every Ta steps, the other ``act`` calls only pop the action queue) with a 100-step and an
-800-step prompt (the prompt itself is encoded once at ``reset``, outside the timing), the 800/100 ratio, then
-training samples/s and data-loader samples/s (one worker process).
+For each BPP size preset, observing DrawAnything's observation preset `--obs` (default: the benchmark's own for that
+size, `canvas` state for `cpu` and the 224x224 camera for `paper`): the latency of one inference call of
+``PolicyAgent`` (prompt encoder once + all DDIM steps; ``act`` runs it every Ta steps, the other ``act`` calls only
+pop the action queue) with a 100-step and an 800-step prompt (the prompt itself is encoded once at ``reset``,
+outside the timing), the 800/100 ratio, then training samples/s and data-loader samples/s (one worker process).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 
 import numpy as np
 import torch
-from bpp.evaluation.draw import prompt_from_store
 
+from bpp.data.contexts import task_context
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.bpp.config import PRESETS
 from bpp.policies.bpp.model import BPPModel
+from bpp.policies.registry import get_method
 from bpp.utils import to_torch
 
 
 def _prompt_of_length(store, model, steps: int) -> dict:
-    cfg = model.cfg.obs
-    keys = [*cfg.image_keys, *cfg.lowdim_keys, *cfg.proprio_keys]
-    base = prompt_from_store(store, 0, keys, cfg.image_keys, cfg.image_size)
+    base = task_context(store, 0, model.data_spec(), BENCHMARK.frames)
     reps = -(-steps // len(base["action"]))
     return {
         "obs": {k: np.concatenate([v] * reps)[:steps] for k, v in base["obs"].items()},
@@ -40,7 +39,7 @@ def _prompt_of_length(store, model, steps: int) -> dict:
 def act_latency(store, model, prompt_steps: int, calls: int) -> np.ndarray:
     agent = PolicyAgent(model)
     agent.reset(_prompt_of_length(store, model, prompt_steps), seed=0)
-    ep = prompt_from_store(store, 1, model.obs_keys(), model.cfg.obs.image_keys, model.cfg.obs.image_size)
+    ep = task_context(store, 1, model.data_spec(), BENCHMARK.frames)
     obs = {k: v[0] for k, v in ep["obs"].items()}
     agent.act(obs)  # warm-up
     times = []
@@ -88,22 +87,24 @@ def loader_rate(store, model, batch_size: int, batches: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="data/draw/cpu.zarr")
-    parser.add_argument("--presets", nargs="+", default=["cpu", "paper"])
+    parser.add_argument("--presets", nargs="+", default=["cpu", "paper"], help="BPP size presets")
+    parser.add_argument(
+        "--obs", default=None, help="DrawAnything observation preset (default: the benchmark's own for each size)"
+    )
     parser.add_argument("--calls", type=int, default=30)
     args = parser.parse_args()
     store = EpisodeStore(args.data)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads")
     for name in args.presets:
-        cfg = PRESETS[name]
-        if name == "paper":
-            cfg = replace(cfg, obs=replace(cfg.obs, image_keys=("image",)))
+        cfg = get_method("bpp").config(name, args.obs, BENCHMARK)
         torch.manual_seed(0)
         model = BPPModel(cfg, store.stats).eval()
         params = sum(p.numel() for p in model.parameters()) / 1e6
         short = act_latency(store, model, 100, args.calls)
         long = act_latency(store, model, 800, args.calls)
         ta = cfg.horizons.n_action_steps
-        print(f"\n[{name}] {params:.1f}M params, {cfg.diffusion.num_inference_steps} DDIM steps, Ta={ta}")
+        title = name if args.obs is None else f"{name}, {args.obs}"
+        print(f"\n[{title}] {params:.1f}M params, {cfg.diffusion.num_inference_steps} DDIM steps, Ta={ta}")
         for label, t in (("100-step prompt", short), ("800-step prompt", long)):
             print(
                 f"  inference call, {label}: p50 {np.percentile(t, 50):.1f} ms, p95 {np.percentile(t, 95):.1f} ms"

@@ -26,7 +26,10 @@ from bpp.train import TrainConfig, train
 a = json.loads(sys.argv[1])
 method = get_method("bpp")
 if hasattr(method, "config"):
-    cfg = method.config(a["preset"], a["obs"], a["data"])
+    from bpp.data.store import EpisodeStore
+    from bpp.envs.registry import get_benchmark
+
+    cfg = method.config(a["preset"], a["obs"], get_benchmark(EpisodeStore(a["data"]).benchmark))
 else:  # before presets were split into sizes and observations
     cfg = method.preset(a["preset"] + "-" + a["obs"])
 kw = {k: a[k] for k in ("threads", "workers") if a[k] is not None}

@@ -3,6 +3,12 @@
     python bench/draw_cpu_benchmark.py                                  # defaults below; ~1.5 h on 2 cores
     python bench/draw_cpu_benchmark.py --methods bpp icrt --seeds 0 1 2 --steps bpp=6000 icrt=4000
     python bench/draw_cpu_benchmark.py --seeds 0 1 2 --report-only    # table of whatever has finished training
+    python bench/draw_cpu_benchmark.py --methods bpp --obs image64 --out outputs/bench/draw_cpu_image  # a camera
+
+Every method trains the same size preset (`--preset`, default `cpu`) observing the same DrawAnything observation
+preset (`--obs`, default `board`: state and actions in the board's frame, not the paper's setting). Runs are named
+`{method}-{preset}-{obs}-s{seed}`, except that a pair with a name from before presets were split into sizes and
+observations keeps it (`cpu` + `board` is `cpu-board`, `cpu` + `image64` is `cpu-image`), so earlier runs are found.
 
 Generates the data (procedural training tasks, the unseen human-made drawings), trains every method x seed on the
 same training store (skipping runs that already finished, resuming killed ones), evaluates each with the paper's
@@ -22,17 +28,47 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.checkpoint import read_state, resolve_checkpoint
+from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
 from bpp.data.store import EpisodeStore, StoreError
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.envs.draw.dataset import DrawDataConfig, generate
-from bpp.evaluation.evaluate import Protocol, evaluate, resolve_task_set
+from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_dict, write_json_atomic
 
 NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
+OLD_PRESETS = {
+    ("debug", "canvas"): "debug",
+    ("cpu", "canvas"): "cpu",
+    ("cpu", "board"): "cpu-board",
+    ("cpu", "image64"): "cpu-image",
+    ("paper", "paper"): "paper",
+}
+"""(size preset, observation preset) -> the single preset name it had before presets were split in two."""
+
+
+def preset_label(preset: str, obs: str) -> str:
+    """The name of size preset `preset` observing `obs` in run folders and reports: its old single preset name where
+    it had one (e.g. ``cpu-board``), so runs trained before the split are still found; else ``{preset}-{obs}``."""
+    return OLD_PRESETS.get((preset, obs), f"{preset}-{obs}")
+
+
+IMAGE_ENCODER_FIELDS = ("image_features", "image_widths", "image_blocks")
+
+
+def comparable_config(model_config: dict | None) -> dict | None:
+    """A serialised model configuration, less what may differ between runs of the same model. Runs trained before
+    presets were split into sizes and observations stored their state-only presets' image-encoder sizes
+    (``obs.image_features``, ``obs.image_widths``; ``obs.image_blocks`` too for ``debug``), which differ from today's
+    size presets' but build nothing when no camera is observed, so they are left out when ``obs.image_keys`` is
+    empty: runs trained before the split are still accepted."""
+    obs = model_config.get("obs") if isinstance(model_config, dict) else None
+    if not isinstance(obs, dict) or obs.get("image_keys"):
+        return model_config
+    return {**model_config, "obs": {k: v for k, v in obs.items() if k not in IMAGE_ENCODER_FIELDS}}
 
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
@@ -44,6 +80,7 @@ def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
 def train_run(
     method: str,
     preset: str,
+    obs: str,
     store: EpisodeStore,
     run: Path,
     steps: int,
@@ -52,14 +89,17 @@ def train_run(
     tasks_per_batch: int = 1,
     threads: int = 0,
 ) -> float:
-    """Train (or finish, or reuse) one run; returns its training wall time in seconds (summed over sessions)."""
-    model_cfg = get_method(method).preset(preset)
+    """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
+    `obs`; returns its training wall time in seconds (summed over sessions)."""
+    model_cfg = get_method(method).config(preset, obs, BENCHMARK)
     recorded = run / "config.json"
-    if recorded.is_file() and json.loads(recorded.read_text()).get("model_config") != to_dict(model_cfg):
-        raise SystemExit(
-            f"{run} was trained with another {method} configuration than today's `{preset}` preset (a preset "
-            "changed since); delete it or pass another --runs folder"
-        )
+    if recorded.is_file():
+        stored = json.loads(recorded.read_text()).get("model_config")
+        if comparable_config(stored) != comparable_config(to_dict(model_cfg)):
+            raise SystemExit(
+                f"{run} was trained with another {method} configuration than today's `{preset}` preset observing "
+                f"`{obs}` (a preset changed since); delete it or pass another --runs folder"
+            )
     timing = run / "train_seconds.json"
     spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
     if trained_to(run, steps):
@@ -127,7 +167,8 @@ def _per_method(items: list[str]) -> dict[str, int]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
-    parser.add_argument("--preset", default="cpu-board", help="model preset name, the same for every method")
+    parser.add_argument("--preset", default="cpu", help="model size preset, the same for every method")
+    parser.add_argument("--obs", default="board", help="DrawAnything observation preset, the same for every method")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
     parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
     parser.add_argument("--default-steps", type=int, default=6000)
@@ -138,7 +179,9 @@ def main() -> None:
         help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations of ~10 chunks)",
     )
     parser.add_argument("--tasks-per-batch", type=int, default=8, help="tasks (prompts) per step, all methods")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads for training (0: torch's default)")
+    parser.add_argument(
+        "--threads", type=int, default=0, help="torch threads for training (0: TrainConfig's auto, the cores minus one)"
+    )
     parser.add_argument("--num-tasks", type=int, default=500, help="procedural training tasks (5 demos each)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per unseen drawing (paper: 32)")
     parser.add_argument("--train-tasks", type=int, default=20, help="training drawings evaluated")
@@ -161,21 +204,24 @@ def main() -> None:
     args = parser.parse_args()
     steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
     batch = {m: 64 for m in args.methods} | _per_method(args.batch)
+    label = preset_label(args.preset, args.obs)
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
     store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
     rows, results = [], {}
     for method in args.methods:
-        replans = hasattr(get_method(method).preset(args.preset), "diffusion")  # ICRT executes whole chunks
+        model_cfg = get_method(method).config(args.preset, args.obs, BENCHMARK)  # refuses unknown presets early
+        replans = hasattr(model_cfg, "diffusion")  # ICRT executes whole chunks
         protocol = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps if replans else 0)
         for seed in args.seeds:
-            run = args.runs / f"{method}-{args.preset}-s{seed}"
+            run = args.runs / f"{method}-{label}-s{seed}"
             if args.report_only and not (trained_to(run, steps[method]) and (run / "train_seconds.json").is_file()):
                 print(f"skipping {run}: not trained to {steps[method]} steps")
                 continue
             seconds = train_run(
                 method,
                 args.preset,
+                args.obs,
                 train_store,
                 run,
                 steps[method],
@@ -187,13 +233,14 @@ def main() -> None:
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
             entry["n_action_steps"] = protocol.n_action_steps
-            for task_set, num in (("human", 0), ("train", args.train_tasks)):
-                store, tasks, label = resolve_task_set(task_set, run, data_dir=args.data_dir, num_tasks=num)
-                out = args.out / run.name / task_set
-                data = evaluate(run, store, tasks, label, out, protocol, args.workers)
-                entry[task_set] = data["summary"]["chamfer_mean"]
-                entry[f"{task_set}_median_rollout"] = data["summary"]["chamfer_median_rollout"]
-                entry[f"{task_set}_per_task"] = {t["task"]: t["chamfer_mean"] for t in data["tasks"]}
+            checkpoint = Checkpoint.load(run, use_ema=True)
+            for name, num in (("human", 0), ("train", args.train_tasks)):
+                _, task_set, tasks = resolve_tasks(name, checkpoint, data_dir=args.data_dir, num_tasks=num)
+                out = args.out / run.name / name
+                data = evaluate(checkpoint, task_set, tasks, out, protocol, args.workers)
+                entry[name] = data["summary"]["score_mean"]  # the best Chamfer distance, px
+                entry[f"{name}_median_rollout"] = data["summary"]["score_median_rollout"]
+                entry[f"{name}_per_task"] = {t["task"]: t["score_mean"] for t in data["tasks"]}
             results[f"{method}/s{seed}"] = entry
             write_json_atomic(args.out / "results.json", results)
 
@@ -244,13 +291,11 @@ def main() -> None:
     if args.n_action_steps:
         executed = f" The diffusion-decoder methods execute {args.n_action_steps} actions per inference."
     (args.out / "table.md").write_text(
-        f"DrawAnything-Sim on a CPU, preset `{args.preset}`, {args.num_tasks} tasks x 5 demos, "
+        f"DrawAnything-Sim on a CPU, preset `{label}`, {args.num_tasks} tasks x 5 demos, "
         f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "
         f"mean ± std over seeds.{executed}\n\n{table}"
     )
-    bar_chart(
-        chart, args.out / "chart.png", "Chamfer distance (px, lower is better)", f"DrawAnything-Sim, {args.preset}"
-    )
+    bar_chart(chart, args.out / "chart.png", "Chamfer distance (px, lower is better)", f"DrawAnything-Sim, {label}")
     print(table)
     print(f"wrote {args.out / 'table.md'}, {args.out / 'chart.png'}, {args.out / 'results.json'}")
 

@@ -1,13 +1,16 @@
 """Inference latency of every method on this CPU, measured over whole 400-step DrawAnything rollouts.
 
-    python bench/method_latency.py --data data/draw/cpu.zarr --preset cpu [--methods bpp goal_image icrt language]
+    python bench/method_latency.py --data data/draw/cpu.zarr --preset cpu [--obs canvas] \\
+        [--methods bpp goal_image icrt language]
 
-For each method (untrained weights: latency does not depend on training): `reset` (the task context is encoded
-once per rollout) and then `act` for 400 steps of a real env rollout with early stopping off. Reported: the
-latency of the `act` calls that run the network (p50 / p95), the per-step cost amortised over all 400 `act`
-calls, and, for ICRT, how the latency of a network call grows with the rollout history (its KV cache grows by
-two tokens per chunk). Language runs once per ``--text-encoders`` choice, on a store whose tasks carry instructions
-(``--language-data``, e.g. written by ``bpp draw generate --describe``).
+For each method, at size preset `--preset` observing DrawAnything's observation preset `--obs` (default: the
+benchmark's own for that size, `canvas` state for `cpu` and the 224x224 camera for `paper`), with untrained weights
+(latency does not depend on training): `reset` (the task context is encoded once per rollout) and then `act` for
+400 steps of a real env rollout with early stopping off. Reported: the latency of the `act` calls that run the
+network (p50 / p95), the per-step cost amortised over all 400 `act` calls, and, for ICRT, how the latency of a
+network call grows with the rollout history (its KV cache grows by two tokens per chunk). Language runs once per
+``--text-encoders`` choice, on a store whose tasks carry instructions (``--language-data``, e.g. written by
+``bpp draw generate --describe``).
 """
 
 from __future__ import annotations
@@ -18,9 +21,10 @@ from dataclasses import replace
 
 import numpy as np
 import torch
-from bpp.evaluation.draw import context_for
 
+from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
+from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
@@ -28,7 +32,7 @@ from bpp.policies.registry import get_method
 
 def rollout_timings(agent: PolicyAgent, store: EpisodeStore, steps: int) -> tuple[float, list[tuple[int, float]]]:
     """(reset seconds, [(step, act seconds)]) over one rollout of `steps` steps."""
-    spec = agent.model.data_spec()
+    spec = agent.data_spec
     env = DrawEnv(
         image_size=spec.image_size if spec.image_keys else None,
         early_stop=False,
@@ -37,7 +41,7 @@ def rollout_timings(agent: PolicyAgent, store: EpisodeStore, steps: int) -> tupl
     )
     obs, _ = env.reset(seed=0, options={"board_angle": 0.3})
     t0 = time.perf_counter()
-    agent.reset(context_for(agent.model, store, 0), seed=0)
+    agent.reset(task_context(store, 0, spec, BENCHMARK.frames), seed=0)
     reset_s = time.perf_counter() - t0
     times = []
     for step in range(steps):
@@ -51,7 +55,10 @@ def rollout_timings(agent: PolicyAgent, store: EpisodeStore, steps: int) -> tupl
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", default="data/draw/cpu.zarr")
-    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--preset", default="cpu", help="size preset, the same for every method")
+    parser.add_argument(
+        "--obs", default=None, help="DrawAnything observation preset (default: the benchmark's own for the size)"
+    )
     parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--language-data", default="", help="a store with instructions (for --methods language)")
@@ -64,13 +71,14 @@ def main() -> None:
             parser.error("--methods language needs --language-data: a store made with `bpp draw generate --describe`")
         language_store = EpisodeStore(args.language_data)
         runs += [("language", encoder) for encoder in args.text_encoders]
-    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, preset {args.preset}")
+    preset = args.preset if args.obs is None else f"{args.preset}, observations {args.obs}"
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, preset {preset}")
     header = "| method | params | reset (context encoding) | network call p50 / p95 | calls | per step, amortised |"
     print("\n" + header + "\n| --- | ---: | ---: | ---: | ---: | ---: |")
     growth = {}
     for name, text_encoder in runs:
         method = get_method(name)
-        cfg, label, data = method.preset(args.preset), name, store
+        cfg, label, data = method.config(args.preset, args.obs, BENCHMARK), name, store
         if text_encoder is not None:
             cfg = replace(cfg, text_encoder=text_encoder, tokenizer="pretrained")
             label, data = f"{name} ({text_encoder} text encoder)", language_store

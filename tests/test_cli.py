@@ -85,6 +85,10 @@ def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "mean ± std over checkpoints" in (tmp_path / "eval" / "summary.md").read_text()
+    shown = tmp_path / "shown"
+    out = _bpp("draw", "rollout", str(tmp_path / "run0"), "--store", str(debug_store.path), "--out", str(shown))
+    assert out.returncode == 0 and "best Chamfer" in out.stdout, out.stderr[-3000:]
+    assert (shown / "rollout.png").stat().st_size > 1000 and (shown / "rollout.gif").stat().st_size > 1000
     drawing = tmp_path / "tri.json"
     drawing.write_text('{"drawings": [{"id": "tri", "strokes": [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8], [0.2, 0.2]]]}]}')
     out = _bpp("eval", str(tmp_path / "run0"), "--files", str(drawing), "--out", str(tmp_path / "mine"), *common)
