@@ -14,6 +14,7 @@ import bpp
 from bpp.cli import main
 from bpp.data.store import EpisodeStore
 from bpp.envs.registry import BENCHMARKS, get_benchmark, register_benchmark
+from bpp.evaluation.evaluate import Protocol
 
 SRC = Path(bpp.__file__).parent
 GENERIC = [p for p in SRC.rglob("*.py") if "envs" not in p.relative_to(SRC).parts]
@@ -98,9 +99,10 @@ def test_a_second_benchmark_generates_trains_evaluates_and_reports(reach, tmp_pa
     assert "waypoint miss" in (out / "results.md").read_text()
     assert (out / "grid.png").stat().st_size > 1000 and list(out.glob("rollout_reach-0.*"))
     assert "waypoint miss" in capsys.readouterr().out
-    # The same rollouts (starts and seeds) whatever the method: drawn from (seed, task, rollout) alone.
-    starts = [r["start"] for r in results["rollouts"]]
-    assert starts == [r["start"] for r in json.loads((out / "results.json").read_text())["rollouts"]]
+    # The benchmark's conditions and the seeds are the protocol's plan, drawn from (seed, task, rollout) alone, so
+    # every method and checkpoint gets the same rollouts.
+    plan = [row for t in range(4) for row in Protocol(rollouts=2).plan(EpisodeStore(store), t, reach)]
+    assert [(r["start"], r["seed"]) for r in results["rollouts"]] == [(p["start"], p["seed"]) for p in plan]
     with pytest.raises(SystemExit, match="no named task set|not a task set"):
         main(["eval", str(run), "--tasks", "human", "--out", str(tmp_path / "none")])
     assert not (tmp_path / "none").exists()

@@ -136,3 +136,22 @@ def test_bpp_eval_reads_each_checkpoint_once(debug_store, tmp_path, monkeypatch)
     args = ["eval", str(run), "--tasks", str(debug_store.path), "--num-tasks", "2", "--rollouts", "1"]
     main([*args, "--max-steps", "5", "--workers", "1", "--videos", "0", "--out", str(tmp_path / "eval")])
     assert sorted(reads) == ["ema.safetensors", "state.json"]
+
+
+def test_bad_agent_options_are_refused_before_any_worker_starts(debug_store, tmp_path):
+    """A worker that fails to start would be restarted forever by a process pool: the parent checks first."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "icrt"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="icrt", steps=1, batch_size=2, workers=0, warmup_steps=1)
+    train(cfg, config("icrt"), progress=False)
+    args = ["eval", str(run), "--tasks", str(debug_store.path), "--num-tasks", "2", "--workers", "2"]
+    out = subprocess.run(
+        [sys.executable, "-m", "bpp.cli", *args, "--n-action-steps", "4", "--out", str(tmp_path / "eval")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode != 0 and "executes all N=10 actions" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "eval").exists()

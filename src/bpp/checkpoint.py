@@ -175,10 +175,6 @@ class Checkpoint:
         """The benchmark of the store it was trained on."""
         return self.state["dataset"]["benchmark"]
 
-    @property
-    def run_dir(self) -> Path:
-        return self.path.parent.parent  # <run>/checkpoints/step_N
-
     def model_config(self):
         from bpp.policies.registry import get_method
 

@@ -48,7 +48,11 @@ def _generate_class(benchmark) -> type:
         frozen=True,
     )
     presets = ", ".join(benchmark.data_presets)
-    cls.__doc__ = f"Generate {benchmark.description} tasks and demonstrations into a store (presets: {presets})."
+    cls.__doc__ = (
+        f"Generate {benchmark.name} tasks and demonstrations into a store (atomically); data presets: {presets}.\n\n"
+        f"{benchmark.description}.\n\nExample:\n  bpp {benchmark.command} generate --preset "
+        f"{next(iter(benchmark.data_presets))} --out data/{benchmark.command}/train.zarr"
+    )
     return cls
 
 
@@ -205,17 +209,28 @@ def eval_cmd(args: Eval) -> None:
         n_action_steps=args.n_action_steps,
         inference_steps=args.inference_steps,
     )
-    # Every argument is checked (checkpoints read, task sets resolved) before anything is evaluated or written.
+    from bpp.policies.agent import PolicyAgent
+
+    # Every argument is checked (checkpoints read, agent options tried, task sets resolved) before anything is
+    # evaluated or written.
     checkpoints = [Checkpoint.load(path, use_ema=True) for path in args.checkpoints]
-    jobs = []
+    benchmarks = {ckpt.benchmark for ckpt in checkpoints}
+    if len(benchmarks) > 1:
+        raise ValueError(f"the checkpoints were trained on different benchmarks ({', '.join(sorted(benchmarks))})")
     for ckpt in checkpoints:
-        benchmark = get_benchmark(ckpt.benchmark)
-        tasks = args.tasks or next(iter(benchmark.task_sets), "train")
-        jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks))
+        PolicyAgent(ckpt.build_model(), **protocol.agent_options())
+    tasks = args.tasks or _default_tasks(checkpoints[0])
+    jobs = []
+    for ckpt in checkpoints:  # one task set for all (a store from --files is built once), but each its own `train`
+        own = tasks == "train" and not args.files
+        if own or not jobs:
+            jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks))
+        else:
+            jobs.append(jobs[0])
     runs = []
-    for i, (ckpt, (benchmark, task_set, tasks)) in enumerate(zip(checkpoints, jobs, strict=True)):
+    for i, (ckpt, (benchmark, task_set, indices)) in enumerate(zip(checkpoints, jobs, strict=True)):
         out = args.out if len(checkpoints) == 1 else args.out / f"{i}-{Path(args.checkpoints[i]).name}"
-        data = evaluate(ckpt, task_set, tasks, out, protocol, args.workers, args.videos)
+        data = evaluate(ckpt, task_set, indices, out, protocol, args.workers, args.videos)
         s, metric = data["summary"], benchmark.metric
         score, spread = metric.format(s["score_mean"]), s["score_std_over_tasks"]
         print(f"[eval] {ckpt.path}: {task_set.label}: {metric.name} {score} (std over tasks {spread:.2f})")
@@ -224,11 +239,18 @@ def eval_cmd(args: Eval) -> None:
     if len(runs) > 1:
         summary = combine(runs)
         write_json_atomic(args.out / "summary.json", summary)
+        metric = jobs[0][0].metric
         rows = [(run["checkpoint"], run["summary"]["score_mean"]) for run in runs]
-        text = markdown_table(["checkpoint", "score"], rows)
-        text += f"\n**{summary['score_mean']:.2f} ± {summary['score_std']:.2f}** (mean ± std over checkpoints)\n"
+        text = markdown_table(["checkpoint", f"{metric.name} ({metric.unit or 'score'})"], rows)
+        spread = f"{metric.format(summary['score_mean'])} ± {summary['score_std']:.2f}"
+        text += f"\n**{spread}** (mean ± std over checkpoints)\n"
         (args.out / "summary.md").write_text(text)
-        print(f"[eval] {len(runs)} checkpoints: {summary['score_mean']:.2f} ± {summary['score_std']:.2f}")
+        print(f"[eval] {len(runs)} checkpoints: {metric.name} {spread}")
+
+
+def _default_tasks(ckpt) -> str:
+    """The task set `bpp eval` uses without --tasks: the benchmark's first named one, else the training tasks."""
+    return next(iter(get_benchmark(ckpt.benchmark).task_sets), "train")
 
 
 # ----------------------------------------------------------------------------- dispatch
@@ -310,7 +332,7 @@ def main(argv: list[str] | None = None) -> None:
     args = tyro.cli(cls, args=rest, prog=prog, default=default)
     try:
         run(args)
-    except (ValueError, OSError, RuntimeError, KeyError) as err:
+    except (ValueError, OSError, RuntimeError, KeyError, IndexError) as err:
         sys.exit(f"{prog}: error: {err}")
 
 

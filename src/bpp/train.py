@@ -21,8 +21,8 @@ from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpo
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
 from bpp.policies.common import count_parameters
-from bpp.policies.registry import get_method
-from bpp.utils import to_dict, to_torch, write_json_atomic
+from bpp.policies.registry import PolicyModelContract, get_method
+from bpp.utils import to_dict, to_torch, usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -62,10 +62,10 @@ class TrainConfig:
     resume: bool = False
     """Continue the run in `out` from its last checkpoint."""
     threads: int = 0
-    """torch CPU threads per process (0: auto; on a CPU, the usable cores minus one, at least 1, and minus the
-    loader workers: torch's threads wait for each other at every operation, so with as many threads as cores any
-    other busy program slowed training 30-fold here, while one core left free costs about a third alone; see
-    BENCHMARKS.md)."""
+    """torch CPU threads per process (0: auto; on a CPU, OMP_NUM_THREADS if set, else the usable cores, shared by
+    the processes of a torchrun on this machine, minus one and minus the loader workers, at least 1: torch's threads
+    wait for each other at every operation, so with as many threads as cores any other busy program slowed training
+    30-fold here, while one core left free costs about a third alone; see BENCHMARKS.md)."""
     frame_cache_gb: float = 4.0
     """Image observations each loader process keeps once its benchmark has rendered or read them (a benchmark may
     render frames from stored state; all 64x64 frames of 2500 demonstrations take about 3 GB, and rendering them anew
@@ -109,8 +109,8 @@ def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
     """(loader workers, torch threads; 0: torch's default) for `cfg`'s auto settings on `device`."""
     workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else 2)
     threads = cfg.threads
-    if not threads and device.type == "cpu":
-        cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    if not threads and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
+        cores = usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # shared by torchrun's processes
         threads = max(1, cores - 1 - workers)
     return workers, threads
 
@@ -140,7 +140,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     store = EpisodeStore(cfg.data)
     method = get_method(cfg.method)
     torch.manual_seed(cfg.seed)
-    model = method.model_cls(model_cfg, store.stats).to(device)
+    model: PolicyModelContract = method.model_cls(model_cfg, store.stats).to(device)
+    assert isinstance(model, PolicyModelContract), f"{cfg.method}'s model does not satisfy the model contract"
     ema = copy.deepcopy(model).requires_grad_(False).eval()
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.95, 0.999), weight_decay=cfg.weight_decay)
     start = load_training_state(run, model, ema, optimizer) if cfg.resume else 0

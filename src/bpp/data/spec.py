@@ -31,6 +31,8 @@ class ObservationPreset:
     image_size: int = 96
     action_key: str = "action"
     """The per-step key the policy learns to output (the benchmark's env must know how to execute it)."""
+    goal_camera: str = "image"
+    """The camera whose final frame is a goal image (the Goal-Image baseline), whether or not the policy observes it."""
     description: str = ""
 
     def __post_init__(self):
@@ -65,8 +67,3 @@ class DataSpec:
     def __post_init__(self):
         if self.context not in CONTEXT_KINDS:
             raise ValueError(f"context must be one of {CONTEXT_KINDS}, got {self.context!r}")
-
-    @property
-    def obs_keys(self) -> tuple[str, ...]:
-        """Every per-step observation key read (cameras, then low-dimensional)."""
-        return (*self.image_keys, *self.lowdim_keys)

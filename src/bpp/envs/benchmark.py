@@ -40,8 +40,8 @@ class Metric:
     """e.g. "px" ("" for rates)."""
     lower_is_better: bool = True
     good_threshold: float | None = None
-    """A rollout is *good* when its score is at most (lower is better) or at least this; the share of good
-    rollouts is reported (e.g. a distance under 5 px; success = 1)."""
+    """A rollout is *good* when its score is under this (lower is better) or at least this (higher is better); the
+    share of good rollouts is reported (e.g. a distance under 5 px; success = 1)."""
     description: str = ""
     """One sentence for reports: what a rollout's score is."""
 
@@ -50,7 +50,7 @@ class Metric:
         scores = np.asarray(scores, dtype=float)
         if self.good_threshold is None:
             return np.zeros(scores.shape, dtype=bool)
-        return scores <= self.good_threshold if self.lower_is_better else scores >= self.good_threshold
+        return scores < self.good_threshold if self.lower_is_better else scores >= self.good_threshold
 
     @property
     def good_label(self) -> str:
@@ -156,8 +156,10 @@ class Benchmark(Protocol):
         """Run rollouts in lockstep with an agent already reset with their contexts (``agent.act_batch``).
 
         rollouts[i] has ``target_episode`` (the demonstration whose task scores it), ``seed`` and the keys of
-        :meth:`rollout_conditions`. ``agent.data_spec`` says what to observe (keys, image size) and which action key
-        it outputs."""
+        :meth:`rollout_conditions`. Of the agent (:class:`bpp.policies.agent.PolicyAgent`) a runner uses
+        ``data_spec`` (what to observe: keys, image size; which action key it outputs), ``obs_keys`` (the per-step
+        keys ``act_batch`` reads) and ``act_batch({key: (B, ...)}) -> (B, A)`` while rollouts run; a finished rollout
+        keeps being passed its last observation (its actions are ignored)."""
         ...
 
     def prompt_picture(self, store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:

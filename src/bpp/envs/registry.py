@@ -25,6 +25,9 @@ GYM_ENVS: dict[str, str] = {
 }
 """Gymnasium ids registered by ``import bpp.envs`` (entry points are imported lazily, on ``gym.make``)."""
 
+RESERVED_COMMANDS = ("train", "eval", "store", "demo")
+"""The generic command-line groups a benchmark's `command` may not take."""
+
 _LOADED: dict[str, Benchmark] = {}
 
 
@@ -63,11 +66,10 @@ def get_benchmark(name: str) -> Benchmark:
 
 def benchmark_for_command(command: str) -> Benchmark | None:
     """The benchmark whose command-line group is `command` (``bpp <command> ...``), if any."""
-    for name in benchmark_names():
-        benchmark = get_benchmark(name)
-        if benchmark.command == command:
-            return benchmark
-    return None
+    found = [b for b in map(get_benchmark, benchmark_names()) if b.command == command]
+    if len(found) > 1:
+        raise ValueError(f"benchmarks {', '.join(b.name for b in found)} all take the command {command!r}")
+    return found[0] if found else None
 
 
 def _check(name: str, benchmark) -> None:
@@ -77,6 +79,8 @@ def _check(name: str, benchmark) -> None:
         raise TypeError(f"benchmark {name!r} does not satisfy bpp.envs.benchmark.Benchmark; missing {missing}")
     if benchmark.name != name:
         raise ValueError(f"benchmark registered as {name!r} calls itself {benchmark.name!r}")
+    if benchmark.command in RESERVED_COMMANDS:
+        raise ValueError(f"benchmark {name!r} takes the command {benchmark.command!r}, which bpp reserves")
 
 
 def register_gym_envs() -> None:

@@ -30,7 +30,7 @@ from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.envs.benchmark import Benchmark, Metric, TaskSet, run_prompted
 from bpp.envs.registry import get_benchmark
-from bpp.utils import write_json_atomic
+from bpp.utils import usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -78,6 +78,8 @@ class Protocol:
                 other = episodes[(task + 1 + r % (len(episodes) - 1)) % len(episodes)]
                 prompt = int(other[r % len(other)])
             conditions = benchmark.rollout_conditions(rng)
+            clash = set(conditions) & {"rollout", "target_episode", "prompt_episode", "seed"}
+            assert not clash, f"{benchmark.name}: rollout conditions {sorted(clash)} shadow the protocol's own fields"
             plan.append(
                 {
                     "rollout": r,
@@ -113,22 +115,31 @@ def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_path: str, 
 
     from bpp.policies.agent import PolicyAgent
 
-    torch.set_num_threads(threads)
-    model = checkpoint.build_model()
-    _WORKER["agent"] = PolicyAgent(model, record_attention=True, **protocol.agent_options())
-    _WORKER["benchmark"] = benchmark
-    _WORKER["store"] = EpisodeStore(store_path)
-    _WORKER["protocol"] = protocol
+    # An exception here would make a process pool restart the worker forever: keep it for the first task instead.
+    _WORKER.clear()
+    try:
+        torch.set_num_threads(threads)
+        model = checkpoint.build_model()
+        _WORKER["agent"] = PolicyAgent(model, record_attention=True, **protocol.agent_options())
+        _WORKER["benchmark"] = benchmark
+        _WORKER["store"] = EpisodeStore(store_path)
+        _WORKER["protocol"] = protocol
+    except Exception as err:  # noqa: BLE001 - re-raised by _run_task, in the parent
+        _WORKER["error"] = err
 
 
 def _run_task(job: tuple[int, bool]) -> TaskResult:
+    if "error" in _WORKER:
+        raise _WORKER["error"]
     task, video = job
     agent, benchmark, store, protocol = (_WORKER[k] for k in ("agent", "benchmark", "store", "protocol"))
     plan = protocol.plan(store, task, benchmark)
     results, attention = run_prompted(
         agent, benchmark, store, plan, protocol.max_steps, [r == 0 for r in range(len(plan))]
     )
-    rows = [{**p, "score": r.score, **r.extra, "steps": r.steps} for p, r in zip(plan, results, strict=True)]
+    rows = [{**p, "score": r.score, "steps": r.steps, **r.extra} for p, r in zip(plan, results, strict=True)]
+    clash = {*plan[0], "score", "steps"} & set(results[0].extra)
+    assert not clash, f"{benchmark.name}: rollout extras {sorted(clash)} shadow the protocol's own fields"
     first = results[0]
     return TaskResult(
         task,
@@ -157,7 +168,7 @@ def run_protocol(
     set, else the cores divided among the processes.
     """
     assert protocol.max_steps > 0, "resolve the benchmark's max_steps first (evaluate does)"
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    cores = usable_cores()
     workers = max(1, min(workers or cores, len(tasks)))
     jobs = [(t, i < video_tasks) for i, t in enumerate(tasks)]
     # torch threads per worker: OMP_NUM_THREADS if the user set it (e.g. to leave cores to a training run: more
@@ -299,9 +310,11 @@ def evaluate(
     returned without running anything.
     """
     from bpp.evaluation import report
+    from bpp.policies.agent import PolicyAgent
 
     ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else Checkpoint.load(checkpoint, use_ema=True)
     benchmark = get_benchmark(ckpt.benchmark)
+    PolicyAgent(ckpt.build_model(), **protocol.agent_options())  # refuse bad agent options here, not in every worker
     store = task_set.store
     protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
     out = Path(out)

@@ -44,10 +44,11 @@ def write_grid(results, benchmark, store: EpisodeStore, path: Path, per_row: int
         images += [benchmark.prompt_picture(store, first["prompt_episode"]), r.last_frame]
         titles += [
             f"{r.task_id}: prompt",
-            f"{benchmark.describe_rollout(first)}: {first['score']:.1f} (task {r.mean:.1f})",
+            f"{benchmark.describe_rollout(first)}: {benchmark.metric.format(first['score'])} (task {r.mean:.1f})",
         ]
-    keep = [i for i, image in enumerate(images) if image is not None]
-    return contact_sheet([images[i] for i in keep], [titles[i] for i in keep], path, columns=2 * per_row, title=title)
+    blank = np.full_like(images[0], 255)  # a rollout without frames keeps its place beside its prompt
+    images = [blank if image is None else image for image in images]
+    return contact_sheet(images, titles, path, columns=2 * per_row, title=title)
 
 
 def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, title: str = "") -> Path:

@@ -45,6 +45,7 @@ class PolicyAgent:
         num_inference_steps: int | None = None,
         record_attention: bool = False,
     ):
+        assert isinstance(model, PolicyModelContract), f"{type(model).__name__} does not satisfy the model contract"
         self.model = model.to(device).eval()
         if num_inference_steps is not None:
             model.set_inference_steps(num_inference_steps)
@@ -61,9 +62,9 @@ class PolicyAgent:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", use_ema: bool = True, **kw) -> PolicyAgent:
-        from bpp.checkpoint import Checkpoint
+        from bpp.checkpoint import load_policy
 
-        return cls(Checkpoint.load(path).build_model(device, use_ema), device, **kw)
+        return cls(load_policy(path, device, use_ema), device, **kw)
 
     # ------------------------------------------------------------ one rollout
     def reset(self, context: Mapping, seed: int = 0) -> None:

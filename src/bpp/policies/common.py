@@ -255,8 +255,8 @@ PAPER_DIFFUSION = DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128
 def with_observation(cfg, preset):
     """A method config (any with ``obs`` and ``action_key``) that observes and acts as a benchmark's observation
     preset says (:class:`bpp.data.spec.ObservationPreset`): its keys, image size and action key. The encoders keep
-    the size preset's widths. A config class may define ``observation_overrides(obs) -> dict`` for fields that
-    follow the observations (e.g. Goal-Image's goal size when the goal shares the camera encoder)."""
+    the size preset's widths. A config class may define ``observation_overrides(obs, preset) -> dict`` for fields
+    that follow the observations (e.g. Goal-Image's goal camera, and its size when it shares the camera encoder)."""
     obs = replace(
         cfg.obs,
         image_keys=tuple(preset.image_keys),
@@ -267,7 +267,7 @@ def with_observation(cfg, preset):
     fields = {"obs": obs, "action_key": preset.action_key}
     hook = getattr(cfg, "observation_overrides", None)
     if hook is not None:
-        fields.update(hook(obs))
+        fields.update(hook(obs, preset))
     return replace(cfg, **fields)
 
 

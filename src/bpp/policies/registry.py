@@ -31,7 +31,8 @@ METHODS: dict[str, str] = {
 
 @runtime_checkable
 class PolicyModelContract(Protocol):
-    """What :func:`bpp.train.train` and :class:`bpp.policies.agent.PolicyAgent` use of a model, and nothing more.
+    """What :func:`bpp.train.train` and :class:`bpp.policies.agent.PolicyAgent` use of a model besides its being a
+    ``torch.nn.Module`` (parameters, state dict, ``to``, ``train``/``eval``; training wraps it in DDP).
 
     Shapes: B rollouts or samples; To = ``cfg.horizons.n_obs_steps``; T = ``cfg.horizons.horizon``; A = ``action_dim``.
     """

@@ -48,7 +48,8 @@ class DrawVideo:
 
 def draw_video(args: DrawVideo) -> None:
     from bpp.data.store import EpisodeStore
-    from bpp.envs.draw.viz import episode_frames, save_animation
+    from bpp.envs.draw.viz import episode_frames
+    from bpp.media import save_animation
 
     store = EpisodeStore(args.store)
     ep = store.episode(args.episode, ("state", "action"))
@@ -80,12 +81,15 @@ def draw_rollout(args: DrawRollout) -> None:
     from bpp.data.store import EpisodeStore
     from bpp.envs.benchmark import run_prompted
     from bpp.envs.draw.benchmark import BENCHMARK
-    from bpp.media import contact_sheet
+    from bpp.media import contact_sheet, save_animation
     from bpp.policies.agent import PolicyAgent
 
     store = EpisodeStore(args.store)
-    agent = PolicyAgent(Checkpoint.load(args.checkpoint, use_ema=True).build_model(), record_attention=True)
-    store.episode_slice(args.episode)  # a clear error for an episode out of range
+    store.episode_slice(args.episode)  # an IndexError naming the store's episode count if out of range
+    checkpoint = Checkpoint.load(args.checkpoint, use_ema=True)
+    if checkpoint.benchmark != BENCHMARK.name:
+        raise ValueError(f"{checkpoint.path} was trained on {checkpoint.benchmark}, not {BENCHMARK.name}")
+    agent = PolicyAgent(checkpoint.build_model(), record_attention=True)
     plan = [
         {
             "target_episode": args.episode,
@@ -102,8 +106,6 @@ def draw_rollout(args: DrawRollout) -> None:
         args.out / "rollout.png",
         columns=2,
     )
-    from bpp.media import save_animation
-
     gif = save_animation(result.frames, args.out / "rollout.gif")
     final = result.extra["final_chamfer"]
     print(f"best Chamfer {result.score:.2f} px (final {final:.2f}) in {result.steps} steps")
@@ -145,6 +147,11 @@ class Demo:
     max_steps: int = 400
     """Rollout length limit (the paper's 400)."""
     workers: int = 0
+    """Processes for data generation and evaluation (0: one per core)."""
+    threads: int = 0
+    """torch threads for training (0: auto, one fewer than the cores; see README, "CPU threads")."""
+    loader_workers: int = -1
+    """Data-loader processes for training (-1: auto, none on a CPU)."""
     seed: int = 0
 
 
@@ -199,6 +206,8 @@ def demo(args: Demo) -> None:
             seed=args.seed,
             resume=resume,
             save_every=500,
+            threads=args.threads,
+            workers=args.loader_workers,
         )
         train(tc, model_cfg)
 

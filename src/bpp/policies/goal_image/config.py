@@ -58,11 +58,11 @@ class GoalImageConfig:
                     "with image observations the goal image goes through the camera's own encoder"
                 )
 
-    def observation_overrides(self, obs: ObsConfig) -> dict:
-        """With a camera observed, the goal is that camera's frame at its size (it shares the camera's encoder)."""
+    def observation_overrides(self, obs: ObsConfig, preset) -> dict:
+        """The benchmark's goal camera; observed, the goal is its frame at its size (it shares the camera's encoder)."""
         if not obs.image_keys:
-            return {}
-        camera = self.goal_camera if self.goal_camera in obs.image_keys else obs.image_keys[0]
+            return {"goal_camera": preset.goal_camera}
+        camera = preset.goal_camera if preset.goal_camera in obs.image_keys else obs.image_keys[0]
         return {"goal_camera": camera, "goal_image_size": obs.image_size}
 
     @property
