@@ -72,14 +72,24 @@ class TrainConfig:
     dominates a CPU step)."""
 
     def __post_init__(self):
-        if self.steps < 1 or self.batch_size < 1:
-            raise ValueError(f"steps and batch_size must be positive, got {self.steps}, {self.batch_size}")
-        if self.keep_checkpoints < 0:
-            raise ValueError(f"keep_checkpoints must be 0 (all) or positive, got {self.keep_checkpoints}")
-        if self.workers < -1 or self.threads < 0:
-            raise ValueError(
-                f"workers must be >= -1 (auto) and threads >= 0 (auto), got {self.workers}, {self.threads}"
-            )
+        for name, ok, expected in (
+            ("steps", self.steps >= 1, ">= 1"),
+            ("batch_size", self.batch_size >= 1, ">= 1"),
+            ("tasks_per_batch", self.tasks_per_batch >= 1, ">= 1"),
+            ("lr", self.lr > 0, "> 0"),
+            ("weight_decay", self.weight_decay >= 0, ">= 0"),
+            ("warmup_steps", self.warmup_steps >= 0, ">= 0"),
+            ("grad_clip", self.grad_clip > 0, "> 0 (a norm to clip gradients to)"),
+            ("ema_decay", 0 <= self.ema_decay < 1, "in [0, 1)"),
+            ("workers", self.workers >= -1, ">= -1 (-1: auto)"),
+            ("log_every", self.log_every >= 1, ">= 1"),
+            ("save_every", self.save_every >= 1, ">= 1"),
+            ("keep_checkpoints", self.keep_checkpoints >= 0, ">= 0 (0: keep all)"),
+            ("threads", self.threads >= 0, ">= 0 (0: auto)"),
+            ("frame_cache_gb", self.frame_cache_gb >= 0, ">= 0"),
+        ):
+            if not ok:
+                raise ValueError(f"{name} must be {expected}, got {getattr(self, name)!r}")
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:

@@ -1,0 +1,60 @@
+"""Inputs a careful user or an attacker might give: refused with a message naming the input, or handled safely."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from bpp.train import TrainConfig, train
+from helpers import config
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("grad_clip", -1.0),
+        ("grad_clip", 0.0),
+        ("ema_decay", 1.0),
+        ("ema_decay", -0.1),
+        ("save_every", 0),
+        ("log_every", 0),
+        ("lr", 0.0),
+        ("warmup_steps", -1),
+        ("tasks_per_batch", 0),
+        ("workers", -2),
+        ("frame_cache_gb", -1.0),
+    ],
+)
+def test_training_settings_out_of_range_are_refused_naming_the_field(field, value):
+    with pytest.raises(ValueError, match=rf"^{field} must be .*got {value!r}"):
+        TrainConfig(data=Path("x.zarr"), **{field: value})
+
+
+def _bpp(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "bpp.cli", *args], capture_output=True, text=True, timeout=300, cwd=cwd
+    )
+
+
+def test_eval_of_a_missing_checkpoint_writes_nothing(tmp_path):
+    out = _bpp("eval", str(tmp_path / "typo"), "--data-dir", str(tmp_path / "data"), "--out", str(tmp_path / "eval"))
+    assert out.returncode != 0 and "typo: no such checkpoint" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "data").exists() and not (tmp_path / "eval").exists()
+
+
+def test_task_ids_never_become_paths_outside_the_output_folder(debug_store, tmp_path):
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    drawing = tmp_path / "evil.json"
+    strokes = [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8]]]
+    drawing.write_text(json.dumps({"drawings": [{"id": "x/../../../pwn", "strokes": strokes}]}))
+    out = tmp_path / "a" / "b" / "eval"
+    args = ("--files", str(drawing), "--rollouts", "1", "--max-steps", "12", "--workers", "1", "--videos", "1")
+    result = _bpp("eval", str(run), *args, "--out", str(out), "--data-dir", str(tmp_path / "data"))
+    assert result.returncode == 0, result.stderr[-2000:]
+    videos = list(out.glob("rollout_*"))
+    assert len(videos) == 1 and "/" not in videos[0].name[len("rollout_") :]
+    assert not list(tmp_path.rglob("pwn*"))
