@@ -58,3 +58,39 @@ def test_task_ids_never_become_paths_outside_the_output_folder(debug_store, tmp_
     videos = list(out.glob("rollout_*"))
     assert len(videos) == 1 and "/" not in videos[0].name[len("rollout_") :]
     assert not list(tmp_path.rglob("pwn*"))
+
+
+def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
+    from dataclasses import replace
+
+    cfg = TrainConfig(data=debug_store.path, out=tmp_path / "run", steps=2, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    resume = replace(cfg, resume=True)
+    for changed, model, field in (
+        (replace(resume, seed=1), config("bpp"), "train_config.seed: 0 in the run, 1 now"),
+        (replace(resume, steps=4), config("bpp"), "train_config.steps: 2 in the run, 4 now"),
+        (resume, config("bpp", dim=64, heads=2), "model_config.dim: 32 in the run, 64 now"),
+    ):
+        with pytest.raises(ValueError, match=field):
+            train(changed, model, progress=False)
+    before = (tmp_path / "run" / "config.json").read_text()
+    train(resume, config("bpp"), progress=False)  # the same settings: resumes (nothing left to do)
+    assert (tmp_path / "run" / "config.json").read_text() == before
+
+
+def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
+    from bpp.data.store import EpisodeStore, StoreError
+    from bpp.envs.draw.dataset import PRESETS, generate
+
+    precious = tmp_path / "thesis"
+    precious.mkdir()
+    (precious / "chapter1.tex").write_text("years of work")
+    with pytest.raises(StoreError, match="is not an episode store; only a store is ever replaced"):
+        generate(PRESETS["debug"], precious, workers=1, overwrite=True, progress=False)
+    assert (precious / "chapter1.tex").read_text() == "years of work"
+    out = _bpp("draw", "generate", "--preset", "debug", "--out", str(precious), "--overwrite")
+    assert out.returncode != 0 and "not an episode store" in out.stderr and (precious / "chapter1.tex").exists()
+    store = tmp_path / "store.zarr"
+    generate(PRESETS["debug"], store, workers=1, progress=False)
+    again = generate(PRESETS["debug"], store, workers=1, overwrite=True, progress=False)  # a store is replaced
+    assert EpisodeStore(again.path).num_tasks == debug_store.num_tasks

@@ -133,6 +133,35 @@ def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> N
         e.copy_(b)
 
 
+def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
+    """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
+    exactly as it would have): ValueError naming each differing field with both values."""
+    import json
+
+    recorded = json.loads((run / "config.json").read_text())
+    now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
+    differences = []
+
+    def compare(path: str, old, new) -> None:
+        if isinstance(old, dict) and isinstance(new, dict):
+            for key in sorted(set(old) | set(new)):
+                compare(f"{path}.{key}" if path else key, old.get(key), new.get(key))
+        elif path in ("train_config.out", "train_config.resume"):
+            return  # where the run is now (it may have been moved), and whether this call resumes
+        elif path == "train_config.data" and old and new:
+            if Path(old).resolve() != Path(new).resolve():
+                differences.append(f"{path}: {old!r} in the run, {new!r} now")
+        elif old != new:
+            differences.append(f"{path}: {old!r} in the run, {new!r} now")
+
+    compare("", {k: recorded.get(k) for k in now}, now)
+    if differences:
+        raise ValueError(
+            f"{run} was started with other settings, and --resume continues a run exactly as it began; drop the "
+            "differing flags or train into another --out: " + "; ".join(differences)
+        )
+
+
 def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     """Train `cfg.method` with `model_cfg` on `cfg.data`; returns the final checkpoint folder."""
     rank, world, device = _setup_distributed(cfg.device)
@@ -146,6 +175,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         raise FileExistsError(f"{run} already holds a run; pass --resume to continue it, or choose another --out")
     if cfg.resume and not has_ckpt:
         raise FileNotFoundError(f"{run}: nothing to resume (no checkpoints/last)")
+    if cfg.resume:
+        check_resume(run, cfg, model_cfg)
 
     store = EpisodeStore(cfg.data)
     method = get_method(cfg.method)
@@ -165,7 +196,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     }
     if main:
         run.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
+        if not cfg.resume:  # a resumed run keeps the record of how it began (check_resume made sure it matches)
+            write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
         print(f"[train] {cfg.method}: {count_parameters(model) / 1e6:.2f}M parameters; {store}")
         print(
             f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}; "

@@ -50,6 +50,17 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
+def _is_store(path: Path) -> bool:
+    """Whether `path` is a folder holding an episode store (complete or not), judged by its zarr.json alone."""
+    import json
+
+    try:
+        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(attrs, dict) and attrs.get("format") == FORMAT
+
+
 class _RunningStats:
     """Per-feature min/max/mean/std over all steps, accumulated in float64."""
 
@@ -103,6 +114,11 @@ class EpisodeWriter:
         self.path = Path(path)
         if self.path.exists() and not overwrite:
             raise StoreError(f"{self.path} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+        if self.path.exists() and not _is_store(self.path):
+            raise StoreError(
+                f"{self.path} exists and is not an episode store; only a store is ever replaced (delete it yourself "
+                "if you mean to)"
+            )
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.tmp = self.path.parent / f".{self.path.name}.partial-{uuid.uuid4().hex[:8]}"
         self.root = zarr.open_group(str(self.tmp), mode="w")
