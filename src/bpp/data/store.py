@@ -50,6 +50,35 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
+def remove_stale_partials(path: Path, legacy_age_s: float = 3600.0) -> list[Path]:
+    """Delete the hidden ``.<name>.partial-<pid>-<id>`` folders that interrupted writers of `path` left behind: those
+    whose process no longer runs (and, for names without a pid, written by older versions, those untouched for
+    `legacy_age_s`). A writer still running keeps its folder. Returns what was deleted."""
+    import time
+
+    removed = []
+    for partial in path.parent.glob(f".{path.name}.partial-*"):
+        tag = partial.name.rsplit(".partial-", 1)[1].split("-")
+        if len(tag) == 2 and tag[0].isdigit():
+            stale = not _process_alive(int(tag[0]))
+        else:
+            stale = time.time() - partial.stat().st_mtime > legacy_age_s
+        if stale and partial.is_dir():
+            shutil.rmtree(partial, ignore_errors=True)
+            removed.append(partial)
+    return removed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
 def _is_store(path: Path) -> bool:
     """Whether `path` is a folder holding an episode store (complete or not), judged by its zarr.json alone."""
     import json
@@ -120,7 +149,8 @@ class EpisodeWriter:
                 "if you mean to)"
             )
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.path.parent / f".{self.path.name}.partial-{uuid.uuid4().hex[:8]}"
+        remove_stale_partials(self.path)
+        self.tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         self.root = zarr.open_group(str(self.tmp), mode="w")
         self.root.attrs.update(
             {
