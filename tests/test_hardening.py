@@ -113,3 +113,31 @@ def test_interrupted_writers_leave_no_hidden_folders_behind(tmp_path):
     generate(PRESETS["debug"], store, workers=1, progress=False)
     assert not dead.exists() and not legacy.exists() and alive.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, "d.zarr"])
+
+
+def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one(debug_store, tmp_path, capsys):
+    from dataclasses import replace
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, steps=4, batch_size=4, workers=0, warmup_steps=1, save_every=2)
+    train(cfg, config("bpp"), progress=False)
+    checkpoints = run / "checkpoints"
+    weights = checkpoints / "step_00000004" / "ema.safetensors"
+    weights.write_bytes(weights.read_bytes()[:1000])  # truncated, as by a full disk
+    quick = ("--tasks", str(debug_store.path), "--num-tasks", "1", "--rollouts", "1", "--max-steps", "5")
+    out = _bpp("eval", str(run), *quick, "--out", str(tmp_path / "eval"))
+    assert out.returncode != 0 and "ema.safetensors: unreadable weights" in out.stderr and "Traceback" not in out.stderr
+    capsys.readouterr()
+    more = replace(cfg, resume=True)
+    train(more, config("bpp"), progress=False)  # the run's own settings: resumes from step 2, saves step 4 again
+    err = capsys.readouterr().err
+    assert "skipping step_00000004" in err and "ema.safetensors: unreadable weights" in err
+    assert "resuming from step_00000002" in err
+    (checkpoints / "last").write_text("step_00000009")  # a pointer to a folder that is gone
+    from bpp.checkpoint import resolve_checkpoint
+
+    assert resolve_checkpoint(run).name == "step_00000004"
+    assert "names step_00000009, which is missing" in capsys.readouterr().err
+    (checkpoints / "step_00000004" / "state.json").write_text('{"format": "bpp-check')  # truncated JSON
+    out = _bpp("eval", str(run), *quick, "--out", str(tmp_path / "eval"))
+    assert out.returncode != 0 and "state.json: not valid JSON" in out.stderr and "Traceback" not in out.stderr

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -110,7 +111,10 @@ def prune_checkpoints(ckpt_dir: str | Path, keep: int) -> list[Path]:
 
 
 def resolve_checkpoint(path: str | Path) -> Path:
-    """A checkpoint folder from a run directory (its ``last``), a checkpoints folder, or the folder itself."""
+    """A checkpoint folder from a run directory (its ``last``), a checkpoints folder, or the folder itself.
+
+    If ``last`` names a folder that is missing or incomplete, the newest step folder with a ``state.json`` is used
+    instead, and a line on stderr says so."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such checkpoint or run directory")
@@ -122,27 +126,61 @@ def resolve_checkpoint(path: str | Path) -> Path:
             target = base / last.read_text().strip()
             if (target / "state.json").is_file():
                 return target
+            intact = _step_folders(base)
+            if intact:
+                print(
+                    f"[checkpoint] {last} names {target.name}, which is missing or incomplete; using {intact[0].name}",
+                    file=sys.stderr,
+                )
+                return intact[0]
     raise FileNotFoundError(f"{path}: no checkpoint found (expected state.json, or checkpoints/last in a run dir)")
+
+
+def _step_folders(ckpt_dir: Path) -> list[Path]:
+    """Step folders of `ckpt_dir` that have a state.json, newest first."""
+    return sorted((p for p in ckpt_dir.glob("step_*") if (p / "state.json").is_file()), reverse=True)
+
+
+def _load_tensors(path: Path) -> dict[str, torch.Tensor]:
+    try:
+        return load_file(path)
+    except Exception as err:  # noqa: BLE001 - safetensors raises its own error types for truncated or foreign files
+        raise ValueError(f"{path}: unreadable weights ({type(err).__name__}: {err})") from None
 
 
 def read_state(path: str | Path) -> dict:
     ckpt = resolve_checkpoint(path)
-    state = json.loads((ckpt / "state.json").read_text())
-    if state.get("format") != FORMAT or state.get("version") != VERSION:
+    try:
+        state = json.loads((ckpt / "state.json").read_text())
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ValueError(f"{ckpt / 'state.json'}: not valid JSON ({err}); the checkpoint is damaged") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT or state.get("version") != VERSION:
         raise ValueError(f"{ckpt}: not a bpp checkpoint of version {VERSION}")
     return state
 
 
 def load_training_state(path: str | Path, model, ema, optimizer) -> int:
-    """Restore model, EMA, optimizer and RNG in place; returns the step to continue from."""
-    ckpt = resolve_checkpoint(path)
-    state = read_state(ckpt)
-    model.load_state_dict(load_file(ckpt / "model.safetensors"))
-    ema.load_state_dict(load_file(ckpt / "ema.safetensors"))
-    optimizer.load_state_dict(_unflatten_optimizer(load_file(ckpt / "optimizer.safetensors"), state["optimizer"]))
-    rng = load_file(ckpt / "rng.safetensors")
-    torch.set_rng_state(rng["torch_cpu"])
-    return int(state["step"])
+    """Restore model, EMA, optimizer and RNG in place from the newest intact checkpoint of run `path`; returns the
+    step to continue from. A damaged newest checkpoint is skipped with a line on stderr naming the bad file."""
+    newest = resolve_checkpoint(path)
+    candidates = [newest, *(p for p in _step_folders(newest.parent) if p.name < newest.name)]
+    for ckpt in candidates:
+        try:
+            state = read_state(ckpt)
+            tensors = {
+                name: _load_tensors(ckpt / f"{name}.safetensors") for name in ("model", "ema", "optimizer", "rng")
+            }
+        except (ValueError, OSError) as err:
+            print(f"[checkpoint] skipping {ckpt.name}: {err}", file=sys.stderr)
+            continue
+        model.load_state_dict(tensors["model"])
+        ema.load_state_dict(tensors["ema"])
+        optimizer.load_state_dict(_unflatten_optimizer(tensors["optimizer"], state["optimizer"]))
+        torch.set_rng_state(tensors["rng"]["torch_cpu"])
+        if ckpt != newest:
+            print(f"[checkpoint] resuming from {ckpt.name}, the newest intact checkpoint", file=sys.stderr)
+        return int(state["step"])
+    raise ValueError(f"{path}: no intact checkpoint to resume from (see the lines above for each one's problem)")
 
 
 class Checkpoint:
@@ -160,7 +198,7 @@ class Checkpoint:
         ckpt = resolve_checkpoint(path)
         state = read_state(ckpt)
         names = ["ema", "model"] if use_ema is None else ["ema" if use_ema else "model"]
-        return cls(ckpt, state, {name: load_file(ckpt / f"{name}.safetensors") for name in names})
+        return cls(ckpt, state, {name: _load_tensors(ckpt / f"{name}.safetensors") for name in names})
 
     @property
     def method(self) -> str:
