@@ -184,21 +184,21 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
 
 
 class Checkpoint:
-    """One checkpoint read from disk once: its folder, its ``state.json`` and the weights, passed down from there
-    (to build the model in this process or, pickled, in worker processes).
+    """One checkpoint read from disk once: its folder, its ``state.json`` and one set of weights (the EMA or the
+    trained ones), passed down from there (to build the model in this process or, pickled, in worker processes).
 
     ``state`` holds ``method``, ``model_config``, ``train_config``, ``stats``, ``dataset`` and ``step``."""
 
-    def __init__(self, path: Path, state: dict, weights: dict[str, dict[str, torch.Tensor]]):
+    def __init__(self, path: Path, state: dict, weights: dict[str, torch.Tensor]):
         self.path, self.state, self.weights = path, state, weights
 
     @classmethod
-    def load(cls, path: str | Path, use_ema: bool | None = None) -> Checkpoint:
-        """Resolve `path` (run directory or checkpoint folder) and read it; `use_ema` None reads both weight sets."""
+    def load(cls, path: str | Path, use_ema: bool = True) -> Checkpoint:
+        """Resolve `path` (run directory or checkpoint folder) and read it, with the EMA weights or the trained ones."""
         ckpt = resolve_checkpoint(path)
-        state = read_state(ckpt)
-        names = ["ema", "model"] if use_ema is None else ["ema" if use_ema else "model"]
-        return cls(ckpt, state, {name: _load_tensors(ckpt / f"{name}.safetensors") for name in names})
+        return cls(
+            ckpt, read_state(ckpt), _load_tensors(ckpt / ("ema.safetensors" if use_ema else "model.safetensors"))
+        )
 
     @property
     def method(self) -> str:
@@ -218,18 +218,15 @@ class Checkpoint:
 
         return from_dict(get_method(self.method).config_cls, self.state["model_config"])
 
-    def build_model(self, device: str | torch.device = "cpu", use_ema: bool = True):
-        """The trained model (config, normalisation statistics and weights), in eval mode."""
+    def build_model(self, device: str | torch.device = "cpu"):
+        """The trained model (config, normalisation statistics and the loaded weights), in eval mode."""
         from bpp.policies.registry import get_method
 
-        name = "ema" if use_ema else "model"
-        if name not in self.weights:
-            raise ValueError(f"{self.path}: {name} weights were not loaded")
         model = get_method(self.method).model_cls(self.model_config(), self.state["stats"])
-        model.load_state_dict(self.weights[name])
+        model.load_state_dict(self.weights)
         return model.to(device).eval()
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu", use_ema: bool = True):
     """Rebuild a trained model from a checkpoint (config, normalisation statistics and weights)."""
-    return Checkpoint.load(path, use_ema).build_model(device, use_ema)
+    return Checkpoint.load(path, use_ema).build_model(device)

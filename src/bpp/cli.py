@@ -199,6 +199,7 @@ def eval_cmd(args: Eval) -> None:
     from bpp.checkpoint import Checkpoint
     from bpp.evaluation.evaluate import Protocol, combine, evaluate, resolve_tasks
     from bpp.evaluation.report import markdown_table
+    from bpp.policies.agent import PolicyAgent
     from bpp.utils import write_json_atomic
 
     protocol = Protocol(
@@ -209,8 +210,6 @@ def eval_cmd(args: Eval) -> None:
         n_action_steps=args.n_action_steps,
         inference_steps=args.inference_steps,
     )
-    from bpp.policies.agent import PolicyAgent
-
     # Every argument is checked (checkpoints read, agent options tried, task sets resolved) before anything is
     # evaluated or written.
     checkpoints = [Checkpoint.load(path, use_ema=True) for path in args.checkpoints]

@@ -7,6 +7,7 @@ Read it top to bottom: set up (distributed, data, model, optimiser, resume), the
 from __future__ import annotations
 
 import copy
+import json
 import math
 import os
 import time
@@ -136,8 +137,6 @@ def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> N
 def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
     """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
     exactly as it would have): ValueError naming each differing field with both values."""
-    import json
-
     recorded = json.loads((run / "config.json").read_text())
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
     differences = []

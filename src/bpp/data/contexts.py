@@ -42,10 +42,11 @@ def task_context(
         return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, last_only=True)[0]}
     sl = store.episode_slice(episode)
     stop = sl.stop if max_steps is None else min(sl.stop, sl.start + max_steps)
-    # Copies: the store keeps whole arrays in memory, and a caller may edit its context.
+    # Copies of the store's in-memory arrays, which a caller may not edit through its context; frames are the
+    # benchmark's own (or, in training, cached ones that batching copies), so they are not copied again.
     obs = {key: store.array(key)[sl.start : stop].copy() for key in spec.lowdim_keys}
     for key in spec.image_keys:
-        obs[key] = frames(store, episode, key, spec.image_size)[: stop - sl.start].copy()
+        obs[key] = frames(store, episode, key, spec.image_size)[: stop - sl.start]
     return {"obs": obs, "action": store.array(spec.action_key)[sl.start : stop].copy()}
 
 

@@ -7,11 +7,11 @@ declare a :class:`DataSpec`); neither side imports the other.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, get_args
 
 ContextKind = Literal["demo", "goal_image", "instruction"]
 """What a method is conditioned on: a whole demonstration (the prompt), its final frame, or the task's text."""
-CONTEXT_KINDS: tuple[str, ...] = ("demo", "goal_image", "instruction")
+CONTEXT_KINDS: tuple[str, ...] = get_args(ContextKind)
 
 
 @dataclass(frozen=True)

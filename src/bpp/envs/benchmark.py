@@ -57,10 +57,14 @@ class Metric:
         if self.good_threshold is None:
             return ""
         relation = "under" if self.lower_is_better else "at least"
-        return f"rollouts {relation} {self.good_threshold:g}{(' ' + self.unit) if self.unit else ''}"
+        return f"rollouts {relation} {self.good_threshold:g}{self._unit}"
 
     def format(self, value: float) -> str:
-        return f"{value:.2f}{(' ' + self.unit) if self.unit else ''}"
+        return f"{value:.2f}{self._unit}"
+
+    @property
+    def _unit(self) -> str:
+        return f" {self.unit}" if self.unit else ""
 
 
 @dataclass

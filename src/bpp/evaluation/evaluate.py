@@ -310,11 +310,9 @@ def evaluate(
     returned without running anything.
     """
     from bpp.evaluation import report
-    from bpp.policies.agent import PolicyAgent
 
     ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else Checkpoint.load(checkpoint, use_ema=True)
     benchmark = get_benchmark(ckpt.benchmark)
-    PolicyAgent(ckpt.build_model(), **protocol.agent_options())  # refuse bad agent options here, not in every worker
     store = task_set.store
     protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
     out = Path(out)
