@@ -39,7 +39,7 @@ def test_json_round_trip(tmp_path):
         ({"drawings": [{"id": "a"}]}, "with 'id' and 'strokes'"),
         ({"drawings": [{"id": "a", "strokes": []}]}, "drawing 'a' is empty"),
         ({"drawings": [{"id": "a", "strokes": [[]]}]}, "stroke 0: expected a non-empty list"),
-        ({"drawings": [{"id": "a", "strokes": [[[0.1, 0.2, 0.3]]]}]}, "pairs"),
+        ({"drawings": [{"id": "a", "strokes": [[[0.1, 0.2, 0.3]]]}]}, "two numbers"),
         ({"drawings": [{"id": "a", "strokes": [[[0.1, 0.2], [0.3, 1.5]]]}]}, "unit square"),
         ('{"drawings": [{"id": "a", "strokes": [[[0.1, NaN]]]}]}', "NaN"),
         ({"drawings": [{"id": "", "strokes": [[[0.1, 0.2]]]}]}, "non-empty string 'id'"),

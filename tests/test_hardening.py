@@ -5,6 +5,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bpp.train import TrainConfig, train
@@ -140,4 +141,183 @@ def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one
     assert "names step_00000009, which is missing" in capsys.readouterr().err
     (checkpoints / "step_00000004" / "state.json").write_text('{"format": "bpp-check')  # truncated JSON
     out = _bpp("eval", str(run), *quick, "--out", str(tmp_path / "eval"))
-    assert out.returncode != 0 and "state.json: not valid JSON" in out.stderr and "Traceback" not in out.stderr
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert "state.json: the checkpoint state is not valid JSON" in out.stderr
+
+
+def test_eval_reuses_results_only_for_the_same_weights_and_task_content(debug_store, tmp_path, capsys):
+    import shutil
+
+    from bpp.envs.registry import get_benchmark
+    from bpp.evaluation.evaluate import Protocol, evaluate
+
+    benchmark = get_benchmark("drawanything")
+    run, out, drawing = tmp_path / "run", tmp_path / "eval", tmp_path / "d.json"
+
+    def write_drawing(apex: float) -> None:
+        drawing.write_text(json.dumps({"drawings": [{"id": "v", "strokes": [[[0.2, 0.2], [0.5, apex], [0.8, 0.2]]]}]}))
+
+    def train_run(seed: int) -> None:
+        shutil.rmtree(run, ignore_errors=True)
+        cfg = TrainConfig(data=debug_store.path, out=run, steps=1, batch_size=4, workers=0, warmup_steps=1, seed=seed)
+        train(cfg, config("bpp"), progress=False)
+
+    def eval_once() -> bool:
+        capsys.readouterr()
+        task_set = benchmark.task_set_from_files([drawing], tmp_path / "data")
+        evaluate(run, task_set, [0], out, Protocol(rollouts=1, max_steps=6), workers=1, videos=0, progress=False)
+        return "reusing" in capsys.readouterr().out
+
+    write_drawing(0.8)
+    train_run(0)
+    assert not eval_once() and eval_once()  # the same weights, file and protocol: reused
+    write_drawing(0.7)  # the drawing file edited at the same path
+    assert not eval_once() and eval_once()
+    train_run(1)  # the run trained again into the same folder
+    assert not eval_once()
+
+
+@pytest.mark.parametrize(
+    ("point", "shown"),
+    [(["0.5", 0.2], "['0.5', 0.2]"), ([True, 0.2], "[True, 0.2]"), ([0.5, None], "[0.5, None]"), (0.5, "0.5")],
+)
+def test_drawing_coordinates_must_be_json_numbers(tmp_path, point, shown):
+    from bpp.envs.draw.drawing import DrawingError
+    from bpp.envs.draw.files import load_drawings
+
+    path = tmp_path / "d.json"
+    path.write_text(json.dumps({"drawings": [{"id": "a", "strokes": [[[0.1, 0.1], point]]}]}))
+    with pytest.raises(DrawingError, match="stroke 0, point 1: expected \\[x, y\\] with two numbers") as err:
+        load_drawings(path)
+    assert str(path) in str(err.value) and shown in str(err.value)
+
+
+def test_deeply_nested_json_is_refused_naming_the_file(tmp_path, debug_store):
+    from bpp.checkpoint import read_state
+    from bpp.envs.draw.drawing import DrawingError
+    from bpp.envs.draw.files import load_drawings
+
+    deep = "[" * 100_000 + "]" * 100_000
+    drawing = tmp_path / "deep.json"
+    drawing.write_text('{"drawings": ' + deep + "}")
+    with pytest.raises(DrawingError, match="deep.json: the drawing file is nested too deeply"):
+        load_drawings(drawing)
+    ckpt = tmp_path / "step_00000001"
+    ckpt.mkdir()
+    (ckpt / "state.json").write_text(deep)
+    with pytest.raises(ValueError, match="state.json: the checkpoint state is nested too deeply"):
+        read_state(ckpt)
+    out = _bpp("eval", str(ckpt), "--out", str(tmp_path / "eval"))
+    assert out.returncode != 0 and "nested too deeply" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_svg_transforms_are_applied_in_document_order(tmp_path):
+    import numpy as np
+
+    from bpp.envs.draw.files import load_drawings
+
+    def svg(body: str) -> Path:
+        path = tmp_path / f"s{len(list(tmp_path.iterdir()))}.svg"
+        path.write_text(f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 200 200">{body}</svg>')
+        return path
+
+    transformed = svg(
+        '<g transform="translate(100,20) rotate(90)"><path d="M 0 0 L 10 0" transform="scale(2)"/>'
+        '<line x1="0" y1="0" x2="0" y2="30"/></g><polyline points="10,10 40,10" transform="translate(5,100)"/>'
+    )
+    plain = svg('<path d="M 100 20 L 100 40"/><line x1="100" y1="20" x2="70" y2="20"/><path d="M 15 110 L 45 110"/>')
+    a, b = load_drawings([transformed])[0], load_drawings([plain])[0]
+    assert len(a.strokes) == len(b.strokes) == 3
+    for p, q in zip(a.strokes, b.strokes, strict=True):
+        np.testing.assert_allclose(p, q, atol=1e-9)
+
+
+def test_any_drawing_file_is_read_and_demonstrated_in_bounded_time(tmp_path):
+    import time
+
+    import numpy as np
+
+    from bpp.envs.draw.demonstrator import demonstrate
+    from bpp.envs.draw.drawing import DrawingError
+    from bpp.envs.draw.files import MAX_POINTS, MAX_STROKES, load_drawings
+
+    def json_file(name, strokes):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"drawings": [{"id": name, "strokes": strokes}]}))
+        return path
+
+    t = np.linspace(0, 2 * np.pi, 200_000)
+    circle = json_file("circle", [np.stack([0.5 + 0.4 * np.cos(t), 0.5 + 0.4 * np.sin(t)], 1).tolist()])
+    many = json_file("many", [[[0.1, 0.1], [0.2, 0.2]]] * 20_000)
+    long_ink = json_file("long", [[[float(j % 2), 0.1 + 0.8 * k / 99] for j in range(49)] for k in range(100)])
+    zigzag = tmp_path / "zigzag.svg"
+    points = " ".join(f"{i * 0.05:.2f},{(i % 2) * 100}" for i in range(20_000))
+    zigzag.write_text(f'<svg xmlns="http://www.w3.org/2000/svg"><polyline points="{points}"/></svg>')
+    start = time.perf_counter()
+    loaded = load_drawings(circle)[0]  # 200k points, closer than MIN_POINT_SPACING: merged, the shape kept
+    assert 2000 < sum(map(len, loaded.strokes)) <= MAX_POINTS
+    demonstrate(loaded, 0.3, np.array([100.0, 100.0]), np.random.default_rng(0))
+    with pytest.raises(DrawingError, match=f"many.json: drawing 'many' has 20000 strokes; .* at most {MAX_STROKES}"):
+        load_drawings(many)
+    with pytest.raises(DrawingError, match=f"zigzag.svg has 20000 points .* at most {MAX_POINTS}"):
+        load_drawings(zigzag)
+    with pytest.raises(DrawingError, match="drawing 'long': drawing it takes more than 1200 steps"):
+        demonstrate(load_drawings(long_ink)[0], 0.3, np.array([100.0, 100.0]), np.random.default_rng(0))
+    assert time.perf_counter() - start < 60  # each took minutes before (quadratic corners, uncapped sampling)
+
+
+def test_corner_detection_matches_its_definition(rng):
+    import numpy as np
+
+    from bpp.envs.draw.demonstrator import _corner_arclengths
+
+    def by_definition(points, angle_deg, scale):  # vertex by vertex, as documented (quadratic time)
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
+        corners = []
+        for i in range(1, len(points) - 1):
+            back = points[i] - np.array([np.interp(s[i] - scale, s, points[:, k]) for k in range(2)])
+            ahead = np.array([np.interp(s[i] + scale, s, points[:, k]) for k in range(2)]) - points[i]
+            nb, na = np.linalg.norm(back), np.linalg.norm(ahead)
+            if nb < 1e-9 or na < 1e-9:
+                continue
+            turn = np.degrees(np.arccos(np.clip(back @ ahead / (nb * na), -1.0, 1.0)))
+            if turn > angle_deg and (not corners or s[i] - corners[-1] > scale):
+                corners.append(s[i])
+        return corners
+
+    for _ in range(30):
+        points = np.cumsum(rng.normal(0, 15, (int(rng.integers(3, 200)), 2)), axis=0)
+        for scale in (8.0, 20.0):
+            np.testing.assert_allclose(_corner_arclengths(points, 50.0, scale), by_definition(points, 50.0, scale))
+
+
+def test_damaged_stores_are_named_with_the_damaged_part(tmp_path, debug_store):
+    import shutil
+
+    from bpp.data.store import EpisodeStore, StoreError
+
+    header, chunk = tmp_path / "header.zarr", tmp_path / "chunk.zarr"
+    shutil.copytree(debug_store.path, header)
+    shutil.copytree(debug_store.path, chunk)
+    (header / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {')
+    with pytest.raises(StoreError, match="header.zarr: damaged store header"):
+        EpisodeStore(header)
+    part = next(p for p in sorted((chunk / "data" / "action" / "c").rglob("*")) if p.is_file())
+    part.write_bytes(part.read_bytes()[:20])
+    with pytest.raises(StoreError, match="chunk.zarr: damaged store, cannot read data/action"):
+        EpisodeStore(chunk).array("action")
+    for store in (header, chunk):
+        out = _bpp("train", "--data", str(store), "--out", str(tmp_path / "run"), "--preset", "debug", "--steps", "1")
+        assert out.returncode != 0 and "damaged store" in out.stderr and "Traceback" not in out.stderr
+
+
+@pytest.mark.parametrize("angle", [0.3, -0.7, 1.0, -np.pi / 4])
+def test_identical_integer_drawings_score_exactly_zero_at_any_angle(angle, rng):
+    from bpp.envs.draw.geometry import BOARD_CENTER, canvas_to_upright, rotation
+    from bpp.envs.draw.metric import chamfer_distance, ink_mask
+
+    line = np.array([[x, 256] for x in range(156, 357, 10)], float)
+    polylines = [line, *(rng.integers(100, 412, (int(rng.integers(2, 30)), 2)).astype(float) for _ in range(20))]
+    for points in polylines:
+        on_board = (points - BOARD_CENTER) @ rotation(angle).T + BOARD_CENTER  # as a rollout inks it
+        assert chamfer_distance(ink_mask([points]), ink_mask([canvas_to_upright(on_board, angle)])) == 0.0

@@ -14,17 +14,18 @@ fill a disk with gigabytes of them).
 
 from __future__ import annotations
 
-import json
+import hashlib
 import os
+import re
 import shutil
 import sys
 from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import load, load_file, save_file
 
-from bpp.utils import from_dict, write_json_atomic
+from bpp.utils import from_dict, read_json, write_json_atomic
 
 FORMAT = "bpp-checkpoint"
 VERSION = 1
@@ -123,8 +124,9 @@ def resolve_checkpoint(path: str | Path) -> Path:
     for base in (path / "checkpoints", path):
         last = base / "last"
         if last.is_file():
-            target = base / last.read_text().strip()
-            if (target / "state.json").is_file():
+            name = last.read_text(errors="replace").strip()
+            target = base / name
+            if _STEP_NAME.fullmatch(name) and (target / "state.json").is_file():
                 return target
             intact = _step_folders(base)
             if intact:
@@ -136,24 +138,30 @@ def resolve_checkpoint(path: str | Path) -> Path:
     raise FileNotFoundError(f"{path}: no checkpoint found (expected state.json, or checkpoints/last in a run dir)")
 
 
+_STEP_NAME = re.compile(r"step_\d{8}")
+
+
 def _step_folders(ckpt_dir: Path) -> list[Path]:
     """Step folders of `ckpt_dir` that have a state.json, newest first."""
     return sorted((p for p in ckpt_dir.glob("step_*") if (p / "state.json").is_file()), reverse=True)
 
 
-def _load_tensors(path: Path) -> dict[str, torch.Tensor]:
+def _load_tensors(path: Path, digest: list[str] | None = None) -> dict[str, torch.Tensor]:
+    """The tensors of a safetensors file (with its SHA-256 appended to `digest` if given: the bytes are read
+    once for both)."""
     try:
-        return load_file(path)
+        if digest is None:
+            return load_file(path)
+        data = path.read_bytes()
+        digest.append(hashlib.sha256(data).hexdigest())
+        return load(data)
     except Exception as err:  # noqa: BLE001 - safetensors raises its own error types for truncated or foreign files
         raise ValueError(f"{path}: unreadable weights ({type(err).__name__}: {err})") from None
 
 
 def read_state(path: str | Path) -> dict:
     ckpt = resolve_checkpoint(path)
-    try:
-        state = json.loads((ckpt / "state.json").read_text())
-    except (ValueError, UnicodeDecodeError) as err:
-        raise ValueError(f"{ckpt / 'state.json'}: not valid JSON ({err}); the checkpoint is damaged") from None
+    state = read_json(ckpt / "state.json", "checkpoint state")
     if not isinstance(state, dict) or state.get("format") != FORMAT or state.get("version") != VERSION:
         raise ValueError(f"{ckpt}: not a bpp checkpoint of version {VERSION}")
     return state
@@ -189,16 +197,18 @@ class Checkpoint:
 
     ``state`` holds ``method``, ``model_config``, ``train_config``, ``stats``, ``dataset`` and ``step``."""
 
-    def __init__(self, path: Path, state: dict, weights: dict[str, torch.Tensor]):
+    def __init__(self, path: Path, state: dict, weights: dict[str, torch.Tensor], weights_sha256: str):
         self.path, self.state, self.weights = path, state, weights
+        self.weights_sha256 = weights_sha256
+        """SHA-256 of the weights file read: what evaluation results are keyed on, with the tasks' content."""
 
     @classmethod
     def load(cls, path: str | Path, use_ema: bool = True) -> Checkpoint:
         """Resolve `path` (run directory or checkpoint folder) and read it, with the EMA weights or the trained ones."""
         ckpt = resolve_checkpoint(path)
-        return cls(
-            ckpt, read_state(ckpt), _load_tensors(ckpt / ("ema.safetensors" if use_ema else "model.safetensors"))
-        )
+        state, digest = read_state(ckpt), []
+        weights = _load_tensors(ckpt / ("ema.safetensors" if use_ema else "model.safetensors"), digest)
+        return cls(ckpt, state, weights, digest[0])
 
     @property
     def method(self) -> str:

@@ -7,7 +7,6 @@ Read it top to bottom: set up (distributed, data, model, optimiser, resume), the
 from __future__ import annotations
 
 import copy
-import json
 import math
 import os
 import time
@@ -23,7 +22,7 @@ from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
 from bpp.policies.common import count_parameters
 from bpp.policies.registry import PolicyModelContract, get_method
-from bpp.utils import to_dict, to_torch, usable_cores, write_json_atomic
+from bpp.utils import read_json, to_dict, to_torch, usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -137,7 +136,9 @@ def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> N
 def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
     """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
     exactly as it would have): ValueError naming each differing field with both values."""
-    recorded = json.loads((run / "config.json").read_text())
+    recorded = read_json(run / "config.json", "run configuration")
+    if not isinstance(recorded, dict):
+        raise ValueError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
     differences = []
 

@@ -7,10 +7,12 @@ import json
 import os
 import typing
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import torch
 
 import numpy as np
-import torch
 
 
 def to_dict(obj: Any) -> Any:
@@ -55,6 +57,30 @@ def usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+MAX_JSON_BYTES = 64 << 20
+"""JSON files bpp reads (configs, checkpoint state, results, drawing files) are refused above this size."""
+
+
+def read_json(path: str | Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
+    """Parse the JSON file `path`, or raise ValueError naming it and `what` it should be: unreadable, over
+    `max_bytes`, not UTF-8, not JSON, or nested too deeply for the parser (Python's RecursionError)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+        if size > max_bytes:
+            limit = max_bytes / 2**20
+            raise ValueError(f"{path}: {size / 2**20:.0f} MiB, more than the {limit:.0f} MiB a {what} may have")
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"{path}: cannot read the {what} ({err})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: the {what} is not valid JSON ({err})") from None
+    except RecursionError:
+        raise ValueError(f"{path}: the {what} is nested too deeply to parse") from None
+
+
 def write_json_atomic(path: str | Path, data: Any) -> None:
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -64,6 +90,8 @@ def write_json_atomic(path: str | Path, data: Any) -> None:
 
 def to_torch(batch: Any, device: torch.device | str) -> Any:
     """Nested dicts of numpy arrays / tensors -> tensors on `device` (floats as float32, images kept uint8)."""
+    import torch
+
     if isinstance(batch, dict):
         return {k: to_torch(v, device) for k, v in batch.items()}
     if isinstance(batch, np.ndarray):

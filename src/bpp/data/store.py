@@ -19,6 +19,8 @@ process opens its own handles lazily (a pickled store carries only its path).
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import json
 import os
 import shutil
 import uuid
@@ -27,6 +29,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from bpp.utils import read_json
 
 FORMAT = "bpp-episodes"
 VERSION = 1
@@ -81,11 +85,9 @@ def _process_alive(pid: int) -> bool:
 
 def _is_store(path: Path) -> bool:
     """Whether `path` is a folder holding an episode store (complete or not), judged by its zarr.json alone."""
-    import json
-
     try:
-        attrs = json.loads((path / "zarr.json").read_text()).get("attributes", {})
-    except (OSError, ValueError, AttributeError):
+        attrs = read_json(path / "zarr.json", "store header").get("attributes", {})
+    except (ValueError, AttributeError):
         return False
     return isinstance(attrs, dict) and attrs.get("format") == FORMAT
 
@@ -301,7 +303,12 @@ class EpisodeStore:
             raise StoreError(f"{self.path}: no such store")
         if not (self.path / "zarr.json").is_file():
             raise StoreError(f"{self.path}: not an episode store (no zarr.json)")
-        attrs = dict(self._root().attrs)
+        try:
+            attrs = dict(self._root().attrs)
+        except Exception as err:  # noqa: BLE001 - zarr raises JSON, KeyError and its own errors for a bad header
+            raise StoreError(
+                f"{self.path}: damaged store header ({type(err).__name__}: {err}); generate it again"
+            ) from None
         if attrs.get("format") != FORMAT:
             raise StoreError(f"{self.path}: format {attrs.get('format')!r}, expected {FORMAT!r}")
         if attrs.get("version") != VERSION:
@@ -309,15 +316,37 @@ class EpisodeStore:
         if not attrs.get("complete"):
             raise StoreError(f"{self.path}: incomplete store (its generation was interrupted); generate it again")
         self.attrs = attrs
-        self.benchmark: str = attrs["benchmark"]
-        self.config: dict = attrs.get("config", {})
-        self.tasks: list[dict] = attrs["tasks"]
-        self.stats: dict[str, dict[str, list[float]]] = attrs["stats"]
-        self.episode_ends = np.asarray(self._root()["meta/episode_ends"][:])
-        self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
-        self.keys: list[str] = sorted(self._root()["data"].array_keys())
-        """Per-step keys (the store is read-only, so listed once)."""
+        try:
+            self.benchmark: str = attrs["benchmark"]
+            self.config: dict = attrs.get("config", {})
+            self.tasks: list[dict] = attrs["tasks"]
+            self.stats: dict[str, dict[str, list[float]]] = attrs["stats"]
+        except KeyError as err:
+            raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
         self._cache: dict[str, np.ndarray] = {}
+        self.episode_ends = self._read("meta/episode_ends")
+        self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
+        try:
+            self.keys: list[str] = sorted(self._root()["data"].array_keys())
+            """Per-step keys (the store is read-only, so listed once)."""
+        except Exception as err:  # noqa: BLE001
+            raise StoreError(
+                f"{self.path}: damaged store, cannot list its data ({type(err).__name__}: {err})"
+            ) from None
+        if len(self.episode_ends) == 0 or np.any(np.diff(self.episode_ends) <= 0) or self.episode_ends[0] <= 0:
+            raise StoreError(f"{self.path}: damaged store (meta/episode_ends is not increasing); generate it again")
+
+    def _read(self, name: str, selection: slice = slice(None)) -> np.ndarray:
+        """Array `name` of the store (or a slice of its first axis), with a StoreError naming the store and the
+        array if a chunk is missing or corrupt (zarr and the zstd codec raise their own errors)."""
+        try:
+            return np.asarray(self._root()[name][selection])
+        except KeyError:
+            raise
+        except Exception as err:  # noqa: BLE001
+            raise StoreError(
+                f"{self.path}: damaged store, cannot read {name} ({type(err).__name__}: {err}); generate it again"
+            ) from None
 
     def _root(self):
         # One handle per process: handles are not shared across fork/spawn (see __getstate__).
@@ -356,7 +385,8 @@ class EpisodeStore:
     def array(self, key: str) -> np.ndarray:
         """A per-step key loaded fully into memory (cached)."""
         if key not in self._cache:
-            self._cache[key] = np.asarray(self[key][:])
+            self[key]  # a KeyError naming the available keys
+            self._cache[key] = self._read(f"data/{key}")
         return self._cache[key]
 
     def column(self, name: str) -> np.ndarray:
@@ -364,7 +394,7 @@ class EpisodeStore:
         key = f"meta/{name}"
         if key not in self._cache:
             try:
-                self._cache[key] = np.asarray(self._root()[key][:])
+                self._cache[key] = self._read(key)
             except KeyError:
                 raise KeyError(f"{self.path}: no episode column {name!r}") from None
         return self._cache[key]
@@ -377,7 +407,10 @@ class EpisodeStore:
     def episode(self, index: int, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:
         """All per-step arrays of one episode."""
         sl = self.episode_slice(index)
-        return {k: np.asarray(self[k][sl]) for k in (keys or self.keys)}
+        keys = list(keys or self.keys)
+        for k in keys:
+            self[k]  # a KeyError naming the available keys
+        return {k: self._read(f"data/{k}", sl) for k in keys}
 
     def task_episodes(self) -> list[np.ndarray]:
         """For each task index, the indices of its episodes."""
@@ -386,9 +419,22 @@ class EpisodeStore:
 
     def task_array(self, key: str, task_index: int) -> np.ndarray:
         """The ragged per-task array `key` of one task."""
-        ends = np.asarray(self._root()[f"tasks/{key}__ends"][:])
+        ends = self._read(f"tasks/{key}__ends")
         start = 0 if task_index == 0 else int(ends[task_index - 1])
-        return np.asarray(self._root()[f"tasks/{key}"][start : int(ends[task_index])])
+        return self._read(f"tasks/{key}", slice(start, int(ends[task_index])))
+
+    def fingerprint(self) -> str:
+        """SHA-256 of the store's content: every file's relative path and bytes, except that the header's creation
+        time is left out (so a store generated again from the same input has the same fingerprint). Cached."""
+        if "_fingerprint" not in self.__dict__:
+            digest = hashlib.sha256()
+            header = {k: v for k, v in self.attrs.items() if k != "created"}
+            digest.update(json.dumps(header, sort_keys=True).encode())
+            for file in sorted(p for p in self.path.rglob("*") if p.is_file() and p != self.path / "zarr.json"):
+                digest.update(str(file.relative_to(self.path)).encode() + b"\0")
+                digest.update(file.read_bytes())
+            self._fingerprint = digest.hexdigest()
+        return self._fingerprint
 
     def disk_bytes(self) -> int:
         return sum(f.stat().st_size for f in self.path.rglob("*") if f.is_file())

@@ -15,9 +15,9 @@ A checkpoint is read from disk once (:class:`bpp.checkpoint.Checkpoint`) and han
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -26,11 +26,12 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
+from bpp import __version__
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.envs.benchmark import Benchmark, Metric, TaskSet, run_prompted
 from bpp.envs.registry import get_benchmark
-from bpp.utils import usable_cores, write_json_atomic
+from bpp.utils import read_json, usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -234,8 +235,16 @@ def combine(runs: list[dict]) -> dict:
 
 
 def load_results(out: Path) -> dict | None:
+    """The results recorded in `out`, or None if there are none (or they cannot be read: they get rewritten)."""
     path = out / "results.json"
-    return json.loads(path.read_text()) if path.is_file() else None
+    if not path.is_file():
+        return None
+    try:
+        data = read_json(path, "results file")
+    except ValueError as err:
+        print(f"[eval] ignoring {err}", file=sys.stderr)
+        return None
+    return data if isinstance(data, dict) else None
 
 
 # ------------------------------------------------------------------------------------------- task sets
@@ -306,8 +315,9 @@ def evaluate(
     reuse: bool = True,
 ) -> dict:
     """Run the protocol and write ``results.json``, ``results.md``, ``grid.png``, ``attention.png`` and videos
-    into `out`. With `reuse`, results already in `out` for the same checkpoint, store, tasks and protocol are
-    returned without running anything.
+    into `out`. With `reuse`, results already in `out` are returned without running anything if they provably
+    match: the same weights (SHA-256 of the file), the same task store content (:meth:`EpisodeStore.fingerprint`),
+    the same task indices, the same protocol and the same bpp version.
     """
     from bpp.evaluation import report
 
@@ -316,17 +326,18 @@ def evaluate(
     store = task_set.store
     protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
     out = Path(out)
+    fingerprint = {"checkpoint_sha256": ckpt.weights_sha256, "tasks_sha256": store.fingerprint(), "bpp": __version__}
     previous = load_results(out)
     if (
         reuse
         and previous is not None
-        and previous.get("checkpoint") == str(ckpt.path)
-        and previous.get("store") == str(store.path)
+        and previous.get("fingerprint") == fingerprint
         and _same_protocol(previous.get("protocol"), protocol)
-        and [t["task"] for t in previous.get("tasks", [])] == tasks
-        and "score_mean" in previous.get("summary", {})
+        and [t.get("task") for t in previous.get("tasks", [])] == tasks
+        and isinstance(previous.get("summary"), dict)
+        and "score_mean" in previous["summary"]
     ):
-        print(f"[eval] reusing {out / 'results.json'}")
+        print(f"[eval] reusing {out / 'results.json'}: same weights, tasks and protocol")
         return previous
     t0 = time.perf_counter()
     results = run_protocol(ckpt, benchmark, store, tasks, protocol, workers, videos, progress, f"eval {task_set.label}")
@@ -339,6 +350,7 @@ def evaluate(
         "metric": asdict(metric),
         "task_set": task_set.label,
         "store": str(store.path),
+        "fingerprint": fingerprint,
         "protocol": asdict(protocol),
         "seconds": round(time.perf_counter() - t0, 1),
         "date": time.strftime("%Y-%m-%d %H:%M"),

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from bpp.envs.draw import physics
-from bpp.envs.draw.drawing import Drawing
+from bpp.envs.draw.drawing import Drawing, DrawingError
 from bpp.envs.draw.geometry import unit_to_canvas
 
 
@@ -64,29 +64,36 @@ class Demonstration:
 
 
 def _corner_arclengths(points: np.ndarray, angle_deg: float, scale: float) -> np.ndarray:
-    """Arc lengths of sharp turns, measuring direction over `scale` px so dense curves are not corners."""
+    """Arc lengths of sharp turns, measuring direction over `scale` px so dense curves are not corners.
+
+    A vertex turns sharply if the direction from `scale` px behind it to it and from it to `scale` px ahead differ
+    by more than `angle_deg`; of sharp vertices closer than `scale` along the stroke only the first counts.
+    O(N log N) in the number of vertices.
+    """
     seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
     keep = np.concatenate([[True], seg > 1e-9])
     points = points[keep]
     if len(points) < 3:
         return np.zeros(0)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
-    corners = []
-    for i in range(1, len(points) - 1):
-        back = points[i] - np.array([np.interp(s[i] - scale, s, points[:, k]) for k in range(2)])
-        ahead = np.array([np.interp(s[i] + scale, s, points[:, k]) for k in range(2)]) - points[i]
-        nb, na = np.linalg.norm(back), np.linalg.norm(ahead)
-        if nb < 1e-9 or na < 1e-9:
-            continue
-        cos = np.clip(back @ ahead / (nb * na), -1.0, 1.0)
-        if np.degrees(np.arccos(cos)) > angle_deg and (not corners or s[i] - corners[-1] > scale):
-            corners.append(s[i])
+    inner = points[1:-1]
+    back = inner - np.stack([np.interp(s[1:-1] - scale, s, points[:, k]) for k in range(2)], axis=1)
+    ahead = np.stack([np.interp(s[1:-1] + scale, s, points[:, k]) for k in range(2)], axis=1) - inner
+    nb, na = np.linalg.norm(back, axis=1), np.linalg.norm(ahead, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos = np.clip(np.einsum("ij,ij->i", back, ahead) / (nb * na), -1.0, 1.0)
+        sharp = (nb >= 1e-9) & (na >= 1e-9) & (np.degrees(np.arccos(cos)) > angle_deg)
+    corners: list[float] = []
+    for arclength in s[1:-1][sharp]:
+        if not corners or arclength - corners[-1] > scale:
+            corners.append(float(arclength))
     return np.asarray(corners)
 
 
 class _Recorder:
-    def __init__(self, state: np.ndarray, noise: float, rng: np.random.Generator):
+    def __init__(self, state: np.ndarray, noise: float, rng: np.random.Generator, limit: int | None = None):
         self.state = state
+        self.limit = limit
         self.states: list[np.ndarray] = []
         self.actions: list[np.ndarray] = []
         self.noise = noise
@@ -98,6 +105,8 @@ class _Recorder:
             target = target + np.clip(self.rng.normal(0.0, self.noise, 2), -3 * self.noise, 3 * self.noise)
         # Commands are float32-representable so a store holding float32 actions replays them exactly.
         action = np.array([target[0], target[1], pen], dtype=np.float32).astype(np.float64)
+        if self.limit is not None and len(self.actions) >= self.limit:
+            raise _TooLong
         self.states.append(self.state)
         self.actions.append(action)
         self.state, _ = physics.control_step(self.state, action)
@@ -172,23 +181,42 @@ def demonstrate(
 ) -> Demonstration:
     """Draw `drawing` on a board at `board_angle` starting from a resting cursor at `cursor_start`.
 
-    If the demonstration would exceed ``cfg.max_steps`` the hand draws faster (up to 8 tries, x1.3 each).
+    If the demonstration would exceed ``cfg.max_steps`` the hand draws faster (up to 8 tries, x1.3 each). A try is
+    abandoned as soon as it runs over; the last is kept up to ``LAST_TRY_FACTOR * cfg.max_steps`` steps, and a
+    drawing that needs more raises :class:`DrawingError` (so any drawing costs bounded work).
     """
     speed = float(rng.uniform(*cfg.speed_range))
     seed = int(rng.integers(2**63))
     lo, hi = cfg.speed_range
     care = 0.0 if hi == lo else (speed - lo) / (hi - lo)
     curve_tol = cfg.curve_tol_range[0] + care * (cfg.curve_tol_range[1] - cfg.curve_tol_range[0])
-    for _ in range(8):
-        demo = _demonstrate_at(drawing, board_angle, cursor_start, np.random.default_rng(seed), cfg, speed, curve_tol)
-        if len(demo) <= cfg.max_steps:
-            break
-        speed *= 1.3
-        curve_tol *= 1.3**2
-    return demo
+    tries = 8
+    for attempt in range(tries):
+        limit = cfg.max_steps if attempt < tries - 1 else LAST_TRY_FACTOR * cfg.max_steps
+        try:
+            return _demonstrate_at(
+                drawing, board_angle, cursor_start, np.random.default_rng(seed), cfg, speed, curve_tol, limit
+            )
+        except _TooLong:
+            speed *= 1.3
+            curve_tol *= 1.3**2
+    raise DrawingError(
+        f"drawing {drawing.id!r}: drawing it takes more than {LAST_TRY_FACTOR * cfg.max_steps} steps even at the "
+        f"demonstrator's fastest ({cfg.max_steps} fit an episode); use fewer or shorter strokes"
+    )
 
 
-def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, speed: float, curve_tol: float):
+LAST_TRY_FACTOR = 3
+"""The fastest try of a demonstration may take up to this many times ``DemoConfig.max_steps``."""
+
+
+class _TooLong(Exception):
+    """A demonstration try ran over its step limit."""
+
+
+def _demonstrate_at(
+    drawing, board_angle, cursor_start, rng, cfg: DemoConfig, speed: float, curve_tol: float, limit: int | None
+):
     strokes = [unit_to_canvas(s, board_angle) for s in drawing.strokes]
     phase = rng.uniform(0, 2 * np.pi)
     wobble_period = rng.uniform(15.0, 40.0)
@@ -197,7 +225,7 @@ def _demonstrate_at(drawing, board_angle, cursor_start, rng, cfg: DemoConfig, sp
         return speed * (1.0 + cfg.speed_wobble * np.sin(phase + 2 * np.pi * k / wobble_period))
 
     ramp = 2.0 * speed
-    rec = _Recorder(physics.initial_state(np.asarray(cursor_start, dtype=np.float64)), cfg.noise_std, rng)
+    rec = _Recorder(physics.initial_state(np.asarray(cursor_start, dtype=np.float64)), cfg.noise_std, rng, limit)
     for stroke in strokes:
         start = stroke[0]
         # Pen-up travel along a quadratic Bézier bent sideways by up to 30% of the distance (at most 100 px).

@@ -4,9 +4,12 @@ score(target, rollout) = mean over target ink pixels of the distance to the near
                        + mean over rollout ink pixels of the distance to the nearest target ink pixel
 
 (a *sum* of the two directions, as in the paper). Both inks are rasterised **upright** — their geometry is
-un-rotated about the board centre before rasterising, not the images — so identical drawings score exactly 0
-at every board angle. Pixels are inked the way the authors' pen inks them (:func:`pen_band`), which
-reproduces their parity values (see tests).
+un-rotated about the board centre before rasterising, not the images — from coordinates rounded to
+:data:`GRID_DECIMALS` decimals of a pixel, so identical drawings whose points lie on that grid (integer points
+included) score exactly 0 at every board angle; for other points the ~1e-13 px of a rotate / un-rotate round trip
+matters only for a coordinate that close to a rounding midpoint. Pixels are inked the way the authors' pen inks
+them (:func:`pen_band`): a line moved 10 px scores 9.180 (the authors' 9.18) and circles of radius 100 and 110
+with one integer point per degree 9.684 (the authors' 9.69); see tests and the README.
 
 Empty ink: the authors' implementation returns infinity when either canvas has no ink, which makes every mean
 over episodes infinite. Here a direction whose *source* set is empty contributes 0 and a direction whose
@@ -89,6 +92,9 @@ class ChamferTracker:
         return float(to_rollout[self.target[crop]].mean() + self.sum_to_target / self.count)
 
 
+GRID_DECIMALS = 6
+"""Ink coordinates are rounded to this many decimals of a pixel before rasterising."""
+
 PEN_DOT_RADIUS = 4.0
 """The authors' pen also stamps a disc of this radius at every path point."""
 
@@ -99,8 +105,8 @@ def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
     The authors draw ink with pygame's thick lines, whose 12 px are measured along the *minor* axis of each
     segment (a horizontal stroke is 12 px tall, a 45-degree stroke only 12/sqrt(2) px wide) with flat ends,
     plus a 4 px disc at each point. Reproducing that pen, rather than an ideal round one, is what makes our
-    numbers comparable: it reproduces both of the authors' parity values (a line 10 px apart -> 9.18, circles
-    of radius 100 and 110 -> 9.69).
+    numbers comparable: a line 10 px apart scores 9.180 (the authors' 9.18), circles of radius 100 and 110 with
+    one integer point per degree 9.684 (the authors' 9.69).
     """
     inked = np.zeros(x.shape, dtype=bool)
     half = INK_WIDTH / 2
@@ -130,7 +136,9 @@ class InkMask:
 
     def add(self, path: np.ndarray) -> np.ndarray | None:
         """Ink a (N, 2) polyline given in this mask's pixel coordinates; returns a mask of this path's ink."""
-        path = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        # Snapped to a 1e-6 px grid so a rotate / un-rotate round trip (which moves points by ~1e-13 px) cannot
+        # flip a pixel whose centre lies exactly on the pen's edge: points on the grid come back exactly.
+        path = np.round(np.asarray(path, dtype=np.float64).reshape(-1, 2), GRID_DECIMALS)
         size = self.mask.shape[0]
         reach = INK_WIDTH / 2 + 1.0
         lo = np.maximum(np.floor(path.min(axis=0) - reach).astype(int), 0)
