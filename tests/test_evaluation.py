@@ -130,8 +130,8 @@ def test_bpp_eval_reads_each_checkpoint_once(debug_store, tmp_path, monkeypatch)
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
     train(cfg, config("bpp"), progress=False)
     reads = []
-    load_file, read_state = checkpoint.load_file, checkpoint.read_state
-    monkeypatch.setattr(checkpoint, "load_file", lambda path: reads.append(path.name) or load_file(path))
+    load_tensors, read_state = checkpoint._load_tensors, checkpoint.read_state
+    monkeypatch.setattr(checkpoint, "_load_tensors", lambda path, *a: reads.append(path.name) or load_tensors(path, *a))
     monkeypatch.setattr(checkpoint, "read_state", lambda path: reads.append("state.json") or read_state(path))
     args = ["eval", str(run), "--tasks", str(debug_store.path), "--num-tasks", "2", "--rollouts", "1"]
     main([*args, "--max-steps", "5", "--workers", "1", "--videos", "0", "--out", str(tmp_path / "eval")])

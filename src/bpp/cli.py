@@ -19,6 +19,7 @@ import tyro
 from bpp.envs.registry import DEFAULT_BENCHMARK, benchmark_for_command, benchmark_names, get_benchmark
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig
+from bpp.utils import check_fields
 
 # ----------------------------------------------------------------------------- bpp <benchmark> generate
 
@@ -193,6 +194,15 @@ class Eval:
     out: Path = Path("outputs/eval")
     data_dir: Path | None = None
     """Where named task sets and stores made from --files are generated (default: the benchmark's own folder)."""
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("checkpoints", len(self.checkpoints) >= 1, "at least one run directory or checkpoint folder"),
+            ("num_tasks", self.num_tasks >= 0, ">= 0 (0: all)"),
+            ("workers", self.workers >= 0, ">= 0 (0: one per core)"),
+            ("videos", self.videos >= 0, ">= 0"),
+        )
 
 
 def eval_cmd(args: Eval) -> None:

@@ -22,7 +22,7 @@ from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
 from bpp.policies.common import count_parameters
 from bpp.policies.registry import PolicyModelContract, get_method
-from bpp.utils import read_json, to_dict, to_torch, usable_cores, write_json_atomic
+from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,8 @@ class TrainConfig:
     dominates a CPU step)."""
 
     def __post_init__(self):
-        for name, ok, expected in (
+        check_fields(
+            self,
             ("steps", self.steps >= 1, ">= 1"),
             ("batch_size", self.batch_size >= 1, ">= 1"),
             ("tasks_per_batch", self.tasks_per_batch >= 1, ">= 1"),
@@ -87,9 +88,7 @@ class TrainConfig:
             ("keep_checkpoints", self.keep_checkpoints >= 0, ">= 0 (0: keep all)"),
             ("threads", self.threads >= 0, ">= 0 (0: auto)"),
             ("frame_cache_gb", self.frame_cache_gb >= 0, ">= 0"),
-        ):
-            if not ok:
-                raise ValueError(f"{name} must be {expected}, got {getattr(self, name)!r}")
+        )
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:

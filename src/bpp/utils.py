@@ -52,6 +52,15 @@ def _convert(tp: Any, value: Any) -> Any:
     return value
 
 
+def check_fields(obj: Any, *rules: tuple[str, bool, str]) -> None:
+    """Range checks for a config's ``__post_init__``: each rule is (field, whether it holds, what the field must
+    be). Raises ValueError naming the first field that fails, what it must be and the value given. Write rules as
+    positive conditions (``x > 0``), so a NaN fails them."""
+    for name, ok, expected in rules:
+        if not ok:
+            raise ValueError(f"{name} must be {expected}, got {getattr(obj, name)!r}")
+
+
 def usable_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1

@@ -31,7 +31,7 @@ from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.envs.benchmark import Benchmark, Metric, TaskSet, run_prompted
 from bpp.envs.registry import get_benchmark
-from bpp.utils import read_json, usable_cores, write_json_atomic
+from bpp.utils import check_fields, read_json, usable_cores, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -52,12 +52,15 @@ class Protocol:
     """Denoising steps per inference of a diffusion decoder (0: the checkpoint's own)."""
 
     def __post_init__(self):
-        if self.prompts not in ("own", "other-task"):
-            raise ValueError(f"prompts must be 'own' or 'other-task', got {self.prompts!r}")
-        if self.n_action_steps < 0 or self.inference_steps < 0 or self.max_steps < 0:
-            raise ValueError("max_steps, n_action_steps and inference_steps must be >= 0 (0: the default)")
-        if self.rollouts < 1:
-            raise ValueError(f"rollouts must be at least 1, got {self.rollouts}")
+        check_fields(
+            self,
+            ("rollouts", self.rollouts >= 1, ">= 1"),
+            ("seed", self.seed >= 0, ">= 0"),
+            ("max_steps", self.max_steps >= 0, ">= 0 (0: the benchmark's)"),
+            ("prompts", self.prompts in ("own", "other-task"), "'own' or 'other-task'"),
+            ("n_action_steps", self.n_action_steps >= 0, ">= 0 (0: the checkpoint's)"),
+            ("inference_steps", self.inference_steps >= 0, ">= 0 (0: the checkpoint's)"),
+        )
 
     def agent_options(self) -> dict:
         """The :class:`~bpp.policies.agent.PolicyAgent` overrides this protocol asks for."""

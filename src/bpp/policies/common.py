@@ -14,6 +14,7 @@ from bpp.data.spec import DataSpec
 from bpp.nn.lowdim import LowDimEncoder
 from bpp.nn.unet1d import ConditionalUnet1D
 from bpp.nn.vision import ResNetGN
+from bpp.utils import check_fields
 
 
 class ContextError(ValueError):
@@ -71,6 +72,29 @@ class Normalizer(nn.Module):
         return (x - offset) / scale
 
 
+def group_normable(channels: int) -> bool:
+    """Whether the image encoder's GroupNorm (channels // 16 groups, at least 1) divides `channels`."""
+    return channels >= 1 and channels % max(1, channels // 16) == 0
+
+
+IMAGE_WIDTHS_RULE = (
+    "channel counts >= 1, each below 16 or divisible by its GroupNorm groups (width // 16), e.g. 32, 64, 128"
+)
+_DOWN = "channel counts, each a multiple of 8 (the decoder's GroupNorm has 8 groups)"
+BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
+
+
+def transformer_rules(cfg) -> tuple[tuple[str, bool, str], ...]:
+    """Range rules for the transformer fields a model config shares: dim, layers, heads, mlp_dim, dropout."""
+    return (
+        ("dim", cfg.dim >= 1, ">= 1"),
+        ("layers", cfg.layers >= 1, ">= 1"),
+        ("heads", cfg.heads >= 1 and cfg.dim % cfg.heads == 0, f"a divisor of dim ({cfg.dim})"),
+        ("mlp_dim", cfg.mlp_dim >= 1, ">= 1"),
+        ("dropout", 0.0 <= cfg.dropout < 1.0, "in [0, 1)"),
+    )
+
+
 @dataclass(frozen=True)
 class ObsConfig:
     """Which observation entries a policy sees, and how they are encoded.
@@ -93,6 +117,18 @@ class ObsConfig:
     """0: low-dimensional entries are their normalised values; k > 0: Fourier features over k octaves and an MLP
     to ``lowdim_features`` (a nonlinear embedding, so that attention can match nearby states; see bpp.nn.lowdim)."""
     lowdim_features: int = 64
+
+    def __post_init__(self):
+        widths, blocks = self.image_widths, self.image_blocks
+        check_fields(
+            self,
+            ("image_size", 8 <= self.image_size <= 1024, "in [8, 1024] px"),
+            ("image_features", self.image_features >= 1, ">= 1"),
+            ("image_widths", len(widths) >= 1 and all(group_normable(w) for w in widths), IMAGE_WIDTHS_RULE),
+            ("image_blocks", len(blocks) == len(widths) and all(b >= 1 for b in blocks), "one count >= 1 per width"),
+            ("lowdim_fourier_octaves", 0 <= self.lowdim_fourier_octaves <= 16, "in [0, 16]"),
+            ("lowdim_features", self.lowdim_features >= 1, ">= 1"),
+        )
 
     @property
     def entries(self) -> list[str]:
@@ -157,8 +193,25 @@ class DiffusionConfig:
     """ddim or ddpm."""
 
     def __post_init__(self):
-        if self.sampler not in ("ddim", "ddpm"):
-            raise ValueError(f"sampler must be 'ddim' or 'ddpm', got {self.sampler!r}")
+        check_fields(
+            self,
+            ("down_dims", len(self.down_dims) >= 1 and all(d >= 8 and d % 8 == 0 for d in self.down_dims), _DOWN),
+            ("kernel_size", self.kernel_size >= 1 and self.kernel_size % 2 == 1, "odd and >= 1"),
+            ("step_embed_dim", self.step_embed_dim >= 2 and self.step_embed_dim % 2 == 0, "even and >= 2"),
+            ("num_train_steps", 1 <= self.num_train_steps <= 10_000, "in [1, 10000]"),
+            ("num_inference_steps", 1 <= self.num_inference_steps <= self.num_train_steps, "in [1, num_train_steps]"),
+            ("beta_schedule", self.beta_schedule in BETA_SCHEDULES, f"one of {BETA_SCHEDULES}"),
+            ("sampler", self.sampler in ("ddim", "ddpm"), "'ddim' or 'ddpm'"),
+        )
+
+    def check_horizon(self, horizon: int) -> None:
+        """The U-Net halves the time axis between levels: refuse a horizon it cannot halve that often."""
+        factor = 2 ** (len(self.down_dims) - 1)
+        if horizon % factor:
+            raise ValueError(
+                f"horizons.horizon {horizon} must be a multiple of {factor} for a decoder with "
+                f"{len(self.down_dims)} levels (diffusion.down_dims {self.down_dims})"
+            )
 
 
 class DiffusionHead(nn.Module):
@@ -230,6 +283,11 @@ class Horizons:
     n_action_steps: int = 12
 
     def __post_init__(self):
+        check_fields(
+            self,
+            ("n_obs_steps", self.n_obs_steps >= 1, ">= 1"),
+            ("horizon", self.n_obs_steps <= self.horizon <= 1024, "in [n_obs_steps, 1024]"),
+        )
         if not 1 <= self.n_action_steps <= self.horizon - self.n_obs_steps + 1:
             raise ValueError(
                 f"need 1 <= n_action_steps <= horizon - n_obs_steps + 1, got Ta={self.n_action_steps}, "

@@ -15,6 +15,7 @@ import numpy as np
 import tyro
 
 from bpp.envs.draw.dataset import PRESETS, DrawDataConfig
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,14 @@ class DrawSheet:
     demos: int = 5
     """Demonstrations per task to show beside the task."""
     size: int = 160
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("tasks", 1 <= self.tasks <= 200, "in [1, 200]"),
+            ("demos", 1 <= self.demos <= 50, "in [1, 50]"),
+            ("size", 16 <= self.size <= 1024, "in [16, 1024] px"),
+        )
 
 
 def draw_sheet(args: DrawSheet) -> None:
@@ -44,6 +53,14 @@ class DrawVideo:
     episode: int = 0
     out: Path = Path("demo.gif")
     size: int = 256
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("episode", self.episode >= 0, ">= 0"),
+            ("out", self.out.suffix.lower() in (".gif", ".mp4"), "a .gif or .mp4 file"),
+            ("size", 16 <= self.size <= 1024, "in [16, 1024] px"),
+        )
 
 
 def draw_video(args: DrawVideo) -> None:
@@ -74,6 +91,14 @@ class DrawRollout:
     board_angle_deg: float = 20.0
     seed: int = 0
     out: Path = Path("outputs/rollout")
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("episode", self.episode >= 0, ">= 0"),
+            ("board_angle_deg", -180.0 <= self.board_angle_deg <= 180.0, "in [-180, 180]"),
+            ("seed", self.seed >= 0, ">= 0"),
+        )
 
 
 def draw_rollout(args: DrawRollout) -> None:
@@ -153,6 +178,21 @@ class Demo:
     loader_workers: int = -1
     """Data-loader processes for training (-1: auto, none on a CPU)."""
     seed: int = 0
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("num_tasks", self.num_tasks >= 1, ">= 1"),
+            ("steps", self.steps >= 1, ">= 1"),
+            ("tasks_per_batch", self.tasks_per_batch >= 1, ">= 1"),
+            ("rollouts", self.rollouts >= 1, ">= 1"),
+            ("eval_tasks", self.eval_tasks >= 0, ">= 0 (0: all)"),
+            ("max_steps", self.max_steps >= 1, ">= 1"),
+            ("workers", self.workers >= 0, ">= 0 (0: one per core)"),
+            ("threads", self.threads >= 0, ">= 0 (0: auto)"),
+            ("loader_workers", self.loader_workers >= -1, ">= -1 (-1: auto)"),
+            ("seed", self.seed >= 0, ">= 0"),
+        )
 
 
 def demo(args: Demo) -> None:

@@ -19,6 +19,7 @@ from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.envs.draw.render import SceneRenderer
 from bpp.envs.draw.viz import episode_frames
+from bpp.utils import check_fields
 
 BENCHMARK = "drawanything"
 
@@ -42,10 +43,12 @@ class DrawDataConfig:
     demo: DemoConfig = field(default_factory=DemoConfig)
 
     def __post_init__(self):
-        if self.demos_per_task < 1:
-            raise ValueError(f"demos_per_task must be >= 1, got {self.demos_per_task}")
-        if self.source == "procedural" and self.num_tasks < 1:
-            raise ValueError(f"num_tasks must be >= 1, got {self.num_tasks}")
+        check_fields(
+            self,
+            ("demos_per_task", 1 <= self.demos_per_task <= 10_000, "in [1, 10000]"),
+            ("num_tasks", self.source != "procedural" or 1 <= self.num_tasks <= 10_000_000, "in [1, 10000000]"),
+            ("seed", self.seed >= 0, ">= 0"),
+        )
         if self.source == "files" and not self.drawings:
             raise ValueError("source=files needs at least one drawing file (--drawings FILE ...)")
         if self.describe and self.source != "procedural":

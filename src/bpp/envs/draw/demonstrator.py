@@ -16,6 +16,7 @@ import numpy as np
 from bpp.envs.draw import physics
 from bpp.envs.draw.drawing import Drawing, DrawingError
 from bpp.envs.draw.geometry import unit_to_canvas
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -46,8 +47,21 @@ class DemoConfig:
 
     def __post_init__(self):
         lo, hi = self.speed_range
-        if not 0 < lo <= hi:
-            raise ValueError(f"speed_range must satisfy 0 < lo <= hi, got {self.speed_range}")
+        lo_tol, hi_tol = self.curve_tol_range
+        check_fields(
+            self,
+            ("speed_range", 0 < lo <= hi <= 200, "lo, hi with 0 < lo <= hi <= 200 (px per step)"),
+            ("speed_wobble", 0 <= self.speed_wobble < 1, "in [0, 1)"),
+            ("noise_std", 0 <= self.noise_std <= 50, "in [0, 50] px"),
+            ("corner_angle_deg", 0 <= self.corner_angle_deg <= 180, "in [0, 180]"),
+            ("corner_tol", self.corner_tol > 0, "> 0"),
+            ("corner_max_steps", self.corner_max_steps >= 0, ">= 0"),
+            ("curve_tol_range", 0 < lo_tol <= hi_tol, "lo, hi with 0 < lo <= hi"),
+            ("arrive_tol", self.arrive_tol > 0, "> 0 px"),
+            ("max_wait_steps", 0 <= self.max_wait_steps <= 1000, "in [0, 1000]"),
+            ("end_rest_steps", 0 <= self.end_rest_steps <= 1000, "in [0, 1000]"),
+            ("max_steps", 1 <= self.max_steps <= 100_000, "in [1, 100000]"),
+        )
 
 
 @dataclass

@@ -16,8 +16,11 @@ import numpy as np
 
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.geometry import BOARD_SIZE
+from bpp.utils import check_fields
 
 PART_TYPES = ("line", "curve", "oval", "move")
+MAX_PARTS = 30
+"""Most parts a drawing may have (six is the paper's; more would not fit an episode)."""
 _PART_WORDS = {"line": "draw a line", "curve": "draw a curve", "oval": "draw an oval", "move": "lift the pen and move"}
 _PX = 1.0 / BOARD_SIZE  # one canvas pixel in unit-square units
 _SAMPLE_SPACING = 2.0 * _PX  # dense polyline resolution of generated parts
@@ -45,10 +48,20 @@ class ProceduralConfig:
     """Range of a partial oval's arc."""
 
     def __post_init__(self):
-        if not 1 <= self.min_parts <= self.max_parts:
-            raise ValueError(f"need 1 <= min_parts <= max_parts, got {self.min_parts}..{self.max_parts}")
-        if not 0.0 <= self.connect_prob <= 1.0:
-            raise ValueError(f"connect_prob must be in [0, 1], got {self.connect_prob}")
+        lo_axis, hi_axis = self.oval_axis_px
+        lo_aspect, hi_aspect = self.oval_aspect
+        lo_arc, hi_arc = self.partial_arc_deg
+        check_fields(
+            self,
+            ("min_parts", self.min_parts >= 1, ">= 1"),
+            ("max_parts", self.min_parts <= self.max_parts <= MAX_PARTS, f"in [min_parts, {MAX_PARTS}]"),
+            ("connect_prob", 0.0 <= self.connect_prob <= 1.0, "in [0, 1]"),
+            ("min_new_point_px", 0.0 <= self.min_new_point_px <= 200.0, "in [0, 200] (a board side is 350)"),
+            ("oval_axis_px", 0.0 < lo_axis <= hi_axis <= BOARD_SIZE, f"lo, hi with 0 < lo <= hi <= {BOARD_SIZE:g}"),
+            ("oval_aspect", 0.0 < lo_aspect <= hi_aspect <= 10.0, "lo, hi with 0 < lo <= hi <= 10"),
+            ("partial_oval_prob", 0.0 <= self.partial_oval_prob <= 1.0, "in [0, 1]"),
+            ("partial_arc_deg", 0.0 < lo_arc <= hi_arc <= 360.0, "lo, hi with 0 < lo <= hi <= 360"),
+        )
 
 
 def _dense(points: np.ndarray) -> np.ndarray:

@@ -14,7 +14,9 @@ from bpp.policies.common import (
     DiffusionConfig,
     Horizons,
     ObsConfig,
+    transformer_rules,
 )
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -39,8 +41,13 @@ class PromptConfig:
     """Longest prompt (steps) accepted; sets the number of learned chunk positions."""
 
     def __post_init__(self):
-        if self.chunk_len < 1:
-            raise ValueError(f"prompt chunk_len must be >= 1, got {self.chunk_len}")
+        check_fields(
+            self,
+            ("chunk_len", self.chunk_len >= 1, ">= 1"),
+            ("action_fourier_octaves", 0 <= self.action_fourier_octaves <= 16, "in [0, 16]"),
+            ("num_sinks", self.num_sinks >= 0, ">= 0"),
+            ("max_steps", self.max_steps >= 1, ">= 1"),
+        )
         if not (self.use_obs or self.use_proprio or self.use_action):
             raise ValueError("the prompt must use at least one of obs, proprio, action")
         if self.pooling not in ("all", "obs", "none"):
@@ -72,8 +79,8 @@ class BPPConfig:
     dropout: float = 0.0
 
     def __post_init__(self):
-        if self.dim % self.heads:
-            raise ValueError(f"dim {self.dim} must be divisible by heads {self.heads}")
+        check_fields(self, *transformer_rules(self))
+        self.diffusion.check_horizon(self.horizons.horizon)
 
 
 PRESETS: dict[str, BPPConfig] = {

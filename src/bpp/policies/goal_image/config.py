@@ -8,12 +8,15 @@ from bpp.policies.common import (
     CPU_OBS,
     DEBUG_DIFFUSION,
     DEBUG_OBS,
+    IMAGE_WIDTHS_RULE,
     PAPER_DIFFUSION,
     PAPER_OBS,
     DiffusionConfig,
     Horizons,
     ObsConfig,
+    group_normable,
 )
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -42,10 +45,15 @@ class GoalImageConfig:
     goal_blocks: tuple[int, ...] = (1, 1, 1, 1)
 
     def __post_init__(self):
-        if self.goal_image_size < 8:
-            raise ValueError(f"goal_image_size must be >= 8, got {self.goal_image_size}")
-        if len(self.goal_widths) != len(self.goal_blocks):
-            raise ValueError(f"goal_widths {self.goal_widths} and goal_blocks {self.goal_blocks} differ in length")
+        widths, blocks = self.goal_widths, self.goal_blocks
+        check_fields(
+            self,
+            ("goal_image_size", 8 <= self.goal_image_size <= 1024, "in [8, 1024] px"),
+            ("goal_features", self.goal_features >= 1, ">= 1"),
+            ("goal_widths", len(widths) >= 1 and all(group_normable(w) for w in widths), IMAGE_WIDTHS_RULE),
+            ("goal_blocks", len(blocks) == len(widths) and all(b >= 1 for b in blocks), "one count >= 1 per width"),
+        )
+        self.diffusion.check_horizon(self.horizons.horizon)
         if self.obs.image_keys:
             if self.goal_camera not in self.obs.image_keys:
                 raise ValueError(

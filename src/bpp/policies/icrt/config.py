@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig
+from bpp.policies.common import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig, transformer_rules
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -37,12 +38,12 @@ class ICRTConfig:
     dropout: float = 0.0
 
     def __post_init__(self):
-        if self.chunk_len < 1:
-            raise ValueError(f"chunk_len must be >= 1, got {self.chunk_len}")
-        if self.dim % self.heads:
-            raise ValueError(f"dim {self.dim} must be divisible by heads {self.heads}")
-        if self.min_rollout_chunks < 1:
-            raise ValueError(f"min_rollout_chunks must be >= 1, got {self.min_rollout_chunks}")
+        check_fields(
+            self,
+            ("chunk_len", self.chunk_len >= 1, ">= 1"),
+            ("min_rollout_chunks", self.min_rollout_chunks >= 1, ">= 1"),
+            *transformer_rules(self),
+        )
         if self.max_tokens < 2 * (1 + self.min_rollout_chunks):
             raise ValueError(
                 f"max_tokens {self.max_tokens} can't hold a one-chunk prompt and {self.min_rollout_chunks} rollout "

@@ -14,7 +14,9 @@ from bpp.policies.common import (
     DiffusionConfig,
     Horizons,
     ObsConfig,
+    transformer_rules,
 )
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -31,10 +33,7 @@ class TextEncoderConfig:
     dropout: float = 0.0
 
     def __post_init__(self):
-        if self.dim % self.heads:
-            raise ValueError(f"text dim {self.dim} must be divisible by heads {self.heads}")
-        if self.max_tokens < 3:
-            raise ValueError(f"text max_tokens must be >= 3, got {self.max_tokens}")
+        check_fields(self, *transformer_rules(self), ("max_tokens", 3 <= self.max_tokens <= 4096, "in [3, 4096]"))
 
 
 @dataclass(frozen=True)
@@ -68,6 +67,7 @@ class LanguageConfig:
             raise ValueError(f"text_encoder must be 'scratch' or 'pretrained', got {self.text_encoder!r}")
         if self.tokenizer not in ("pretrained", "bytes"):
             raise ValueError(f"tokenizer must be 'pretrained' or 'bytes', got {self.tokenizer!r}")
+        self.diffusion.check_horizon(self.horizons.horizon)
         if self.text_encoder == "pretrained" and self.tokenizer != "pretrained":
             raise ValueError("a pretrained text encoder needs its own tokenizer: set tokenizer='pretrained'")
 
