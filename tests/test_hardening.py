@@ -321,3 +321,68 @@ def test_identical_integer_drawings_score_exactly_zero_at_any_angle(angle, rng):
     for points in polylines:
         on_board = (points - BOARD_CENTER) @ rotation(angle).T + BOARD_CENTER  # as a rollout inks it
         assert chamfer_distance(ink_mask([points]), ink_mask([canvas_to_upright(on_board, angle)])) == 0.0
+
+
+@pytest.mark.parametrize(
+    ("make", "field"),
+    [
+        ("DemoConfig(noise_std=-1.0)", "noise_std"),
+        ("DemoConfig(max_steps=0)", "max_steps"),
+        ("DemoConfig(speed_range=(0.0, 0.0))", "speed_range"),
+        ("ProceduralConfig(min_parts=7, max_parts=6)", "max_parts"),
+        ("ProceduralConfig(max_parts=10**9)", "max_parts"),
+        ("ProceduralConfig(min_new_point_px=1000.0)", "min_new_point_px"),
+        ("ProceduralConfig(oval_axis_px=(-1.0, 5.0))", "oval_axis_px"),
+        ("DrawDataConfig(demos_per_task=0)", "demos_per_task"),
+        ("DrawDataConfig(seed=-1)", "seed"),
+        ("Protocol(seed=-1)", "seed"),
+        ("Protocol(rollouts=0)", "rollouts"),
+        ("DiffusionConfig(num_inference_steps=0)", "num_inference_steps"),
+        ("DiffusionConfig(down_dims=(50,))", "down_dims"),
+        ("DiffusionConfig(kernel_size=4)", "kernel_size"),
+        ("ObsConfig(image_widths=(50,), image_blocks=(1,))", "image_widths"),
+        ("ObsConfig(image_size=100_000)", "image_size"),
+        ("Horizons(n_obs_steps=0)", "n_obs_steps"),
+        ("BPPConfig(heads=3)", "heads"),
+        ("BPPConfig(dropout=1.5)", "dropout"),
+        ("BPPConfig(horizons=Horizons(horizon=15, n_action_steps=8))", "horizon"),
+        ("ICRTConfig(layers=0)", "layers"),
+    ],
+)
+def test_every_config_refuses_values_out_of_range_naming_the_field(make, field):
+    from bpp.envs.draw.dataset import DrawDataConfig  # noqa: F401 - used by eval below
+    from bpp.envs.draw.demonstrator import DemoConfig  # noqa: F401
+    from bpp.envs.draw.procedural import ProceduralConfig  # noqa: F401
+    from bpp.evaluation.evaluate import Protocol  # noqa: F401
+    from bpp.policies.bpp.config import BPPConfig  # noqa: F401
+    from bpp.policies.common import DiffusionConfig, Horizons, ObsConfig  # noqa: F401
+    from bpp.policies.icrt.config import ICRTConfig  # noqa: F401
+
+    with pytest.raises(ValueError, match=rf"{field}"):
+        eval(make)
+
+
+def test_damaged_store_tables_and_missing_episodes_name_the_store(tmp_path, debug_store):
+    import shutil
+
+    from bpp.data.store import EpisodeStore, StoreError
+
+    store = tmp_path / "no-ends.zarr"
+    shutil.copytree(debug_store.path, store)
+    shutil.rmtree(store / "meta" / "episode_ends")
+    with pytest.raises(StoreError, match="no-ends.zarr: damaged store \\(no meta/episode_ends\\)"):
+        EpisodeStore(store)
+    with pytest.raises(IndexError, match=f"{debug_store.path}: episode 99999 out of range"):
+        debug_store.episode(99999)
+    out = _bpp("draw", "video", str(debug_store.path), "--episode", "99999", "--out", str(tmp_path / "v.gif"))
+    assert out.returncode != 0 and "episode 99999 out of range" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_a_drawing_too_long_to_demonstrate_is_refused_naming_its_file(tmp_path):
+    strokes = [[[float(j % 2), 0.1 + 0.8 * k / 99] for j in range(49)] for k in range(100)]
+    drawing = tmp_path / "long.json"
+    drawing.write_text(json.dumps({"drawings": [{"id": "zz", "strokes": strokes}]}))
+    out = _bpp("draw", "generate", "--source", "files", "--drawings", str(drawing), "--out", str(tmp_path / "s.zarr"))
+    assert out.returncode != 0 and "Traceback" not in out.stderr
+    assert f"{drawing}: drawing 'zz': drawing it takes more than 1200 steps" in out.stderr
+    assert not (tmp_path / "s.zarr").exists()

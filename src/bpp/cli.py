@@ -342,7 +342,8 @@ def main(argv: list[str] | None = None) -> None:
     try:
         run(args)
     except (ValueError, OSError, RuntimeError, KeyError, IndexError) as err:
-        sys.exit(f"{prog}: error: {err}")
+        message = err.args[0] if isinstance(err, KeyError) and err.args else err  # str(KeyError) adds quotes
+        sys.exit(f"{prog}: error: {message}")
 
 
 def _flag(argv: list[str], flag: str, default: str) -> str:

@@ -324,7 +324,10 @@ class EpisodeStore:
         except KeyError as err:
             raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
         self._cache: dict[str, np.ndarray] = {}
-        self.episode_ends = self._read("meta/episode_ends")
+        try:
+            self.episode_ends = self._read("meta/episode_ends")
+        except KeyError:
+            raise StoreError(f"{self.path}: damaged store (no meta/episode_ends); generate it again") from None
         self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
         try:
             self.keys: list[str] = sorted(self._root()["data"].array_keys())
@@ -401,7 +404,7 @@ class EpisodeStore:
 
     def episode_slice(self, index: int) -> slice:
         if not 0 <= index < self.num_episodes:
-            raise IndexError(f"episode {index} out of range (store has {self.num_episodes})")
+            raise IndexError(f"{self.path}: episode {index} out of range (the store has {self.num_episodes})")
         return slice(int(self.episode_starts[index]), int(self.episode_ends[index]))
 
     def episode(self, index: int, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:

@@ -215,7 +215,7 @@ def demonstrate(
             speed *= 1.3
             curve_tol *= 1.3**2
     raise DrawingError(
-        f"drawing {drawing.id!r}: drawing it takes more than {LAST_TRY_FACTOR * cfg.max_steps} steps even at the "
+        f"{drawing.name}: drawing it takes more than {LAST_TRY_FACTOR * cfg.max_steps} steps even at the "
         f"demonstrator's fastest ({cfg.max_steps} fit an episode); use fewer or shorter strokes"
     )
 

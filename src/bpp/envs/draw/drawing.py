@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -21,6 +21,13 @@ class Drawing:
 
     id: str
     strokes: tuple[np.ndarray, ...]
+    source: str = field(default="", compare=False)
+    """Where it came from (a file path, or a generator), for messages about it."""
+
+    @property
+    def name(self) -> str:
+        """How messages refer to it: ``<source>: drawing '<id>'``."""
+        return f"{self.source}: drawing {self.id!r}" if self.source else f"drawing {self.id!r}"
 
     @classmethod
     def from_strokes(cls, drawing_id: str, strokes, source: str = "<memory>") -> Drawing:
@@ -48,7 +55,7 @@ class Drawing:
                     f"found range [{arr.min():.4g}, {arr.max():.4g}]"
                 )
             out.append(arr)
-        return cls(drawing_id, tuple(out))
+        return cls(drawing_id, tuple(out), source)
 
     @property
     def ink_length(self) -> float:
@@ -66,4 +73,4 @@ class Drawing:
         extent = max(float((hi - lo).max()), 1e-9)
         scale = (1.0 - 2.0 * margin) / extent
         offset = 0.5 - (lo + hi) / 2.0 * scale
-        return Drawing(self.id, tuple(s * scale + offset for s in self.strokes))
+        return Drawing(self.id, tuple(s * scale + offset for s in self.strokes), self.source)

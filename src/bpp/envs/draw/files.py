@@ -131,7 +131,7 @@ def bounded(drawing: Drawing, where: str) -> Drawing:
             f"{where} has {points} points at least {MIN_POINT_SPACING} apart; a drawing may have at most "
             f"{MAX_POINTS} (simplify it, e.g. fewer vertices in zigzags)"
         )
-    return Drawing(drawing.id, strokes)
+    return Drawing(drawing.id, strokes, drawing.source)
 
 
 def merge_close_points(stroke: np.ndarray, spacing: float) -> np.ndarray:
