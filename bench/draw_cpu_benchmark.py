@@ -88,10 +88,12 @@ def train_run(
     batch_size: int = 64,
     tasks_per_batch: int = 1,
     threads: int = 0,
+    model_cfg=None,
 ) -> float:
     """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
-    `obs`; returns its training wall time in seconds (summed over sessions)."""
-    model_cfg = get_method(method).config(preset, obs, BENCHMARK)
+    `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
+    sessions)."""
+    model_cfg = model_cfg or get_method(method).config(preset, obs, BENCHMARK)
     recorded = run / "config.json"
     if recorded.is_file():
         stored = json.loads(recorded.read_text()).get("model_config")
