@@ -12,6 +12,10 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e ".[dev]"
+	@# The studio's browser test drives Debian's chromium (pip's playwright cannot download its own browser here).
+	command -v chromium >/dev/null || apt-get install -y -q chromium >/dev/null || \
+		(apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null) || \
+		sudo apt-get install -y -q chromium >/dev/null || echo "warning: could not install chromium (apt)"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -274,9 +274,9 @@ COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
 
 def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | None:
     """(words, command class, function, tyro default) for the command argv starts with, or None."""
-    if argv[:1] == ["demo"]:  # the main job: the default benchmark's demo
-        cls, run = get_benchmark(DEFAULT_BENCHMARK).commands["demo"]
-        return ("demo",), cls, run, None
+    if argv[:1] in (["demo"], ["studio"]):  # the main job and the studio: the default benchmark's
+        cls, run = get_benchmark(DEFAULT_BENCHMARK).commands[argv[0]]
+        return (argv[0],), cls, run, None
     for n in (2, 1):
         words = tuple(argv[:n])
         if words in COMMANDS:
@@ -311,6 +311,7 @@ def _usage() -> str:
     for words, (cls, _) in COMMANDS.items():
         line(words, cls)
     line(("demo",), get_benchmark(DEFAULT_BENCHMARK).commands["demo"][0])
+    line(("studio",), get_benchmark(DEFAULT_BENCHMARK).commands["studio"][0])
     for name in benchmark_names():
         benchmark = get_benchmark(name)
         line((benchmark.command, "generate"), _generate_class(benchmark))

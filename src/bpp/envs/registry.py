@@ -25,7 +25,7 @@ GYM_ENVS: dict[str, str] = {
 }
 """Gymnasium ids registered by ``import bpp.envs`` (entry points are imported lazily, on ``gym.make``)."""
 
-RESERVED_COMMANDS = ("train", "eval", "store", "demo")
+RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio")
 """The generic command-line groups a benchmark's `command` may not take."""
 
 _LOADED: dict[str, Benchmark] = {}

@@ -15,6 +15,7 @@ import numpy as np
 import tyro
 
 from bpp.envs.draw.dataset import PRESETS, DrawDataConfig
+from bpp.envs.draw.studio.command import StudioCommand, studio
 from bpp.utils import check_fields
 
 
@@ -258,6 +259,7 @@ def demo(args: Demo) -> None:
     result = evaluate(ckpt, human, tasks, args.out_dir / "eval-human", protocol, args.workers)
     write_demo_report(args, result, time.perf_counter() - t0)
     stage(f"done. Report: {args.out_dir / 'report.md'}")
+    print(f"[demo] prompt it yourself: `bpp studio --runs {args.run_dir.parent}` opens a page where you draw a prompt")
 
 
 def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
@@ -307,5 +309,6 @@ COMMANDS = {
     "video": (DrawVideo, draw_video),
     "rollout": (DrawRollout, draw_rollout),
     "demo": (Demo, demo),
+    "studio": (StudioCommand, studio),
 }
-"""``bpp draw <name>``; ``demo`` is also ``bpp demo``, the main job."""
+"""``bpp draw <name>``; ``demo`` is also ``bpp demo`` (the main job) and ``studio`` ``bpp studio``."""

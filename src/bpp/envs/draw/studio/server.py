@@ -1,0 +1,252 @@
+"""The studio's HTTP API (FastAPI), used by its own page and by any other client.
+
+Every ``/api`` call needs the access token printed at start, as ``Authorization: Bearer <token>`` (or, where a
+client cannot set headers, e.g. the browser's EventSource, ``?token=<token>``), and every call but
+``POST /api/session`` names its session in ``X-Studio-Session`` (or ``?session=``). Errors are JSON
+``{"detail": ..., "field": ...}`` with a 4xx status naming the offending field.
+
+    POST   /api/session                           -> {"session": id}
+    GET    /api/checkpoints                       -> [{"id", "label", "method", "step"}]
+    GET    /api/stored                            -> the unseen drawings: [{"task", "id", "episodes"}]
+    POST   /api/prompts {"kind": "drawn", "samples": [[x, y, pen], ...], "board_angle": rad}
+                        {"kind": "strokes", "strokes": [[[u, v], ...], ...], "board_angle": rad, "seed": int}
+                        {"kind": "file", "name": "x.svg", "text": "<svg ...", "board_angle": rad, "seed": int}
+                        {"kind": "stored", "task": int, "demo": int}   -> {"id", "source", "steps", ...}
+    GET    /api/prompts/{id}/task.json            -> the prompt as a task file for ``bpp eval --files``
+    POST   /api/rollouts {"prompt_id", "checkpoint_id", "board_angle": rad or null (random), "seed", "max_steps"}
+    GET    /api/rollouts/{id}/events?since=N      -> server-sent events: start, step (action, cursor, pen, ink
+                                                     segment, chamfer, attention on new inferences), end
+    GET    /api/rollouts/{id}                     -> status and best Chamfer
+    DELETE /api/rollouts/{id}                     -> stop it
+    GET    /api/rollouts/{id}/episode.json | episode.gif | episode.mp4
+"""
+
+import asyncio
+import hmac
+import json
+import secrets
+import tempfile
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+from fastapi import Depends, FastAPI, Header, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
+from pydantic import BaseModel, ConfigDict, Field
+
+from bpp.envs.draw.studio.engine import Studio, StudioError
+
+ANGLE = Field(default=0.0, ge=-3.2, le=3.2, description="board angle, radians")
+
+
+class _Body(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class DrawnPrompt(_Body):
+    kind: Literal["drawn"]
+    samples: list[Annotated[list[float], Field(min_length=3, max_length=3)]] = Field(min_length=2, max_length=5000)
+    board_angle: float = ANGLE
+
+
+class StrokesPrompt(_Body):
+    kind: Literal["strokes"]
+    strokes: list[list[Annotated[list[float], Field(min_length=2, max_length=2)]]] = Field(min_length=1, max_length=100)
+    board_angle: float = ANGLE
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+
+
+class FilePrompt(_Body):
+    kind: Literal["file"]
+    name: str = Field(min_length=1, max_length=200)
+    text: str = Field(min_length=1)
+    board_angle: float = ANGLE
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+
+
+class StoredPrompt(_Body):
+    kind: Literal["stored"]
+    task: int = Field(ge=0)
+    demo: int = Field(default=0, ge=0)
+
+
+class RolloutRequest(_Body):
+    prompt_id: str = Field(min_length=1, max_length=64)
+    checkpoint_id: str = Field(min_length=1, max_length=64)
+    board_angle: float | None = Field(default=None, ge=-3.2, le=3.2)
+    seed: int = Field(default=0, ge=0, le=2**31 - 1)
+    max_steps: int = Field(default=400, ge=1)
+
+
+PromptRequest = Annotated[DrawnPrompt | StrokesPrompt | FilePrompt | StoredPrompt, Field(discriminator="kind")]
+
+
+class _LimitBody:
+    """ASGI middleware: a request body over `limit` bytes gets 413 before the app reads it."""
+
+    def __init__(self, app, limit: int):
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        if declared is not None and declared.isdigit() and int(declared) > self.limit:
+            return await _too_large(send, self.limit)
+        seen = 0
+
+        async def limited():
+            nonlocal seen
+            message = await receive()
+            seen += len(message.get("body", b""))
+            if seen > self.limit:
+                raise _TooLarge
+            return message
+
+        try:
+            return await self.app(scope, limited, send)
+        except _TooLarge:
+            return await _too_large(send, self.limit)
+
+
+class _TooLarge(Exception):
+    pass
+
+
+async def _too_large(send, limit: int) -> None:
+    body = json.dumps({"detail": f"request body over {limit} bytes", "field": "body"}).encode()
+    await send({"type": "http.response.start", "status": 413, "headers": [(b"content-type", b"application/json")]})
+    await send({"type": "http.response.body", "body": body})
+
+
+def create_app(studio: Studio, token: str) -> FastAPI:
+    """The studio's FastAPI app; `token` guards every API call."""
+    app = FastAPI(title="bpp studio", docs_url=None, redoc_url=None, openapi_url=None)
+    media = Path(tempfile.mkdtemp(prefix="media-", dir=studio.workdir))
+
+    @app.exception_handler(StudioError)
+    async def _studio_error(_: Request, err: StudioError):
+        return JSONResponse({"detail": str(err), "field": err.field}, status_code=err.status)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(_: Request, err: RequestValidationError):
+        first = err.errors()[0]
+        where = [str(part) for part in first.get("loc", ())]
+        if where[:1] and where[0] in ("body", "query", "header", "path"):  # where the input was
+            where = where[1:]
+        if where[:1] and where[0] in ("drawn", "strokes", "file", "stored"):  # which kind of prompt
+            where = where[1:]
+        if first.get("type", "").startswith("union_tag"):
+            where = ["kind"]
+        field = where[0] if where else ""
+        return JSONResponse(
+            {"detail": f"{'.'.join(where) or 'request'}: {first.get('msg')}", "field": field}, status_code=422
+        )
+
+    def authorised(
+        authorization: Annotated[str | None, Header()] = None,
+        token_query: Annotated[str | None, Query(alias="token")] = None,
+    ) -> None:
+        given = authorization[7:] if authorization and authorization.startswith("Bearer ") else token_query
+        if not given or not hmac.compare_digest(given.encode(), token.encode()):
+            raise StudioError("missing or wrong access token (see the URL `bpp studio` printed)", "token", 401)
+
+    def session_id(
+        x_studio_session: Annotated[str | None, Header()] = None,
+        session_query: Annotated[str | None, Query(alias="session")] = None,
+    ) -> str:
+        sid = x_studio_session or session_query
+        if not sid:
+            raise StudioError("name your session in the X-Studio-Session header (POST /api/session)", "session", 400)
+        studio.session(sid)
+        return sid
+
+    auth = [Depends(authorised)]
+    SessionId = Annotated[str, Depends(session_id)]
+
+    @app.get("/", response_class=HTMLResponse)
+    def page() -> str:
+        return resources.files("bpp.envs.draw.studio").joinpath("page.html").read_text(encoding="utf-8")
+
+    @app.post("/api/session", dependencies=auth)
+    def new_session() -> dict:
+        return {"session": studio.new_session(), "limits": studio.limits.__dict__}
+
+    @app.get("/api/checkpoints", dependencies=auth)
+    def checkpoints() -> list[dict]:
+        return [c.public() for c in studio.checkpoints.values()]
+
+    @app.get("/api/stored", dependencies=auth)
+    def stored() -> list[dict]:
+        return studio.stored_prompts()
+
+    @app.post("/api/prompts", dependencies=auth)
+    def add_prompt(body: PromptRequest, sid: SessionId) -> dict:
+        if isinstance(body, DrawnPrompt):
+            prompt = studio.add_drawn_prompt(sid, body.samples, body.board_angle)
+        elif isinstance(body, StrokesPrompt):
+            prompt = studio.add_strokes_prompt(sid, body.strokes, body.board_angle, body.seed)
+        elif isinstance(body, FilePrompt):
+            prompt = studio.add_file_prompt(sid, body.name, body.text, body.board_angle, body.seed)
+        else:
+            prompt = studio.add_stored_prompt(sid, body.task, body.demo)
+        return prompt.public()
+
+    @app.get("/api/prompts/{pid}/task.json", dependencies=auth)
+    def task_file(pid: str, sid: SessionId) -> JSONResponse:
+        headers = {"Content-Disposition": f'attachment; filename="studio-{pid[:16]}.json"'}
+        return JSONResponse(studio.prompt_task_file(sid, pid), headers=headers)
+
+    @app.post("/api/rollouts", dependencies=auth)
+    def start(body: RolloutRequest, sid: SessionId) -> dict:
+        rollout = studio.start_rollout(
+            sid, body.prompt_id, body.checkpoint_id, body.board_angle, body.seed, body.max_steps
+        )
+        return rollout.public()
+
+    @app.get("/api/rollouts/{rid}", dependencies=auth)
+    def status(rid: str, sid: SessionId) -> dict:
+        return studio.rollout(sid, rid).public()
+
+    @app.delete("/api/rollouts/{rid}", dependencies=auth)
+    def stop(rid: str, sid: SessionId) -> dict:
+        return studio.stop_rollout(sid, rid).public()
+
+    @app.get("/api/rollouts/{rid}/events", dependencies=auth)
+    async def events(rid: str, sid: SessionId, request: Request, since: int = Query(default=0, ge=0)):
+        studio.rollout(sid, rid)  # 404 before the stream starts
+
+        async def stream():
+            sent = since
+            try:
+                while True:
+                    new, rollout = studio.events(sid, rid, sent)
+                    for event in new:
+                        yield f"id: {sent}\ndata: {json.dumps(event)}\n\n"
+                        sent += 1
+                    if not rollout.running and sent >= len(rollout.events):
+                        return
+                    if await request.is_disconnected():
+                        rollout.stop.set()  # a reader went away: stop drawing for nobody
+                        return
+                    await asyncio.sleep(0.02)
+            except asyncio.CancelledError:
+                studio.rollout(sid, rid).stop.set()
+                raise
+
+        return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-store"})
+
+    @app.get("/api/rollouts/{rid}/episode.json", dependencies=auth)
+    def episode(rid: str, sid: SessionId) -> JSONResponse:
+        headers = {"Content-Disposition": f'attachment; filename="rollout-{rid[:16]}.json"'}
+        return JSONResponse(studio.episode(sid, rid), headers=headers)
+
+    @app.get("/api/rollouts/{rid}/episode.{fmt}", dependencies=auth)
+    def animation(rid: str, fmt: Literal["gif", "mp4"], sid: SessionId) -> FileResponse:
+        path = media / f"{secrets.token_hex(8)}.{fmt}"
+        studio.animation(sid, rid, path)
+        return FileResponse(path, filename=f"rollout-{rid[:16]}.{fmt}")
+
+    app.add_middleware(_LimitBody, limit=studio.limits.max_body_bytes)
+    return app
