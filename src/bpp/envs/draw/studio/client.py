@@ -87,15 +87,23 @@ class StudioClient:
 
     # --------------------------------------------------------------------------------------------- rollouts
     def rollout(
-        self, prompt_id: str, checkpoint_id: str, board_angle: float | None = None, seed: int = 0, max_steps: int = 400
+        self,
+        prompt_id: str,
+        checkpoint_id: str,
+        board_angle: float | None = None,
+        seed: int = 0,
+        max_steps: int = 400,
+        frames: int = 0,
     ) -> dict:
-        """Start a rollout (board_angle None: a random one); returns its status (``id``, ``status``, ...)."""
+        """Start a rollout (board_angle None: a random one; frames 64, 128 or 256: each step event carries the
+        rendered frame as a base64 PNG); returns its status (``id``, ``status``, ...)."""
         body = {
             "prompt_id": prompt_id,
             "checkpoint_id": checkpoint_id,
             "board_angle": board_angle,
             "seed": seed,
             "max_steps": max_steps,
+            "frames": frames,
         }
         return self._call("POST", "/api/rollouts", body)
 

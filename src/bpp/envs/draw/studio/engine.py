@@ -104,6 +104,8 @@ class Rollout:
     board_angle: float
     seed: int
     max_steps: int
+    frames: int = 0
+    """Side of the rendered frame sent with every step event as a base64 PNG (0: none)."""
     events: list = field(default_factory=list)
     status: str = "starting"
     """starting, running, done, stopped (asked to), abandoned (nobody read it), error."""
@@ -353,7 +355,14 @@ class Studio:
 
     # ------------------------------------------------------------------------------------------ rollouts
     def start_rollout(
-        self, sid: str, pid: str, checkpoint_id: str, board_angle: float | None, seed: int, max_steps: int
+        self,
+        sid: str,
+        pid: str,
+        checkpoint_id: str,
+        board_angle: float | None,
+        seed: int,
+        max_steps: int,
+        frames: int = 0,
     ) -> Rollout:
         session = self.session(sid)
         prompt = self.prompt(sid, pid)
@@ -362,6 +371,8 @@ class Studio:
             raise StudioError(f"no checkpoint {checkpoint_id!r}; GET /api/checkpoints lists them", "checkpoint_id", 404)
         if not 1 <= max_steps <= self.limits.max_rollout_steps:
             raise StudioError(f"max_steps must be in [1, {self.limits.max_rollout_steps}]", "max_steps", 422)
+        if frames not in (0, 64, 128, 256):
+            raise StudioError(f"frames must be 0 (none), 64, 128 or 256, got {frames}", "frames", 422)
         if board_angle is None:
             board_angle = float(np.random.default_rng(seed).uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE))
         with self.lock:
@@ -371,7 +382,9 @@ class Studio:
                 raise StudioError(f"this session already runs {mine} rollouts, its limit", "rollout", 429)
             if total >= self.limits.max_rollouts:
                 raise StudioError(f"the studio runs {total} rollouts, its limit; try again shortly", "rollout", 429)
-            rollout = Rollout(secrets.token_hex(8), prompt, checkpoint, float(board_angle), int(seed), int(max_steps))
+            rollout = Rollout(
+                secrets.token_hex(8), prompt, checkpoint, float(board_angle), int(seed), int(max_steps), int(frames)
+            )
             session.rollouts[rollout.id] = rollout
         self.pool.submit(self._run, rollout)
         return rollout
@@ -458,6 +471,8 @@ class Studio:
                 "chamfer": round(float(info["chamfer"]), 3),
                 "best_chamfer": round(float(info["best_chamfer"]), 3),
             }
+            if rollout.frames:
+                event["frame"] = _png_base64(env.render())
             if len(agent.attention_log) > calls:
                 calls = len(agent.attention_log)
                 event["attention"] = [round(float(a), 4) for a in agent.attention_log[-1][0]]
@@ -513,6 +528,17 @@ class Studio:
             env.step(np.asarray(action))
             frames.append(env.render())
         return save_animation(frames, path)
+
+
+def _png_base64(frame: np.ndarray) -> str:
+    import base64
+    import io
+
+    from PIL import Image
+
+    buffer = io.BytesIO()
+    Image.fromarray(frame).save(buffer, format="PNG")
+    return base64.b64encode(buffer.getvalue()).decode()
 
 
 def _drawing_of(states: np.ndarray, actions: np.ndarray, board_angle: float) -> Drawing:

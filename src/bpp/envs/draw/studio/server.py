@@ -13,9 +13,11 @@ client cannot set headers, e.g. the browser's EventSource, ``?token=<token>``), 
                         {"kind": "file", "name": "x.svg", "text": "<svg ...", "board_angle": rad, "seed": int}
                         {"kind": "stored", "task": int, "demo": int}   -> {"id", "source", "steps", ...}
     GET    /api/prompts/{id}/task.json            -> the prompt as a task file for ``bpp eval --files``
-    POST   /api/rollouts {"prompt_id", "checkpoint_id", "board_angle": rad or null (random), "seed", "max_steps"}
+    POST   /api/rollouts {"prompt_id", "checkpoint_id", "board_angle": rad or null (random), "seed", "max_steps",
+                      "frames": 0 | 64 | 128 | 256}
     GET    /api/rollouts/{id}/events?since=N      -> server-sent events: start, step (action, cursor, pen, ink
-                                                     segment, chamfer, attention on new inferences), end
+                                                     segment, chamfer, attention on new inferences, and the
+                                                     rendered frame as a base64 PNG if asked), end
     GET    /api/rollouts/{id}                     -> status and best Chamfer
     DELETE /api/rollouts/{id}                     -> stop it
     GET    /api/rollouts/{id}/episode.json | episode.gif | episode.mp4
@@ -77,6 +79,8 @@ class RolloutRequest(_Body):
     board_angle: float | None = Field(default=None, ge=-3.2, le=3.2)
     seed: int = Field(default=0, ge=0, le=2**31 - 1)
     max_steps: int = Field(default=400, ge=1)
+    frames: Literal[0, 64, 128, 256] = 0
+    """Send each step's rendered frame (this side, px) as a base64 PNG in its event (0: none)."""
 
 
 PromptRequest = Annotated[DrawnPrompt | StrokesPrompt | FilePrompt | StoredPrompt, Field(discriminator="kind")]
@@ -201,7 +205,7 @@ def create_app(studio: Studio, token: str) -> FastAPI:
     @app.post("/api/rollouts", dependencies=auth)
     def start(body: RolloutRequest, sid: SessionId) -> dict:
         rollout = studio.start_rollout(
-            sid, body.prompt_id, body.checkpoint_id, body.board_angle, body.seed, body.max_steps
+            sid, body.prompt_id, body.checkpoint_id, body.board_angle, body.seed, body.max_steps, body.frames
         )
         return rollout.public()
 
