@@ -256,3 +256,17 @@ def test_a_person_draws_a_prompt_and_watches_the_policy(server, tmp_path):
         browser.close()
     assert "best Chamfer" in score and "px" in score, score
     assert inked > 50, f"the policy's ink did not appear on the page ({inked} pixels)"
+
+
+def test_a_session_keeps_only_its_newest_finished_rollouts(server):
+    from bpp.envs.draw.studio.engine import KEEP_FINISHED_ROLLOUTS
+
+    with client(server) as c:
+        prompt = c.prompt_strokes(TRIANGLE)
+        bpp = next(ck["id"] for ck in c.checkpoints() if ck["method"] == "bpp")
+        ids = [c.run(prompt["id"], bpp, max_steps=1)["id"] for _ in range(KEEP_FINISHED_ROLLOUTS + 3)]
+        kept = server.studio.sessions[c.session].rollouts
+        assert len(kept) <= KEEP_FINISHED_ROLLOUTS + 1 and ids[-1] in kept and ids[0] not in kept
+        with pytest.raises(StudioClientError) as err:
+            c.status(ids[0])
+        assert err.value.status == 404

@@ -36,6 +36,10 @@ END_REST_STEPS = DemoConfig().end_rest_steps
 """Pen-up steps appended to a drawn prompt, as the demonstrator rests after its last stroke."""
 
 
+KEEP_FINISHED_ROLLOUTS = 32
+"""Finished rollouts a session keeps (for their results and downloads); older ones are forgotten."""
+
+
 class StudioError(ValueError):
     """A request the studio refuses; ``field`` names the offending input, ``status`` is the HTTP status to give."""
 
@@ -386,6 +390,9 @@ class Studio:
                 secrets.token_hex(8), prompt, checkpoint, float(board_angle), int(seed), int(max_steps), int(frames)
             )
             session.rollouts[rollout.id] = rollout
+            finished = [rid for rid, r in session.rollouts.items() if not r.running]
+            for rid in finished[: max(0, len(finished) - KEEP_FINISHED_ROLLOUTS)]:  # oldest first (dict order)
+                del session.rollouts[rid]
         self.pool.submit(self._run, rollout)
         return rollout
 
