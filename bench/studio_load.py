@@ -106,8 +106,8 @@ def main() -> None:
                 "--data-dir",
                 str(Path(tmp) / "data"),
             ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
             text=True,
         )
         url = f"http://127.0.0.1:{port}"
@@ -198,11 +198,19 @@ def _print(stats: dict, args) -> None:
     print(f"{args.clients} clients for {args.seconds:.0f} s, {args.max_steps}-step rollouts")
     print("| measure | count | p50 | p90 | p99 | max |")
     print("|---|---:|---:|---:|---:|---:|")
-    for key in ("session", "prompt", "rollout start", "first step", "step gap", "rollouts"):
+    labels = {
+        "session": "new session",
+        "prompt": "prompt upload (demonstrated and stored by the server)",
+        "rollout start": "rollout start",
+        "first step": "first step event after the start",
+        "step gap": "gap between step events as delivered (the stream sends what is new every 20 ms)",
+        "rollouts": "whole rollout, start to end event",
+    }
+    for key, label in labels.items():
         values = np.array(stats.get(key, []))
         if len(values):
             p50, p90, p99 = np.percentile(values, [50, 90, 99])
-            print(f"| {key} (s) | {len(values)} | {p50:.3f} | {p90:.3f} | {p99:.3f} | {values.max():.3f} |")
+            print(f"| {label} (s) | {len(values)} | {p50:.3f} | {p90:.3f} | {p99:.3f} | {values.max():.3f} |")
     print(f"at capacity (429, retried): {len(stats.get('at capacity (429)', []))}")
     errors = stats.get("errors", [])
     print(f"errors: {len(errors)}")

@@ -1,8 +1,12 @@
 """The studio (bpp studio): its API's guarantees, its Python client, and its page driven by a real browser."""
 
+import base64
+import io
 import json
+import os
 import shutil
 import socket
+import sys
 import threading
 import time
 from pathlib import Path
@@ -10,6 +14,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from PIL import Image
 
 from bpp.envs.draw.studio.client import StudioClient, StudioClientError
 from bpp.envs.draw.studio.engine import Limits, Studio, find_checkpoints
@@ -71,9 +76,23 @@ def client(server) -> StudioClient:
 
 
 def test_every_api_call_needs_the_token(server):
-    for headers, params in (({}, {}), ({"Authorization": "Bearer wrong-token-000000000"}, {}), ({}, {"token": "x"})):
-        response = httpx.post(f"{server.url}/api/session", headers=headers, params=params)
-        assert response.status_code == 401 and response.json()["field"] == "token"
+    from bpp.envs.draw.studio.server import create_app
+
+    routes = [(m, r.path) for r in create_app(server.studio, TOKEN).routes for m in getattr(r, "methods", ())]
+    paths = [(m, p.replace("{pid}", "x").replace("{rid}", "x").replace("{fmt}", "gif")) for m, p in routes]
+    api = [(m, p) for m, p in paths if p.startswith("/api")]
+    assert len(api) >= 12
+    with client(server) as c:  # a valid session: only the token is missing or wrong
+        for method, path in api:
+            for headers, params in (({}, {}), ({"Authorization": "Bearer wrong-token-0000000"}, {"token": "x"})):
+                response = httpx.request(
+                    method,
+                    f"{server.url}{path}",
+                    headers={**headers, "X-Studio-Session": c.session},
+                    params=params,
+                    json={} if method == "POST" else None,
+                )
+                assert response.status_code == 401 and response.json()["field"] == "token", (method, path)
     assert httpx.post(f"{server.url}/api/session", params={"token": TOKEN}).status_code == 200
     page = httpx.get(server.url)  # the page itself holds no data; its calls need the token in its URL
     assert page.status_code == 200 and "bpp studio" in page.text
@@ -90,6 +109,9 @@ def test_a_rollout_streams_steps_and_is_downloadable(server, tmp_path):
         assert events[0]["type"] == "start" and events[-1]["type"] == "end" and events[-1]["status"] == "done"
         assert len(steps) == 30 and all(len(e["action"]) == 3 and np.isfinite(e["chamfer"]) for e in steps)
         assert any("attention" in e for e in steps)  # a new inference brings a new attention column
+        framed = c.rollout(prompt["id"], checkpoints["icrt"], board_angle=0.1, max_steps=3, frames=64)
+        last = [e for e in c.events(framed["id"]) if e["type"] == "step"][-1]
+        assert Image.open(io.BytesIO(base64.b64decode(last["frame"]))).size == (64, 64)
         episode = c.episode(rollout["id"])
         assert episode["best_chamfer"] == events[-1]["best_chamfer"] and len(episode["actions"]) == 30
         gif = c.download(rollout["id"], tmp_path / "r.gif")
@@ -139,6 +161,16 @@ def test_limits_on_body_size_prompt_length_and_rollouts(server):
         with pytest.raises(StudioClientError) as err:
             c._call("POST", "/api/prompts", {"kind": "file", "name": "x.json", "text": " " * 300_000})
         assert err.value.status == 413 and err.value.field == "body"
+        headers = {
+            "Authorization": f"Bearer {TOKEN}",
+            "X-Studio-Session": c.session,
+            "Content-Type": "application/json",
+        }
+        chunks = (b" " * 50_000 for _ in range(10))  # no Content-Length: cut off once past the limit
+        chunked = httpx.post(f"{server.url}/api/prompts", content=chunks, headers=headers)
+        assert chunked.status_code == 413 and chunked.json()["field"] == "body"
+        bad_json = httpx.post(f"{server.url}/api/prompts", content=b'{"kind": ', headers=headers)
+        assert bad_json.status_code == 422 and bad_json.json()["field"] == "body"
         with pytest.raises(StudioClientError) as err:
             c.prompt_drawn([[100.0, 100.0, 1.0]] * 900)
         assert err.value.status == 413 and "at most 795" in err.value.detail
@@ -167,6 +199,9 @@ def test_sessions_do_not_see_each_other(server):
             lambda: b.status(rollout["id"]),
             lambda: b.stop(rollout["id"]),
             lambda: b.rollout(prompt["id"], bpp),
+            lambda: list(b.events(rollout["id"])),
+            lambda: b.episode(rollout["id"]),
+            lambda: b.download(rollout["id"], Path("/nonexistent/x.gif")),
         ):
             with pytest.raises(StudioClientError) as err:
                 call()
@@ -190,25 +225,35 @@ def test_abandoned_and_disconnected_rollouts_are_stopped(server):
         assert c.status(left["id"])["status"] == "stopped" and c.status(left["id"])["steps"] < 1000
 
 
-def test_no_client_path_touches_the_file_system(server, tmp_path):
-    before = set(Path(server.studio.workdir).rglob("*"))
-    with client(server) as c:
-        for name in ("../../../../tmp/studio-pwn.json", "/tmp/studio-pwn.svg"):
-            prompt = c._call(
-                "POST",
-                "/api/prompts",
-                {
-                    "kind": "file",
-                    "name": name,
-                    "text": json.dumps({"drawings": [{"id": "x", "strokes": TRIANGLE}]})
-                    if name.endswith(".json")
-                    else '<svg xmlns="http://www.w3.org/2000/svg"><line x1="0" y1="0" x2="9" y2="9"/></svg>',
-                },
-            )
-            assert prompt["steps"] > 0
-    assert not list(Path("/tmp").glob("studio-pwn*"))
-    created = set(Path(server.studio.workdir).rglob("*")) - before
-    assert all(server.studio.workdir in p.parents for p in created)
+_WRITES: list[str] = []
+_RECORDING = threading.Event()
+
+
+def _record_writes(event: str, args) -> None:
+    """An audit hook (it stays for the whole test process, so it records only while a test asks)."""
+    if _RECORDING.is_set() and event == "open" and isinstance(args[0], (str, bytes, Path)):
+        mode, flags = args[1] or "", args[2] or 0
+        if any(c in str(mode) for c in "wax+") or flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            _WRITES.append(os.fsdecode(args[0]))
+
+
+def test_no_client_path_touches_the_file_system(server):
+    sys.addaudithook(_record_writes)
+    names = ("../../../../tmp/studio-pwn.json", "/tmp/studio-pwn.svg", "..\\..\\studio-pwn.json")
+    svg = '<svg xmlns="http://www.w3.org/2000/svg"><line x1="0" y1="0" x2="9" y2="9"/></svg>'
+    _RECORDING.set()
+    try:
+        with client(server) as c:
+            for name in names:
+                text = json.dumps({"drawings": [{"id": "x", "strokes": TRIANGLE}]}) if name.endswith(".json") else svg
+                assert c._call("POST", "/api/prompts", {"kind": "file", "name": name, "text": text})["steps"] > 0
+    finally:
+        _RECORDING.clear()
+    workdir = str(Path(server.studio.workdir).resolve())
+    assert _WRITES, "the audit hook saw no writes at all: it cannot vouch for anything"
+    outside = [w for w in _WRITES if not str(Path(w).resolve()).startswith(workdir)]
+    assert not outside, f"writes outside the studio's folder: {outside[:5]}"
+    assert not any("studio-pwn" in w for w in _WRITES)
 
 
 def test_the_command_binds_loopback_by_default():

@@ -12,6 +12,7 @@ studio.download(end["id"], "rollout.gif")
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -36,6 +37,9 @@ class StudioClient:
         self.http.headers["X-Studio-Session"] = self.session
 
     def close(self) -> None:
+        """End the session (the studio deletes its prompts and stops its rollouts) and the connection."""
+        with contextlib.suppress(httpx.HTTPError):  # the studio may be gone already
+            self.http.delete("/api/session")
         self.http.close()
 
     def __enter__(self) -> StudioClient:

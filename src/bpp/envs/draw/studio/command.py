@@ -28,7 +28,8 @@ class StudioCommand:
     runs: tuple[Path, ...] = (Path("runs"),)
     """Where to look for trained runs (run directories, or folders of them, two levels deep)."""
     token: str = ""
-    """Access token ("": a new random one each start)."""
+    """Access token ("": a new random one each start, the safer choice: a token on the command line is visible to
+    other users of this machine in its process list)."""
     data_dir: Path | None = None
     """Where the unseen drawings are generated on first use (default: data/draw)."""
     threads: int = 1

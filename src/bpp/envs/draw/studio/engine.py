@@ -123,6 +123,17 @@ class Rollout:
     def running(self) -> bool:
         return self.status in ("starting", "running")
 
+    @property
+    def counted(self) -> bool:
+        """Whether it counts against the rollout limits: running and not asked to stop (it stops at its next step;
+        the thread pool bounds the CPU meanwhile), so that pressing Run again is not refused."""
+        return self.running and not self.stop.is_set()
+
+    def drop_frames(self) -> None:
+        """Forget the frames of sent events (they are only for the live stream; a finished rollout keeps the rest)."""
+        for event in self.events:
+            event.pop("frame", None)
+
     def public(self) -> dict:
         return {
             "id": self.id,
@@ -142,7 +153,7 @@ class Rollout:
 class Session:
     id: str
     folder: Path
-    prompts: dict[str, Prompt] = field(default_factory=dict)
+    prompts: dict[str, Prompt | None] = field(default_factory=dict)
     rollouts: dict[str, Rollout] = field(default_factory=dict)
     last_used: float = field(default_factory=time.monotonic)
 
@@ -186,20 +197,39 @@ class Studio:
         self.sessions: dict[str, Session] = {}
         self.lock = threading.RLock()
         self.models: dict[str, object] = {}
+        self._model_locks: dict[str, threading.Lock] = {}
+        self._human_lock = threading.Lock()
         self.pool = ThreadPoolExecutor(max_workers=limits.max_rollouts, thread_name_prefix="rollout")
         self._human: EpisodeStore | None = None
 
     # ------------------------------------------------------------------------------------------ sessions
     def new_session(self) -> str:
+        """A new session; when the studio is full, the least recently used idle session (none of its rollouts
+        running) is forgotten to make room."""
         with self.lock:
-            self._forget_idle()
+            forgotten = self._forget_idle()
             if len(self.sessions) >= self.limits.max_sessions:
-                raise StudioError(
-                    f"the studio has {len(self.sessions)} sessions, its limit; try again later", status=429
-                )
+                idle = [s for s in self.sessions.values() if not any(r.running for r in s.rollouts.values())]
+                if not idle:
+                    raise StudioError(
+                        f"the studio has {len(self.sessions)} busy sessions, its limit; try again later", "session", 429
+                    )
+                oldest = min(idle, key=lambda s: s.last_used)
+                forgotten.append(self.sessions.pop(oldest.id))
             sid = secrets.token_hex(16)
             self.sessions[sid] = Session(sid, self.workdir / sid)
-            return sid
+        for session in forgotten:  # outside the lock: deleting files must not hold up requests
+            shutil.rmtree(session.folder, ignore_errors=True)
+        return sid
+
+    def end_session(self, sid: str) -> None:
+        """Stop the session's rollouts and forget it (its prompts are deleted)."""
+        session = self.session(sid)
+        with self.lock:
+            self.sessions.pop(sid, None)
+        for rollout in session.rollouts.values():
+            rollout.stop.set()
+        shutil.rmtree(session.folder, ignore_errors=True)
 
     def session(self, sid: str) -> Session:
         with self.lock:
@@ -209,13 +239,16 @@ class Studio:
             session.last_used = time.monotonic()
             return session
 
-    def _forget_idle(self) -> None:
+    def _forget_idle(self) -> list[Session]:
+        """Drop sessions unused for ``session_idle_s`` (none of their rollouts running); returns them, so that
+        their folders are deleted outside the lock."""
         now = time.monotonic()
+        forgotten = []
         for sid, session in list(self.sessions.items()):
             idle = now - session.last_used > self.limits.session_idle_s
             if idle and not any(r.running for r in session.rollouts.values()):
-                shutil.rmtree(session.folder, ignore_errors=True)
-                del self.sessions[sid]
+                forgotten.append(self.sessions.pop(sid))
+        return forgotten
 
     def close(self) -> None:
         for session in list(self.sessions.values()):
@@ -226,11 +259,12 @@ class Studio:
     # ------------------------------------------------------------------------------------------- prompts
     def human_store(self) -> EpisodeStore:
         """The 50 unseen human-made drawings (generated on first use)."""
-        if self._human is None:
-            from bpp.envs.registry import get_benchmark
+        with self._human_lock:  # two first calls must not generate it twice into one folder
+            if self._human is None:
+                from bpp.envs.registry import get_benchmark
 
-            benchmark = get_benchmark(BENCHMARK)
-            self._human = benchmark.task_set("human", self.data_dir or benchmark.default_data_dir).store
+                benchmark = get_benchmark(BENCHMARK)
+                self._human = benchmark.task_set("human", self.data_dir or benchmark.default_data_dir).store
         return self._human
 
     def stored_prompts(self) -> list[dict]:
@@ -238,23 +272,34 @@ class Studio:
         episodes = store.task_episodes()
         return [{"task": t, "id": task["id"], "episodes": len(episodes[t])} for t, task in enumerate(store.tasks)]
 
-    def _new_prompt(self, sid: str, source: str, label: str, drawing: Drawing, demo: Demonstration) -> Prompt:
+    def _new_prompt(
+        self, sid: str, source: str, label: str, drawing: Drawing, demo: Demonstration, field: str
+    ) -> Prompt:
+        """Store `demo` as a prompt of session `sid`; `field` names the input it came from (for errors)."""
         from bpp.envs.draw.dataset import episode_steps, strokes_array
 
         session = self.session(sid)
         if len(demo) > self.limits.max_prompt_steps:
-            raise StudioError(f"the prompt has {len(demo)} steps; at most {self.limits.max_prompt_steps}", "prompt")
-        with self.lock:
+            raise StudioError(
+                f"demonstrating it takes {len(demo)} steps; a prompt has at most {self.limits.max_prompt_steps}",
+                field,
+                422,
+            )
+        with self.lock:  # the slot is reserved now, so concurrent uploads cannot pass the limit
             if len(session.prompts) >= self.limits.max_prompts_per_session:
                 raise StudioError(f"this session has {len(session.prompts)} prompts, its limit", "prompt", 429)
             pid = secrets.token_hex(8)
-        path = session.folder / f"prompt-{pid}.zarr"
-        with EpisodeWriter(path, benchmark=BENCHMARK, config={"studio": source}) as writer:
-            task = writer.add_task(drawing.id, {"source": source}, strokes=strokes_array(drawing))
-            writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)
-        prompt = Prompt(pid, source, float(demo.board_angle), len(demo), EpisodeStore(path), label)
-        with self.lock:
-            session.prompts[pid] = prompt
+            session.prompts[pid] = None
+        try:
+            path = session.folder / f"prompt-{pid}.zarr"
+            with EpisodeWriter(path, benchmark=BENCHMARK, config={"studio": source}) as writer:
+                task = writer.add_task(drawing.id, {"source": source}, strokes=strokes_array(drawing))
+                writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)
+            prompt = Prompt(pid, source, float(demo.board_angle), len(demo), EpisodeStore(path), label)
+        except BaseException:
+            session.prompts.pop(pid, None)
+            raise
+        session.prompts[pid] = prompt
         return prompt
 
     def add_drawn_prompt(self, sid: str, samples, board_angle: float) -> Prompt:
@@ -287,7 +332,9 @@ class Studio:
             state, _ = physics.control_step(state, action)
         states = np.array(states)
         demo = Demonstration(states, actions, float(board_angle), speed=0.0)
-        return self._new_prompt(sid, "drawn", "your drawing", _drawing_of(states, actions, board_angle), demo)
+        return self._new_prompt(
+            sid, "drawn", "your drawing", _drawing_of(states, actions, board_angle), demo, "samples"
+        )
 
     def add_strokes_prompt(self, sid: str, strokes, board_angle: float, seed: int = 0) -> Prompt:
         """A drawing (unit-square strokes, y up) demonstrated by the built-in demonstrator at `board_angle`."""
@@ -297,7 +344,7 @@ class Studio:
             drawing = bounded(Drawing.from_strokes("drawing", strokes, source="strokes"), "strokes")
         except DrawingError as err:
             raise StudioError(str(err), "strokes", 422) from None
-        return self._demonstrated(sid, drawing, board_angle, seed, "strokes")
+        return self._demonstrated(sid, drawing, board_angle, seed, "strokes", "strokes")
 
     def add_file_prompt(self, sid: str, name: str, text: str, board_angle: float, seed: int = 0) -> Prompt:
         """The first drawing of an uploaded JSON stroke or SVG file's content (`name` only chooses the format)."""
@@ -316,7 +363,7 @@ class Studio:
             raise StudioError(str(err).replace(str(upload), name), "text", 422) from None
         finally:
             upload.unlink(missing_ok=True)
-        return self._demonstrated(sid, drawing, board_angle, seed, f"file {name}")
+        return self._demonstrated(sid, drawing, board_angle, seed, f"file {name}", "text")
 
     def add_stored_prompt(self, sid: str, task: int, demo: int = 0) -> Prompt:
         """Demonstration `demo` of unseen drawing `task` (as ``bpp eval`` prompts it)."""
@@ -333,19 +380,21 @@ class Studio:
         angle = float(store.column("board_angle")[episode])
         demo_obj = Demonstration(steps["state"], steps["action"].astype(np.float64), angle, 0.0)
         drawing = task_drawing(store, task)
-        return self._new_prompt(sid, "stored", f"{drawing.id} (demo {demo})", drawing, demo_obj)
+        return self._new_prompt(sid, "stored", f"{drawing.id} (demo {demo})", drawing, demo_obj, "task")
 
-    def _demonstrated(self, sid: str, drawing: Drawing, board_angle: float, seed: int, source: str) -> Prompt:
+    def _demonstrated(
+        self, sid: str, drawing: Drawing, board_angle: float, seed: int, source: str, field: str
+    ) -> Prompt:
         rng = np.random.default_rng(seed)
         start = rng.uniform(50.0, 450.0, size=2)
         try:
             demo = demonstrate(drawing, float(board_angle), start, rng, DemoConfig())
         except DrawingError as err:
-            raise StudioError(str(err), "strokes", 422) from None
-        return self._new_prompt(sid, source, drawing.id, drawing, demo)
+            raise StudioError(str(err), field, 422) from None
+        return self._new_prompt(sid, source, drawing.id, drawing, demo, field)
 
     def prompt(self, sid: str, pid: str) -> Prompt:
-        prompt = self.session(sid).prompts.get(pid)
+        prompt = self.session(sid).prompts.get(pid)  # None while it is still being written
         if prompt is None:
             raise StudioError(f"no prompt {pid!r} in this session", "prompt_id", 404)
         return prompt
@@ -380,8 +429,8 @@ class Studio:
         if board_angle is None:
             board_angle = float(np.random.default_rng(seed).uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE))
         with self.lock:
-            mine = sum(r.running for r in session.rollouts.values())
-            total = sum(r.running for s in self.sessions.values() for r in s.rollouts.values())
+            mine = sum(r.counted for r in session.rollouts.values())
+            total = sum(r.counted for s in self.sessions.values() for r in s.rollouts.values())
             if mine >= self.limits.max_rollouts_per_session:
                 raise StudioError(f"this session already runs {mine} rollouts, its limit", "rollout", 429)
             if total >= self.limits.max_rollouts:
@@ -403,12 +452,11 @@ class Studio:
         rollout.last_read = time.monotonic()
         return rollout
 
-    def events(self, sid: str, rid: str, since: int = 0) -> tuple[list[dict], Rollout]:
-        rollout = self.rollout(sid, rid)
-        return rollout.events[since:], rollout
-
     def _model(self, checkpoint: CheckpointInfo):
+        """The checkpoint's model, loaded once (under a lock of its own: loading must not hold up requests)."""
         with self.lock:
+            loading = self._model_locks.setdefault(checkpoint.id, threading.Lock())
+        with loading:
             if checkpoint.id not in self.models:
                 from bpp.checkpoint import Checkpoint
 
@@ -420,8 +468,8 @@ class Studio:
             self._steps(rollout)
         except Exception as err:  # noqa: BLE001 - reported to the client, the studio goes on
             rollout.error = f"{type(err).__name__}: {err}"
+            rollout.events.append({"type": "end", "status": "error", "error": rollout.error})
             rollout.status = "error"
-            rollout.events.append({"type": "end", "status": rollout.status, "error": rollout.error})
 
     def _steps(self, rollout: Rollout) -> None:
         import torch
@@ -440,6 +488,8 @@ class Studio:
             image_size=spec.image_size if spec.image_keys else None,
             max_episode_steps=rollout.max_steps,
             action_frame=ACTION_FRAMES[spec.action_key],
+            render_mode="rgb_array" if rollout.frames else None,
+            render_size=rollout.frames or CANVAS_SIZE,
         )
         target = prompt_target(store, 0)
         obs, _ = env.reset(seed=rollout.seed, options={"board_angle": rollout.board_angle, "target": target})
@@ -454,12 +504,13 @@ class Studio:
         )
         calls = 0
         done = False
+        status = "done"
         while not done:
             if rollout.stop.is_set():
-                rollout.status = "stopped"
+                status = "stopped"
                 break
             if time.monotonic() - rollout.last_read > self.limits.abandon_s:
-                rollout.status = "abandoned"
+                status = "abandoned"
                 break
             with torch.no_grad():
                 action = agent.act(obs)
@@ -484,16 +535,11 @@ class Studio:
                 calls = len(agent.attention_log)
                 event["attention"] = [round(float(a), 4) for a in agent.attention_log[-1][0]]
             rollout.events.append(event)
-        else:
-            rollout.status = "done"
-        rollout.events.append(
-            {
-                "type": "end",
-                "status": rollout.status,
-                "best_chamfer": rollout.public()["best_chamfer"],
-                "steps": len(rollout.actions),
-            }
-        )
+        best = None if not np.isfinite(rollout.best) else round(rollout.best, 3)
+        rollout.events.append({"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)})
+        rollout.status = status  # after the end event: a stream that sees the rollout finished has it to send
+        if status == "abandoned":
+            rollout.drop_frames()
 
     def stop_rollout(self, sid: str, rid: str) -> Rollout:
         rollout = self.rollout(sid, rid)

@@ -6,6 +6,7 @@ client cannot set headers, e.g. the browser's EventSource, ``?token=<token>``), 
 ``{"detail": ..., "field": ...}`` with a 4xx status naming the offending field.
 
     POST   /api/session                           -> {"session": id}
+    DELETE /api/session                           -> forget it (its prompts and rollouts)
     GET    /api/checkpoints                       -> [{"id", "label", "method", "step"}]
     GET    /api/stored                            -> the unseen drawings: [{"task", "id", "episodes"}]
     POST   /api/prompts {"kind": "drawn", "samples": [[x, y, pen], ...], "board_angle": rad}
@@ -28,6 +29,8 @@ import hmac
 import json
 import secrets
 import tempfile
+import threading
+import time
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
@@ -36,6 +39,7 @@ from fastapi import Depends, FastAPI, Header, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, StreamingResponse
 from pydantic import BaseModel, ConfigDict, Field
+from starlette.background import BackgroundTask
 
 from bpp.envs.draw.studio.engine import Studio, StudioError
 
@@ -98,24 +102,26 @@ class _LimitBody:
         declared = dict(scope.get("headers") or []).get(b"content-length")
         if declared is not None and declared.isdigit() and int(declared) > self.limit:
             return await _too_large(send, self.limit)
-        seen = 0
-
-        async def limited():
-            nonlocal seen
+        # Read the body here (declared or chunked), refusing it as soon as it passes the limit, then hand it on.
+        body, more = b"", True
+        while more:
             message = await receive()
-            seen += len(message.get("body", b""))
-            if seen > self.limit:
-                raise _TooLarge
-            return message
+            if message["type"] != "http.request":
+                return  # the client went away
+            body += message.get("body", b"")
+            more = message.get("more_body", False)
+            if len(body) > self.limit:
+                return await _too_large(send, self.limit)
+        sent = False
 
-        try:
-            return await self.app(scope, limited, send)
-        except _TooLarge:
-            return await _too_large(send, self.limit)
+        async def replay():
+            nonlocal sent
+            if not sent:
+                sent = True
+                return {"type": "http.request", "body": body, "more_body": False}
+            return await receive()
 
-
-class _TooLarge(Exception):
-    pass
+        return await self.app(scope, replay, send)
 
 
 async def _too_large(send, limit: int) -> None:
@@ -128,6 +134,7 @@ def create_app(studio: Studio, token: str) -> FastAPI:
     """The studio's FastAPI app; `token` guards every API call."""
     app = FastAPI(title="bpp studio", docs_url=None, redoc_url=None, openapi_url=None)
     media = Path(tempfile.mkdtemp(prefix="media-", dir=studio.workdir))
+    renders = threading.BoundedSemaphore(2)
 
     @app.exception_handler(StudioError)
     async def _studio_error(_: Request, err: StudioError):
@@ -143,6 +150,8 @@ def create_app(studio: Studio, token: str) -> FastAPI:
             where = where[1:]
         if first.get("type", "").startswith("union_tag"):
             where = ["kind"]
+        if first.get("type") == "json_invalid":
+            where = ["body"]
         field = where[0] if where else ""
         return JSONResponse(
             {"detail": f"{'.'.join(where) or 'request'}: {first.get('msg')}", "field": field}, status_code=422
@@ -176,6 +185,11 @@ def create_app(studio: Studio, token: str) -> FastAPI:
     @app.post("/api/session", dependencies=auth)
     def new_session() -> dict:
         return {"session": studio.new_session(), "limits": studio.limits.__dict__}
+
+    @app.delete("/api/session", dependencies=auth)
+    def end_session(sid: SessionId) -> dict:
+        studio.end_session(sid)
+        return {"session": sid, "ended": True}
 
     @app.get("/api/checkpoints", dependencies=auth)
     def checkpoints() -> list[dict]:
@@ -218,26 +232,35 @@ def create_app(studio: Studio, token: str) -> FastAPI:
         return studio.stop_rollout(sid, rid).public()
 
     @app.get("/api/rollouts/{rid}/events", dependencies=auth)
-    async def events(rid: str, sid: SessionId, request: Request, since: int = Query(default=0, ge=0)):
-        studio.rollout(sid, rid)  # 404 before the stream starts
+    async def events(
+        rid: str,
+        sid: SessionId,
+        request: Request,
+        since: int = Query(default=0, ge=0),
+        last_event_id: Annotated[str | None, Header()] = None,
+    ):
+        rollout = studio.rollout(sid, rid)  # 404 before the stream starts
+        if last_event_id and last_event_id.isdigit():  # a browser reconnecting resumes after what it has
+            since = max(since, int(last_event_id) + 1)
 
         async def stream():
-            sent = since
+            sent, ended = since, False
             try:
                 while True:
-                    new, rollout = studio.events(sid, rid, sent)
-                    for event in new:
+                    rollout.last_read = time.monotonic()
+                    for event in rollout.events[sent:]:
                         yield f"id: {sent}\ndata: {json.dumps(event)}\n\n"
                         sent += 1
-                    if not rollout.running and sent >= len(rollout.events):
+                        ended = ended or event["type"] == "end"
+                    if ended:
+                        rollout.drop_frames()  # sent; a finished rollout keeps its events without them
                         return
                     if await request.is_disconnected():
-                        rollout.stop.set()  # a reader went away: stop drawing for nobody
                         return
                     await asyncio.sleep(0.02)
-            except asyncio.CancelledError:
-                studio.rollout(sid, rid).stop.set()
-                raise
+            finally:
+                if not ended:  # the reader went away (or the server stops): stop drawing for nobody
+                    rollout.stop.set()
 
         return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-store"})
 
@@ -249,8 +272,11 @@ def create_app(studio: Studio, token: str) -> FastAPI:
     @app.get("/api/rollouts/{rid}/episode.{fmt}", dependencies=auth)
     def animation(rid: str, fmt: Literal["gif", "mp4"], sid: SessionId) -> FileResponse:
         path = media / f"{secrets.token_hex(8)}.{fmt}"
-        studio.animation(sid, rid, path)
-        return FileResponse(path, filename=f"rollout-{rid[:16]}.{fmt}")
+        with renders:  # rendering is CPU work: a few at a time
+            studio.animation(sid, rid, path)
+        return FileResponse(
+            path, filename=f"rollout-{rid[:16]}.{fmt}", background=BackgroundTask(path.unlink, missing_ok=True)
+        )
 
     app.add_middleware(_LimitBody, limit=studio.limits.max_body_bytes)
     return app
