@@ -25,7 +25,7 @@ leak=[g for g in gen if (g['pick'],g['key']) in heldkeys and g not in test]
 print('train',len(train),'test',len(test),'total',len(train)+len(test),'held-combo duplicates removed',[(g['scene'],g['pick'],g['place']) for g in leak])
 def lang(g): return (PICK[g['pick']], 'in the black bowl '+BOWLAT[g['other']] if g['place']=='bowl' else PLACE[g['place']])
 man=collections.Counter()
-for p,q in (l.rstrip('\n').split('|') for l in open(__import__('pathlib').Path(__file__).with_name('combination-training-tasks.txt'))):
+for p,q in (l.rstrip('\n').split('|') for l in open(__import__('pathlib').Path(__file__).parent.parent.parent / 'tests' / 'data' / 'liberogen_combination_training_tasks.txt')):
     man[(p,re.match(r'(.*?)(?: \d)?$',q).group(1))]+=1
 mine=collections.Counter(lang(g) for g in train)
 print('train multiset == website manifest:',mine==man)
