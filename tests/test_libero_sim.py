@@ -40,3 +40,23 @@ def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
         assert env.env._check_success()  # "in the black bowl on the plate", as LIBERO's predicates judge it
     finally:
         env.close()
+
+
+def test_a_suite_is_written_as_problems_and_an_index(tmp_path, capsys):
+    import json
+    import subprocess
+    import sys
+
+    from bpp.envs.libero.tasks import main
+
+    out = tmp_path / "combination"
+    main(["--suite", "combination", "--out", str(out)])
+    report = capsys.readouterr().out
+    assert "164 training tasks, 10 held out" in report and "[7 tasks]" in report  # the top-drawer pick: 7 places
+    index = json.loads((out / "tasks.json").read_text())
+    assert len(index["train"]) == 164 and len(index["test"]) == 10
+    assert len(list((out / "problems").glob("*.bddl"))) == 174
+    assert index["test"][0]["similar"] == {"same_pick": 9, "same_place": 8}
+    command = [sys.executable, "-m", "bpp.envs.libero.tasks", "--out", str(out)]
+    again = subprocess.run(command, capture_output=True, text=True)
+    assert again.returncode != 0 and "exists; pass --overwrite" in again.stderr

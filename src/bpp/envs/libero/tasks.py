@@ -1,0 +1,79 @@
+"""Write a LIBERO-Gen suite's tasks: one BDDL problem per task and a ``tasks.json`` index with the split.
+
+    python -m bpp.envs.libero.tasks --suite combination --out data/libero/combination
+
+(to become ``bpp libero tasks`` once LIBERO-Gen is a registered benchmark). Prints each held-out task with the
+number of training tasks that share its pick and its place, which are the counts in the paper's appendix.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+from bpp.envs.libero.bddl import combination_problem
+from bpp.envs.libero.suites import Suite, combination
+
+SUITES = {"combination": combination}
+
+
+def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
+    """Write `suite` into the folder `out`: ``problems/<id>.bddl`` and ``tasks.json``. Returns the index path.
+    The folder is built beside `out` and renamed into place, so an interrupted run leaves nothing half-written."""
+    from bpp.envs.libero.sim import spatial_problem
+
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+    if out.exists() and not (out / "tasks.json").is_file():
+        raise ValueError(f"{out} exists and is not a written suite (no tasks.json); only a suite is ever replaced")
+    tmp = out.with_name(f".{out.name}.partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "problems").mkdir(parents=True)
+    index = {"suite": suite.name, "train": [], "test": []}
+    bases: dict[str, str] = {}
+    for split, tasks in (("train", suite.train), ("test", suite.test)):
+        for i, task in enumerate(tasks):
+            base = bases.setdefault(task.scene.base, spatial_problem(task.scene.base))
+            task_id = f"{split}-{i:03d}-{task.scene.name}-{task.pick}-{task.place}".lower()
+            (tmp / "problems" / f"{task_id}.bddl").write_text(combination_problem(task, base))
+            entry = {
+                "id": task_id,
+                "instruction": task.instruction,
+                "scene": task.scene.name,
+                "base": task.scene.base,
+                "bowl": task.bowl,
+                "pick": task.pick,
+                "place": task.place,
+                "place_key": task.place_key,
+                "problem": f"problems/{task_id}.bddl",
+            }
+            if split == "test":
+                entry["similar"] = dict(zip(("same_pick", "same_place"), suite.similar(task), strict=True))
+            index[split].append(entry)
+    (tmp / "tasks.json").write_text(json.dumps(index, indent=1))
+    if out.exists():
+        shutil.rmtree(out)
+    tmp.rename(out)
+    return out / "tasks.json"
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--suite", choices=sorted(SUITES), default="combination")
+    parser.add_argument("--out", type=Path, default=None, help="folder to write (default: only print the report)")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    suite = SUITES[args.suite]()
+    print(suite.report())
+    if args.out is not None:
+        try:
+            print(f"wrote {write_suite(suite, args.out, args.overwrite)}")
+        except (ValueError, RuntimeError) as err:
+            raise SystemExit(f"error: {err}") from None
+
+
+if __name__ == "__main__":
+    main()
