@@ -60,3 +60,29 @@ def test_a_suite_is_written_as_problems_and_an_index(tmp_path, capsys):
     command = [sys.executable, "-m", "bpp.envs.libero.tasks", "--out", str(out)]
     again = subprocess.run(command, capture_output=True, text=True)
     assert again.returncode != 0 and "exists; pass --overwrite" in again.stderr
+
+
+def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_place(tmp_path):
+    import pytest
+
+    from bpp.envs.libero.demonstrator import Unsupported, demonstrate
+
+    suite = combination()
+    first = next(t for t in suite.train if t.scene.name == "S1" and t.bowl == 1 and t.place == "PL")
+    kinds = [first]  # onto an object (the plate)
+    kinds.append(next(t for t in suite.train if t.scene.name == "S1" and t.bowl == 1 and t.place == "TC"))  # region
+    kinds.append(next(t for t in suite.train if t.scene.name == "S1" and t.bowl == 1 and t.place == "bowl"))
+    for task in kinds:
+        path = tmp_path / f"{task.place}.bddl"
+        path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+        env = make_env(path)
+        try:
+            demo = demonstrate(env, task, seed=0)
+        finally:
+            env.close()
+        assert demo.success, task.instruction
+        assert demo.actions.shape[1] == 7 and np.abs(demo.actions).max() <= 1.0
+        assert len(demo.states) == len(demo.actions) == len(demo.observations["robot0_eef_pos"])
+    drawer = next(t for t in suite.train if t.pick == "TD")
+    with pytest.raises(Unsupported, match="top drawer"):
+        demonstrate(None, drawer, seed=0)
