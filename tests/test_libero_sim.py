@@ -86,3 +86,17 @@ def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_pla
     drawer = next(t for t in suite.train if t.pick == "TD")
     with pytest.raises(Unsupported, match="top drawer"):
         demonstrate(None, drawer, seed=0)
+
+
+def test_demonstrations_are_generated_into_a_store_and_failures_are_not_stored(tmp_path):
+    from bpp.data.store import EpisodeStore
+    from bpp.envs.libero.dataset import generate
+
+    suite = combination()
+    tasks = [suite.train[0], next(t for t in suite.train if t.pick == "TD")]  # the drawer task cannot be done yet
+    store, report = generate(tasks, tmp_path / "demos.zarr", demos=1, max_tries=2, progress=False)
+    assert report["stored"] == 1 and report["unsupported"] == [tasks[1].instruction]
+    store = EpisodeStore(store.path)
+    assert store.num_tasks == 1 and store.num_episodes == 1 and store.tasks[0]["instruction"] == tasks[0].instruction
+    assert {"action", "proprio", "object_state", "sim_state"} <= set(store.keys)
+    assert store.array("action").shape[1] == 7

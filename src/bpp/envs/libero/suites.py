@@ -193,3 +193,7 @@ def combination() -> Suite:
 def instruction_counts(tasks) -> Counter:
     """How often each (pick phrase, place phrase) occurs among `tasks` (instructions repeat across scenes)."""
     return Counter((PICK_PHRASES[t.pick], t.place_phrase) for t in tasks)
+
+
+SUITES_BY_NAME = {"combination": combination}
+"""LIBERO-Gen's suites by name (the Chain suite is still to come)."""

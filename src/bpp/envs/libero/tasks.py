@@ -14,9 +14,7 @@ import shutil
 from pathlib import Path
 
 from bpp.envs.libero.bddl import combination_problem
-from bpp.envs.libero.suites import Suite, combination
-
-SUITES = {"combination": combination}
+from bpp.envs.libero.suites import SUITES_BY_NAME, Suite
 
 
 def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
@@ -62,11 +60,11 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--suite", choices=sorted(SUITES), default="combination")
+    parser.add_argument("--suite", choices=sorted(SUITES_BY_NAME), default="combination")
     parser.add_argument("--out", type=Path, default=None, help="folder to write (default: only print the report)")
     parser.add_argument("--overwrite", action="store_true")
     args = parser.parse_args(argv)
-    suite = SUITES[args.suite]()
+    suite = SUITES_BY_NAME[args.suite]()
     print(suite.report())
     if args.out is not None:
         try:
