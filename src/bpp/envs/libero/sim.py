@@ -69,6 +69,27 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
         raise
 
 
+def render_states(env, states, camera: str = "agentview", size: int = 128):
+    """(T, size, size, 3) uint8 frames of `camera` for flattened simulator states (e.g. a stored episode's
+    ``sim_state``), rendered by setting each state and drawing it. Training frames come from here, not from the
+    env's observation dictionary: robosuite samples camera observables inside its control loop, so those lag the
+    state stored at the end of a step (see docs/liberogen/). `env` must have been made with a camera."""
+    import numpy as np
+
+    sim = env.env.sim
+    saved = sim.get_state().flatten()
+    frames = []
+    try:
+        for state in states:
+            sim.set_state_from_flattened(np.asarray(state, dtype=np.float64))
+            sim.forward()
+            frames.append(np.asarray(sim.render(camera_name=camera, height=size, width=size), dtype=np.uint8))
+    finally:
+        sim.set_state_from_flattened(saved)
+        sim.forward()
+    return np.stack(frames)
+
+
 def place_object(env, name: str, position) -> None:
     """Move object `name` (its free joint) to `position` (x, y, z), keeping its orientation (for tests and
     scripted checks of a problem's goal)."""
