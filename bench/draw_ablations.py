@@ -35,15 +35,15 @@ from pathlib import Path
 import numpy as np
 
 from bpp.checkpoint import Checkpoint
-from bpp.data.store import EpisodeStore, StoreError
+from bpp.data.store import EpisodeStore
 from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig, generate
+from bpp.envs.draw.dataset import DrawDataConfig, generate, stored_with
 from bpp.envs.draw.procedural import ProceduralConfig
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.policies.registry import get_method
-from bpp.utils import to_dict, write_json_atomic
+from bpp.utils import write_json_atomic
 from draw_cpu_benchmark import train_run
 
 PARTS = {"1-3": ProceduralConfig(min_parts=1, max_parts=3), "4-6": ProceduralConfig(min_parts=4, max_parts=6)}
@@ -158,13 +158,11 @@ def arms() -> list[Arm]:
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
     """The store at `path` if it holds exactly `cfg`'s data, else generated anew."""
-    try:
-        store = EpisodeStore(path)
-        if json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg))):
-            return store
+    store = stored_with(path, cfg)
+    if store is not None:
+        return store
+    if path.exists():
         print(f"[ablations] {path} holds other data than this arm's; generating it again")
-    except StoreError:
-        pass
     return generate(cfg, path, overwrite=True)
 
 

@@ -229,22 +229,7 @@ def probes(ws: Workspace) -> list[Probe]:
         def argv():
             f = ws.drawing(f"{name}.json", V)
             run = ws.copy_run(f"run-{name}")
-            first = bpp(
-                "eval",
-                str(run),
-                "--files",
-                str(f),
-                *QUICK,
-                "--out",
-                str(p(f"e-{name}")),
-                "--data-dir",
-                str(p("d")),
-                timeout=300,
-            )
-            if first.returncode:
-                raise RuntimeError(first.stderr[-500:])
-            change()
-            return [
+            command = [
                 "eval",
                 str(run),
                 "--files",
@@ -255,6 +240,11 @@ def probes(ws: Workspace) -> list[Probe]:
                 "--data-dir",
                 str(p("d")),
             ]
+            first = bpp(*command, timeout=300)
+            if first.returncode:
+                raise RuntimeError(first.stderr[-500:])
+            change()
+            return command
 
         return argv
 

@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from safetensors.torch import load, load_file, save_file
+from safetensors.torch import load, save_file
 
 from bpp.utils import from_dict, read_json, write_json_atomic
 
@@ -146,15 +146,11 @@ def _step_folders(ckpt_dir: Path) -> list[Path]:
     return sorted((p for p in ckpt_dir.glob("step_*") if (p / "state.json").is_file()), reverse=True)
 
 
-def _load_tensors(path: Path, digest: list[str] | None = None) -> dict[str, torch.Tensor]:
-    """The tensors of a safetensors file (with its SHA-256 appended to `digest` if given: the bytes are read
-    once for both)."""
+def _load_tensors(path: Path) -> tuple[dict[str, torch.Tensor], str]:
+    """The tensors of a safetensors file and the file's SHA-256 (its bytes are read once for both)."""
     try:
-        if digest is None:
-            return load_file(path)
         data = path.read_bytes()
-        digest.append(hashlib.sha256(data).hexdigest())
-        return load(data)
+        return load(data), hashlib.sha256(data).hexdigest()
     except Exception as err:  # noqa: BLE001 - safetensors raises its own error types for truncated or foreign files
         raise ValueError(f"{path}: unreadable weights ({type(err).__name__}: {err})") from None
 
@@ -176,7 +172,7 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
         try:
             state = read_state(ckpt)
             tensors = {
-                name: _load_tensors(ckpt / f"{name}.safetensors") for name in ("model", "ema", "optimizer", "rng")
+                name: _load_tensors(ckpt / f"{name}.safetensors")[0] for name in ("model", "ema", "optimizer", "rng")
             }
         except (ValueError, OSError) as err:
             print(f"[checkpoint] skipping {ckpt.name}: {err}", file=sys.stderr)
@@ -206,9 +202,9 @@ class Checkpoint:
     def load(cls, path: str | Path, use_ema: bool = True) -> Checkpoint:
         """Resolve `path` (run directory or checkpoint folder) and read it, with the EMA weights or the trained ones."""
         ckpt = resolve_checkpoint(path)
-        state, digest = read_state(ckpt), []
-        weights = _load_tensors(ckpt / ("ema.safetensors" if use_ema else "model.safetensors"), digest)
-        return cls(ckpt, state, weights, digest[0])
+        state = read_state(ckpt)
+        weights, sha256 = _load_tensors(ckpt / ("ema.safetensors" if use_ema else "model.safetensors"))
+        return cls(ckpt, state, weights, sha256)
 
     @property
     def method(self) -> str:

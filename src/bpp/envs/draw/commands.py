@@ -197,16 +197,14 @@ class Demo:
 
 
 def demo(args: Demo) -> None:
-    import json
 
     from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
-    from bpp.data.store import EpisodeStore, StoreError
+    from bpp.data.store import EpisodeStore
     from bpp.envs.draw.benchmark import BENCHMARK
-    from bpp.envs.draw.dataset import generate
+    from bpp.envs.draw.dataset import generate, stored_with
     from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
     from bpp.policies.registry import get_method
     from bpp.train import TrainConfig, train
-    from bpp.utils import to_dict
 
     t0 = time.perf_counter()
 
@@ -215,13 +213,10 @@ def demo(args: Demo) -> None:
 
     def ensure(name: str, cfg: DrawDataConfig) -> EpisodeStore:
         path = args.data_dir / f"{name}.zarr"
-        try:
-            store = EpisodeStore(path)
-            if json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg))):
-                stage(f"reusing {store}")
-                return store
-        except StoreError:
-            pass
+        store = stored_with(path, cfg)
+        if store is not None:
+            stage(f"reusing {store}")
+            return store
         stage(f"generating {path}")
         return generate(cfg, path, workers=args.workers, overwrite=True)
 

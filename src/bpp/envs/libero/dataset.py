@@ -92,17 +92,8 @@ def generate(
             successes[task.place] += len(kept)
             if not kept:
                 continue
-            info = {
-                "scene": task.scene.name,
-                "base": task.scene.base,
-                "bowl": task.bowl,
-                "pick": task.pick,
-                "place": task.place,
-                "place_key": task.place_key,
-            }
-            task_index = writer.add_task(
-                f"{index:03d}-{task.scene.name}-{task.pick}-{task.place}".lower(), info, instruction=task.instruction
-            )
+            info = {k: v for k, v in task.describe().items() if k != "instruction"}
+            task_index = writer.add_task(f"{index:03d}-{task.name}", info, instruction=task.instruction)
             for demo_seed, demo in kept:
                 steps = {
                     "action": demo.actions.astype(np.float32),

@@ -96,6 +96,23 @@ class PickPlace:
     def instruction(self) -> str:
         return f"pick up the black bowl {PICK_PHRASES[self.pick]} and place it {self.place_phrase}"
 
+    def describe(self) -> dict:
+        """The task as JSON-able fields (for a suite's index and a store's task table)."""
+        return {
+            "instruction": self.instruction,
+            "scene": self.scene.name,
+            "base": self.scene.base,
+            "bowl": self.bowl,
+            "pick": self.pick,
+            "place": self.place,
+            "place_key": self.place_key,
+        }
+
+    @property
+    def name(self) -> str:
+        """A file- and id-safe name: scene, pick and place."""
+        return f"{self.scene.name}-{self.pick}-{self.place}".lower()
+
     @property
     def code(self) -> tuple[str, str, str]:
         """(scene name, pick, place): unique within a suite."""

@@ -35,19 +35,9 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
     for split, tasks in (("train", suite.train), ("test", suite.test)):
         for i, task in enumerate(tasks):
             base = bases.setdefault(task.scene.base, spatial_problem(task.scene.base))
-            task_id = f"{split}-{i:03d}-{task.scene.name}-{task.pick}-{task.place}".lower()
+            task_id = f"{split}-{i:03d}-{task.name}"
             (tmp / "problems" / f"{task_id}.bddl").write_text(combination_problem(task, base))
-            entry = {
-                "id": task_id,
-                "instruction": task.instruction,
-                "scene": task.scene.name,
-                "base": task.scene.base,
-                "bowl": task.bowl,
-                "pick": task.pick,
-                "place": task.place,
-                "place_key": task.place_key,
-                "problem": f"problems/{task_id}.bddl",
-            }
+            entry = {"id": task_id, **task.describe(), "problem": f"problems/{task_id}.bddl"}
             if split == "test":
                 entry["similar"] = dict(zip(("same_pick", "same_place"), suite.similar(task), strict=True))
             index[split].append(entry)

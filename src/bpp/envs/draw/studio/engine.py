@@ -535,7 +535,7 @@ class Studio:
                 calls = len(agent.attention_log)
                 event["attention"] = [round(float(a), 4) for a in agent.attention_log[-1][0]]
             rollout.events.append(event)
-        best = None if not np.isfinite(rollout.best) else round(rollout.best, 3)
+        best = rollout.public()["best_chamfer"]
         rollout.events.append({"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)})
         rollout.status = status  # after the end event: a stream that sees the rollout finished has it to send
         if status == "abandoned":
