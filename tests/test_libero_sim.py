@@ -123,3 +123,22 @@ def test_stored_states_render_the_same_frames_every_time(tmp_path):
         np.testing.assert_array_equal(env.env.sim.get_state().flatten(), states[-1])  # the env's state is restored
     finally:
         env.close()
+
+
+def test_torch_can_load_its_compiler_after_a_camera_env(tmp_path):
+    """Mesa's renderer and triton each bring an LLVM; in the wrong order the process used to crash (SIGSEGV)."""
+    import subprocess
+    import sys
+
+    task = combination().train[0]
+    path = tmp_path / "task.bddl"
+    path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+    code = (
+        "from bpp.envs.libero.sim import make_env\n"
+        f"env = make_env({str(path)!r}, cameras=('agentview',), image_size=32)\n"
+        "env.reset()\n"
+        "import torch._dynamo  # loads triton\n"
+        "print('alive')\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and "alive" in result.stdout, result.stderr[-2000:]

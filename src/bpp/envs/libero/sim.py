@@ -8,6 +8,7 @@ MuJoCo's headless OpenGL: ``MUJOCO_GL`` defaults to ``egl`` here (Debian's Mesa 
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -18,6 +19,10 @@ class LiberoUnavailable(RuntimeError):
 
 def _libero():
     os.environ.setdefault("MUJOCO_GL", "egl")
+    # Mesa's software renderer links its own LLVM, and so does triton (which torch loads lazily, e.g. on its first
+    # optimizer step): loading triton after a GL context exists crashes the process, loading it first is safe.
+    with contextlib.suppress(ImportError):
+        import triton._C.libtriton  # noqa: F401
     try:
         import libero.libero as libero
     except ImportError:
