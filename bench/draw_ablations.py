@@ -35,10 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from bpp.checkpoint import Checkpoint
-from bpp.data.store import EpisodeStore
+from bpp.data.store import EpisodeStore, stored_with
 from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig, generate, stored_with
+from bpp.envs.draw.dataset import DrawDataConfig, generate
 from bpp.envs.draw.procedural import ProceduralConfig
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table

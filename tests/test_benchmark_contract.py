@@ -33,7 +33,7 @@ def _benchmark_folders() -> dict[str, str]:
 
 def test_generic_layers_name_no_benchmark():
     folders = _benchmark_folders()
-    assert folders == {"drawanything": "draw"}
+    assert folders == {"drawanything": "draw", "libero_gen": "libero"}
     offences = []
     for path in [*GENERIC, *ENVS_GENERIC]:
         text = path.read_text()

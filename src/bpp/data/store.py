@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from bpp.utils import read_json
+from bpp.utils import read_json, to_dict
 
 FORMAT = "bpp-episodes"
 VERSION = 1
@@ -447,3 +447,14 @@ class EpisodeStore:
             f"EpisodeStore({str(self.path)!r}, benchmark={self.benchmark!r}, tasks={self.num_tasks}, "
             f"episodes={self.num_episodes}, steps={self.num_steps})"
         )
+
+
+def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
+    """The store at `path` if it loads and was generated from exactly the data config `cfg` (a dataclass), else
+    None: how scripts and named task sets reuse finished data."""
+    try:
+        store = EpisodeStore(path)
+    except StoreError:
+        return None
+    same = json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg)))
+    return store if same else None

@@ -14,6 +14,7 @@ from bpp.envs.benchmark import Benchmark
 
 BENCHMARKS: dict[str, str] = {
     "drawanything": "bpp.envs.draw.benchmark:BENCHMARK",
+    "libero_gen": "bpp.envs.libero.benchmark:BENCHMARK",
 }
 """Benchmark name (as stored in every store) -> ``module:object`` implementing the contract."""
 

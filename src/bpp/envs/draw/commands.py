@@ -199,9 +199,9 @@ class Demo:
 def demo(args: Demo) -> None:
 
     from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
-    from bpp.data.store import EpisodeStore
+    from bpp.data.store import EpisodeStore, stored_with
     from bpp.envs.draw.benchmark import BENCHMARK
-    from bpp.envs.draw.dataset import generate, stored_with
+    from bpp.envs.draw.dataset import generate
     from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
     from bpp.policies.registry import get_method
     from bpp.train import TrainConfig, train

@@ -11,7 +11,7 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.envs.draw.demonstrator import DemoConfig, Demonstration, demonstrate, replay_paths
 from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose, ink_lengths
@@ -157,20 +157,6 @@ def generate(
             if pool is not None:
                 pool.terminate()
         return writer.close()
-
-
-def stored_with(path: str | Path, cfg: DrawDataConfig) -> EpisodeStore | None:
-    """The store at `path` if it loads and was generated from exactly `cfg`, else None (to reuse finished data)."""
-    import json
-
-    from bpp.utils import to_dict
-
-    try:
-        store = EpisodeStore(path)
-    except StoreError:
-        return None
-    same = json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg)))
-    return store if same else None
 
 
 # --------------------------------------------------------------------------- reading back

@@ -1,160 +1,285 @@
-"""Generate LIBERO-Gen demonstrations into the project's episode store.
+"""Generate LIBERO-Gen demonstrations into the project's episode store (``bpp libero generate``).
 
-    python -m bpp.envs.libero.dataset --suite combination --split train --demos 5 --out data/libero/combination.zarr
+    bpp libero generate --preset cpu --out data/libero/combination-train.zarr
 
-Each task's problem is written to a private folder and loaded without cameras (physics only, about 10x faster than
-rendering). The scripted demonstrator tries seeds until the task has ``--demos`` demonstrations that LIBERO's
-predicate accepts, or ``--max-tries`` have been spent. Failures are counted, never stored. Per step the store keeps
-the action (7-D OSC_POSE), LIBERO's ``robot0_proprio-state`` and ``object-state`` vectors, and the full simulator
-state, so that any camera can be rendered later from the stored state. The store is written atomically (a killed
-run leaves no store). Resuming a killed run is not done yet.
+Each task's problem is loaded without camera observations (physics only: rendering is about 10x slower than
+physics on a CPU). The scripted demonstrator tries seeds until the task has ``demos_per_task`` demonstrations
+that LIBERO's own predicate accepts, or ``max_tries`` have been spent; failures are counted, never stored. Per
+step the store keeps the action (7-D OSC_POSE deltas and the gripper), LIBERO's ``robot0_proprio-state`` (39) and
+``object-state`` (70) vectors, and the full simulator state, so that any camera can be rendered later from the
+stored state. Per demonstration it keeps the final agent-view frame (the Goal-Image baseline's goal) and, if
+``cameras`` are named, every step's frames, rendered from the stored states.
+
+Tasks run in parallel over processes. Each finished task is written at once to a journal beside the store, so a
+killed run resumes where it stopped (same command); the store itself is written atomically at the end and the
+journal removed.
 """
 
 from __future__ import annotations
 
-import argparse
+import json
 import multiprocessing as mp
-import tempfile
+import os
+import shutil
 import time
 from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from tqdm import tqdm
 
-from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.envs.libero.demonstrator import DemoConfig
+from bpp.envs.libero.sim import CAMERAS
 from bpp.envs.libero.suites import SUITES_BY_NAME, PickPlace
+from bpp.utils import check_fields, to_dict
 
 BENCHMARK = "libero_gen"
+GOAL_KEY = "goal_agentview"
+"""Per-episode column: the demonstration's final agent-view frame (upright), the Goal-Image baseline's goal."""
+STEP_KEYS = ("action", "proprio", "object_state", "sim_state")
 
 
-def _task_job(job) -> tuple[int, list, int]:
-    """Worker: demonstrations of one task. Returns (task index, [(seed, Demonstration)], failed tries)."""
-    index, task, demos, max_tries, seed = job
+@dataclass(frozen=True)
+class LiberoDataConfig:
+    """Which tasks to demonstrate, how many times, and which frames to render into the store."""
+
+    suite: str = "combination"
+    """A LIBERO-Gen suite (combination)."""
+    split: Literal["train", "test"] = "train"
+    """train: the suite's training tasks; test: its held-out tasks."""
+    num_tasks: int = 0
+    """Tasks of the split to demonstrate, spread evenly over it (0: all)."""
+    task_indices: tuple[int, ...] = ()
+    """Exactly these tasks of the split (indices, as ``bpp libero tasks`` lists them) instead of num_tasks."""
+    demos_per_task: int = 5
+    max_tries: int = 0
+    """Demonstration attempts per task at most (0: twice the demonstrations plus two)."""
+    seed: int = 0
+    cameras: tuple[str, ...] = ()
+    """Cameras whose frames are rendered for every step into the store (agentview, eye_in_hand); image policies
+    need them (the state-only preset does not)."""
+    image_size: int = 128
+    goal_size: int = 128
+    """Size of each demonstration's stored final agent-view frame (0: none; the Goal-Image baseline needs it)."""
+    demo: DemoConfig = field(default_factory=DemoConfig)
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("suite", self.suite in SUITES_BY_NAME, f"one of {', '.join(SUITES_BY_NAME)}"),
+            ("num_tasks", self.num_tasks >= 0, ">= 0 (0: all)"),
+            ("task_indices", all(i >= 0 for i in self.task_indices), "indices >= 0"),
+            ("demos_per_task", 1 <= self.demos_per_task <= 1000, "in [1, 1000]"),
+            ("max_tries", 0 <= self.max_tries <= 100_000, "in [0, 100000] (0: automatic)"),
+            ("seed", self.seed >= 0, ">= 0"),
+            ("cameras", set(self.cameras) <= set(CAMERAS), f"a subset of {', '.join(CAMERAS)}"),
+            ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
+            ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
+        )
+
+    @property
+    def tries(self) -> int:
+        return self.max_tries or 2 * self.demos_per_task + 2
+
+    def tasks(self) -> list[tuple[int, PickPlace]]:
+        """(index in the split, task) of the tasks to demonstrate."""
+        split = list(getattr(SUITES_BY_NAME[self.suite](), self.split))
+        if self.task_indices:
+            bad = [i for i in self.task_indices if i >= len(split)]
+            if bad:
+                raise ValueError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
+            return [(i, split[i]) for i in sorted(set(self.task_indices))]
+        n = len(split) if not self.num_tasks else min(self.num_tasks, len(split))
+        picks = np.unique(np.linspace(0, len(split) - 1, n).round().astype(int))
+        return [(int(i), split[i]) for i in picks]
+
+
+PRESETS: dict[str, LiberoDataConfig] = {
+    "cpu": LiberoDataConfig(demos_per_task=3),
+    "held-out": LiberoDataConfig(split="test", demos_per_task=5),
+    "paper": LiberoDataConfig(demos_per_task=50, cameras=tuple(CAMERAS)),
+    "debug": LiberoDataConfig(task_indices=(0,), demos_per_task=2, goal_size=32),
+}
+"""``cpu``: every Combination training task x 3 demonstrations, state only (about an hour on 2 cores);
+``held-out``: the 10 held-out tasks x 5 (evaluation prompts); ``paper``: 50 per task with both cameras (LIBERO's
+own count per task; the paper does not state LIBERO-Gen's); ``debug``: one task x 2, for tests."""
+
+
+def task_id(split: str, index: int, task: PickPlace) -> str:
+    return f"{split}-{index:03d}-{task.name}"
+
+
+def problem_text(task: PickPlace) -> str:
+    """The BDDL problem of a task (its scene's LIBERO problem, edited)."""
     from bpp.envs.libero.bddl import combination_problem
-    from bpp.envs.libero.demonstrator import Unsupported, demonstrate
-    from bpp.envs.libero.sim import make_env, spatial_problem
+    from bpp.envs.libero.sim import spatial_problem
 
+    return combination_problem(task, spatial_problem(task.scene.base))
+
+
+# ----------------------------------------------------------------------------------------------- workers
+def _task_job(job) -> dict:
+    """Worker: demonstrate one task and write its demonstrations to `journal/<task>.npz` (atomically). Returns
+    a summary: tries, kept, unsupported."""
+    index, task, cfg, journal = job
+    import tempfile
+
+    from bpp.envs.libero.demonstrator import Unsupported, demonstrate
+    from bpp.envs.libero.sim import make_env, render_now, render_states
+
+    summary = {"index": index, "place": task.place, "kept": 0, "tries": 0, "unsupported": False}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
         problem = Path(folder) / "task.bddl"
-        problem.write_text(combination_problem(task, spatial_problem(task.scene.base)))
-        env = make_env(problem)
-        kept, failed = [], 0
+        problem.write_text(problem_text(task))
+        env = make_env(problem, render=bool(cfg.cameras or cfg.goal_size))
+        episodes: list[dict] = []
         try:
-            for attempt in range(max_tries):
-                if len(kept) >= demos:
+            for attempt in range(cfg.tries):
+                if len(episodes) >= cfg.demos_per_task:
                     break
-                demo_seed = seed * 1_000_003 + index * 1009 + attempt
+                seed = cfg.seed * 1_000_003 + index * 1009 + attempt
+                summary["tries"] += 1
                 try:
-                    demo = demonstrate(env, task, demo_seed)
+                    demo = demonstrate(env, task, seed, cfg.demo)
                 except Unsupported:
-                    return index, [], max_tries
-                if demo.success:
-                    kept.append((demo_seed, demo))
-                else:
-                    failed += 1
-        finally:
-            env.close()
-    return index, kept, failed
-
-
-def generate(
-    tasks: list[PickPlace],
-    out: Path,
-    demos: int = 5,
-    max_tries: int = 10,
-    seed: int = 0,
-    workers: int = 1,
-    overwrite: bool = False,
-    progress: bool = True,
-) -> tuple[EpisodeStore | None, dict]:
-    """Demonstrate `tasks` into the store `out`; returns the store (None if no task got a demonstration) and a
-    report: tries, successes and failures per place, unsupported tasks, demonstrations per hour."""
-    jobs = [(i, t, demos, max_tries, seed) for i, t in enumerate(tasks)]
-    t0 = time.perf_counter()
-    tries, successes = Counter(), Counter()
-    unsupported = []
-    config = {"tasks": [t.instruction for t in tasks], "demos": demos, "max_tries": max_tries, "seed": seed}
-    writer = EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite)
-    pool = None
-    try:
-        if workers > 1 and len(jobs) > 1:
-            pool = mp.get_context("spawn").Pool(workers)
-            results = pool.imap(_task_job, jobs)
-        else:
-            results = map(_task_job, jobs)
-        stored = 0
-        for index, kept, failed in tqdm(results, total=len(jobs), desc="demonstrating", disable=not progress):
-            task = tasks[index]
-            if not kept and failed >= max_tries:
-                unsupported.append(task.instruction)
-            tries[task.place] += len(kept) + failed
-            successes[task.place] += len(kept)
-            if not kept:
-                continue
-            info = {k: v for k, v in task.describe().items() if k != "instruction"}
-            task_index = writer.add_task(f"{index:03d}-{task.name}", info, instruction=task.instruction)
-            for demo_seed, demo in kept:
-                steps = {
+                    summary["unsupported"] = True
+                    break
+                if not demo.success:
+                    continue
+                episode = {
                     "action": demo.actions.astype(np.float32),
                     "proprio": demo.observations["robot0_proprio-state"].astype(np.float32),
                     "object_state": demo.observations["object-state"].astype(np.float32),
                     "sim_state": demo.states.astype(np.float64),
+                    "seed": np.int64(seed),
                 }
-                writer.add_episode(steps, task_index, seed=demo_seed)
-                stored += 1
-    except BaseException:
-        writer.abort()
-        raise
+                if cfg.goal_size:
+                    episode[GOAL_KEY] = render_now(env, CAMERAS["agentview"], cfg.goal_size)  # the final state
+                for camera in cfg.cameras:
+                    episode[camera] = render_states(env, demo.states, CAMERAS[camera], cfg.image_size)
+                episodes.append(episode)
+        finally:
+            env.close()
+    summary["kept"] = len(episodes)
+    arrays = {f"{i}/{k}": v for i, ep in enumerate(episodes) for k, v in ep.items()}
+    tmp = journal / f".task-{index:04d}.{os.getpid()}.npz"
+    np.savez(tmp, summary=json.dumps(summary), **arrays)
+    os.replace(tmp, journal / f"task-{index:04d}.npz")
+    return summary
+
+
+def _read_journal(path: Path) -> tuple[dict, list[dict]]:
+    with np.load(path) as data:
+        summary = json.loads(str(data["summary"]))
+        episodes: list[dict] = [{} for _ in range(summary["kept"])]
+        for name in data.files:
+            if name != "summary":
+                i, key = name.split("/", 1)
+                episodes[int(i)][key] = data[name]
+    return summary, episodes
+
+
+def _journal(out: Path, cfg: LiberoDataConfig) -> Path:
+    """The journal folder of a generation into `out`: reused if it was started with the same configuration."""
+    journal = out.with_name(f".{out.name}.journal")
+    config = json.dumps(to_dict(cfg), sort_keys=True)
+    if journal.exists():
+        try:
+            same = (journal / "config.json").read_text() == config
+        except OSError:
+            same = False
+        if not same:
+            print(f"[generate] discarding {journal}: it was started with another configuration")
+            shutil.rmtree(journal)
+    journal.mkdir(parents=True, exist_ok=True)
+    (journal / "config.json").write_text(config)
+    return journal
+
+
+def generate(
+    cfg: LiberoDataConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
+) -> EpisodeStore:
+    """Demonstrate `cfg`'s tasks into the store `out`, over `workers` processes (0: one per core), resuming a
+    killed run's finished tasks. The generation report (tries and successes per place, unsupported tasks,
+    demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise StoreError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    tasks = cfg.tasks()
+    journal = _journal(out, cfg)
+    done = {int(p.stem.split("-")[1]) for p in journal.glob("task-*.npz")}
+    jobs = [(i, t, cfg, journal) for i, t in tasks if i not in done]
+    workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
+    t0 = time.perf_counter()
+    pool = mp.get_context("spawn").Pool(workers) if workers > 1 else None
+    try:
+        results = pool.imap_unordered(_task_job, jobs) if pool else map(_task_job, jobs)
+        bar = tqdm(results, total=len(tasks), initial=len(tasks) - len(jobs), desc=f"demonstrating {out.name}",
+                   unit="task", disable=not progress)  # fmt: skip
+        made = 0
+        for summary in bar:
+            made += summary["kept"]
+            bar.set_postfix(demos_per_hour=round(3600 * made / (time.perf_counter() - t0)))
     finally:
         if pool is not None:
             pool.terminate()
     seconds = time.perf_counter() - t0
-    report = {
-        "tasks": len(tasks),
-        "stored": stored,
-        "tries": dict(tries),
-        "successes": dict(successes),
-        "unsupported": unsupported,
-        "seconds": round(seconds, 1),
-        "demos_per_hour": round(3600 * stored / max(seconds, 1e-9), 1),
-    }
-    if stored == 0:
-        writer.abort()
-        return None, report
-    return writer.close(), report
+    report = _write_store(cfg, tasks, journal, out, overwrite)
+    report["seconds_this_run"] = round(seconds, 1)
+    report["demos_per_hour_this_run"] = round(3600 * made / max(seconds, 1e-9), 1)
+    store = EpisodeStore(out)
+    shutil.rmtree(journal, ignore_errors=True)
+    if progress:
+        print(describe_report(report))
+    return store
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--suite", choices=sorted(SUITES_BY_NAME), default="combination")
-    parser.add_argument("--split", choices=("train", "test"), default="train")
-    parser.add_argument("--tasks", type=int, default=0, help="the first N tasks of the split (0: all)")
-    parser.add_argument("--demos", type=int, default=5, help="demonstrations per task")
-    parser.add_argument("--max-tries", type=int, default=10, help="seeds tried per task at most")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--workers", type=int, default=1)
-    parser.add_argument("--out", type=Path, required=True)
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    for name in ("demos", "max_tries", "workers"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be at least 1")
-    suite = SUITES_BY_NAME[args.suite]()
-    tasks = list(getattr(suite, args.split))[: args.tasks or None]
-    try:
-        store, report = generate(tasks, args.out, args.demos, args.max_tries, args.seed, args.workers, args.overwrite)
-    except (ValueError, RuntimeError, OSError) as err:
-        raise SystemExit(f"error: {err}") from None
+def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool) -> dict:
+    tries, successes, unsupported = Counter(), Counter(), []
+    writer = EpisodeWriter(
+        out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=("action", "proprio",
+        "object_state")
+    )  # fmt: skip
+    with writer:
+        for index, task in tasks:
+            summary, episodes = _read_journal(journal / f"task-{index:04d}.npz")
+            tries[task.place] += summary["tries"]
+            successes[task.place] += summary["kept"]
+            if summary["unsupported"]:
+                unsupported.append(task.instruction)
+            if not episodes:
+                continue
+            info = {k: v for k, v in task.describe().items() if k != "instruction"}
+            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task))
+            task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
+            for episode in episodes:
+                columns = {"seed": int(episode.pop("seed"))}
+                if GOAL_KEY in episode:
+                    columns[GOAL_KEY] = episode.pop(GOAL_KEY)
+                writer.add_episode(episode, task_index, **columns)
+        report = {
+            "tasks": len(tasks),
+            "stored": sum(successes.values()),
+            "tries": dict(tries),
+            "successes": dict(successes),
+            "unsupported": unsupported,
+        }
+        if not report["stored"]:
+            writer.abort()
+            raise StoreError(f"no demonstration of {len(tasks)} tasks succeeded; nothing to store")
+        writer.root.attrs["generation"] = report
+    return report
+
+
+def describe_report(report: dict) -> str:
+    lines = [f"[generate] {report['stored']} demonstrations of {report['tasks']} tasks"]
     for place in sorted(report["tries"]):
-        print(f"{place:5s} {report['successes'].get(place, 0)}/{report['tries'][place]} demonstrations succeeded")
-    print(
-        f"{report['stored']} demonstrations of {report['tasks']} tasks in {report['seconds']} s "
-        f"({report['demos_per_hour']} per hour); unsupported: {len(report['unsupported'])}"
-    )
-    if store is not None:
-        print(f"wrote {store}")
-
-
-if __name__ == "__main__":
-    main()
+        lines.append(f"  place {place:5s} {report['successes'].get(place, 0)}/{report['tries'][place]} tries succeeded")
+    if report["unsupported"]:
+        lines.append(f"  not demonstrated (the demonstrator cannot do them yet): {len(report['unsupported'])} tasks")
+    if "demos_per_hour_this_run" in report:
+        lines.append(f"  {report['demos_per_hour_this_run']} demonstrations per hour in this run")
+    return "\n".join(lines)

@@ -45,9 +45,15 @@ def spatial_problem(name: str) -> str:
     return path.read_text()
 
 
-def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128):
+CAMERAS = {"agentview": "agentview", "eye_in_hand": "robot0_eye_in_hand"}
+"""Image observation keys -> LIBERO's camera names: the paper's agent view (the whole work area) and wrist camera."""
+
+
+def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128, render: bool = False):
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
-    cameras (e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size`. Takes seconds (it compiles the scene)."""
+    cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`
+    and no cameras, steps render nothing but :func:`render_states` / :func:`render_now` can draw any camera on
+    demand. Takes seconds (it compiles the scene)."""
     _libero()
     from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
 
@@ -57,7 +63,11 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
     try:
         if not cameras:
             return ControlEnv(
-                bddl_file_name=str(path), has_renderer=False, has_offscreen_renderer=False, use_camera_obs=False
+                bddl_file_name=str(path),
+                has_renderer=False,
+                has_offscreen_renderer=render,
+                use_camera_obs=False,
+                camera_names=list(CAMERAS.values()),
             )
         return OffScreenRenderEnv(
             bddl_file_name=str(path),
@@ -74,11 +84,22 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
         raise
 
 
+def render_now(env, camera: str = "agentview", size: int = 128):
+    """(size, size, 3) uint8: the env's current state seen from LIBERO camera `camera`, upright. MuJoCo's
+    offscreen images come out rotated by 180 degrees (LIBERO's own observations too); every frame bpp stores,
+    trains on or shows is turned upright here."""
+    import numpy as np
+
+    frame = env.env.sim.render(camera_name=camera, height=size, width=size)
+    return np.ascontiguousarray(np.asarray(frame, dtype=np.uint8)[::-1, ::-1])
+
+
 def render_states(env, states, camera: str = "agentview", size: int = 128):
-    """(T, size, size, 3) uint8 frames of `camera` for flattened simulator states (e.g. a stored episode's
-    ``sim_state``), rendered by setting each state and drawing it. Training frames come from here, not from the
-    env's observation dictionary: robosuite samples camera observables inside its control loop, so those lag the
-    state stored at the end of a step (see docs/liberogen/). `env` must have been made with a camera."""
+    """(T, size, size, 3) uint8 upright frames of LIBERO camera `camera` for flattened simulator states (e.g. a
+    stored episode's ``sim_state``), rendered by setting each state and drawing it. Training frames come from here,
+    not from the env's observation dictionary: robosuite samples camera observables inside its control loop, so
+    those lag the state stored at the end of a step (see docs/liberogen/). `env` must be able to render (made with
+    cameras or with ``render=True``); its state is restored afterwards."""
     import numpy as np
 
     sim = env.env.sim
@@ -88,7 +109,7 @@ def render_states(env, states, camera: str = "agentview", size: int = 128):
         for state in states:
             sim.set_state_from_flattened(np.asarray(state, dtype=np.float64))
             sim.forward()
-            frames.append(np.asarray(sim.render(camera_name=camera, height=size, width=size), dtype=np.uint8))
+            frames.append(render_now(env, camera, size))
     finally:
         sim.set_state_from_flattened(saved)
         sim.forward()

@@ -1,20 +1,19 @@
 """Write a LIBERO-Gen suite's tasks: one BDDL problem per task and a ``tasks.json`` index with the split.
 
-    python -m bpp.envs.libero.tasks --suite combination --out data/libero/combination
+    bpp libero tasks --suite combination --out data/libero/combination
 
-(to become ``bpp libero tasks`` once LIBERO-Gen is a registered benchmark). Prints each held-out task with the
-number of training tasks that share its pick and its place, which are the counts in the paper's appendix.
+It prints each held-out task with the number of training tasks that share its pick and its place: the counts the
+paper's appendix lists.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 from pathlib import Path
 
 from bpp.envs.libero.bddl import combination_problem
-from bpp.envs.libero.suites import SUITES_BY_NAME, Suite
+from bpp.envs.libero.suites import Suite
 
 
 def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
@@ -46,22 +45,3 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
         shutil.rmtree(out)
     tmp.rename(out)
     return out / "tasks.json"
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--suite", choices=sorted(SUITES_BY_NAME), default="combination")
-    parser.add_argument("--out", type=Path, default=None, help="folder to write (default: only print the report)")
-    parser.add_argument("--overwrite", action="store_true")
-    args = parser.parse_args(argv)
-    suite = SUITES_BY_NAME[args.suite]()
-    print(suite.report())
-    if args.out is not None:
-        try:
-            print(f"wrote {write_suite(suite, args.out, args.overwrite)}")
-        except (ValueError, RuntimeError) as err:
-            raise SystemExit(f"error: {err}") from None
-
-
-if __name__ == "__main__":
-    main()

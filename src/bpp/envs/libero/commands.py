@@ -1,0 +1,73 @@
+"""LIBERO-Gen's own commands: ``bpp libero tasks|video`` (``bpp libero generate`` is generic)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import tyro
+
+from bpp.envs.libero.suites import SUITES_BY_NAME
+from bpp.utils import check_fields
+
+
+@dataclass(frozen=True)
+class LiberoTasks:
+    """Print a LIBERO-Gen suite's split (each held-out task with how many training tasks share its pick and its
+    place, as the paper's appendix lists them) and, with --out, write its tasks as BDDL problems + tasks.json."""
+
+    suite: str = "combination"
+    """A LIBERO-Gen suite (combination)."""
+    out: Path | None = None
+    """Folder to write (default: only print the report)."""
+    overwrite: bool = False
+
+    def __post_init__(self):
+        check_fields(self, ("suite", self.suite in SUITES_BY_NAME, f"one of {', '.join(SUITES_BY_NAME)}"))
+
+
+def libero_tasks(args: LiberoTasks) -> None:
+    from bpp.envs.libero.tasks import write_suite
+
+    suite = SUITES_BY_NAME[args.suite]()
+    print(suite.report())
+    if args.out is not None:
+        print(f"wrote {write_suite(suite, args.out, args.overwrite)}")
+
+
+@dataclass(frozen=True)
+class LiberoVideo:
+    """Animate one stored demonstration as a GIF (or MP4 if --out ends in .mp4), rendered from its stored
+    simulator states (agent view)."""
+
+    store: tyro.conf.Positional[Path]
+    episode: int = 0
+    out: Path = Path("demo.gif")
+    size: int = 128
+    camera: str = "agentview"
+    """agentview or eye_in_hand."""
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("episode", self.episode >= 0, ">= 0"),
+            ("out", self.out.suffix.lower() in (".gif", ".mp4"), "a .gif or .mp4 file"),
+            ("size", 16 <= self.size <= 512, "in [16, 512] px"),
+        )
+
+
+def libero_video(args: LiberoVideo) -> None:
+    from bpp.data.store import EpisodeStore
+    from bpp.envs.libero.benchmark import BENCHMARK
+    from bpp.media import save_animation
+
+    store = EpisodeStore(args.store)
+    if store.benchmark != BENCHMARK.name:
+        raise ValueError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")
+    store.episode_slice(args.episode)  # an IndexError naming the store's episode count if out of range
+    frames = BENCHMARK.frames(store, args.episode, args.camera, args.size)
+    print(f"wrote {save_animation(list(frames), args.out)} ({len(frames)} frames)")
+
+
+COMMANDS = {"tasks": (LiberoTasks, libero_tasks), "video": (LiberoVideo, libero_video)}
+"""``bpp libero <name>``."""

@@ -1,0 +1,96 @@
+"""LIBERO-Gen rollouts: a policy, already given each rollout's task context, acts in LIBERO from a new initial
+state; LIBERO's own goal predicates score it (success at any step ends the rollout), as in the paper's protocol.
+
+Rollouts step in lockstep through one batched agent; each has its own env (physics only unless the policy
+observes cameras or a video is recorded). Camera observations are rendered from the simulator state after each
+step, upright, the same way training frames are rendered from stored states.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from bpp.data.store import EpisodeStore
+from bpp.envs.benchmark import RolloutResult
+from bpp.envs.libero.demonstrator import SETTLE_STEPS
+from bpp.envs.libero.sim import CAMERAS, make_env, render_now
+
+VIDEO_SIZE = 128
+
+
+def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, np.ndarray]:
+    """The policy's observation keys (as stored by generation) from an env's observation dictionary."""
+    obs = {
+        "proprio": np.asarray(raw["robot0_proprio-state"], dtype=np.float32),
+        "object_state": np.asarray(raw["object-state"], dtype=np.float32),
+    }
+    for camera in cameras:
+        obs[camera] = render_now(env, CAMERAS[camera], size)
+    return obs
+
+
+def task_problem(store: EpisodeStore, episode: int) -> str:
+    """The BDDL problem of an episode's task, as generation stored it."""
+    task = store.tasks[int(store.column("task_index")[episode])]
+    problem = task.get("info", {}).get("problem")
+    if not problem:
+        raise ValueError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
+    return problem
+
+
+def run_rollouts(
+    agent,
+    store: EpisodeStore,
+    rollouts: Sequence[Mapping],
+    max_steps: int = 550,
+    record_frames: Sequence[bool] | None = None,
+) -> list[RolloutResult]:
+    """Rollout i starts from the initial state LIBERO samples with ``rollouts[i]["init_seed"]`` in the problem of
+    ``rollouts[i]["target_episode"]``'s task and succeeds when that task's goal holds. `agent` must already be
+    reset with the rollouts' contexts."""
+    spec = agent.data_spec
+    cameras = tuple(spec.image_keys)
+    unknown = sorted(set(cameras) - set(CAMERAS))
+    if unknown:
+        raise ValueError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
+    n = len(rollouts)
+    record = list(record_frames) if record_frames is not None else [False] * n
+    envs, obs = [], []
+    with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
+        problems: dict[int, Path] = {}
+        try:
+            for row, rec in zip(rollouts, record, strict=True):
+                episode = int(row["target_episode"])
+                task = int(store.column("task_index")[episode])
+                if task not in problems:
+                    problems[task] = Path(folder) / f"task-{task}.bddl"
+                    problems[task].write_text(task_problem(store, episode))
+                env = make_env(problems[task], render=bool(cameras) or rec)
+                envs.append(env)
+                env.seed(int(row["init_seed"]))
+                raw = env.reset()
+                for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
+                    raw, *_ = env.step(np.zeros(7))
+                obs.append(observe(env, raw, cameras, spec.image_size))
+            frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
+            done = np.zeros(n, dtype=bool)
+            success = np.zeros(n, dtype=bool)
+            steps = np.zeros(n, dtype=int)
+            while not done.all():
+                actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
+                for i in np.flatnonzero(~done):
+                    raw, *_ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
+                    steps[i] += 1
+                    obs[i] = observe(envs[i], raw, cameras, spec.image_size)
+                    if record[i]:
+                        frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
+                    success[i] = bool(envs[i].env._check_success())
+                    done[i] = success[i] or steps[i] >= max_steps
+        finally:
+            for env in envs:
+                env.close()
+    return [RolloutResult(float(success[i]), int(steps[i]), {}, frames[i]) for i in range(n)]

@@ -1,0 +1,97 @@
+"""LIBERO-Gen as a registered benchmark, through the command line: generation (resumable, failures not stored,
+frames rendered from stored states), every method's training on the store, and evaluation by LIBERO's
+predicates. Needs the `libero` extra, which `make test` installs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from bpp.cli import main
+from bpp.data.store import EpisodeStore, StoreError
+from bpp.envs.libero import dataset
+from bpp.envs.libero.benchmark import BENCHMARK, _render
+from bpp.envs.libero.suites import combination
+
+DRAWER = next(i for i, t in enumerate(combination().train) if t.pick == "TD")  # not demonstrated yet
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    """Task 0 (two demonstrations, agent-view frames at 32 px) and a drawer task the demonstrator refuses."""
+    out = tmp_path_factory.mktemp("libero") / "train.zarr"
+    flags = ["--task-indices", "0", str(DRAWER), "--demos-per-task", "2", "--cameras", "agentview"]
+    main(["libero", "generate", "--preset", "debug", "--out", str(out), "--workers", "1", "--image-size", "32", *flags])
+    return EpisodeStore(out)
+
+
+def test_generation_stores_only_demonstrations_that_libero_accepts(store):
+    assert store.benchmark == "libero_gen" and store.num_tasks == 1 and store.num_episodes == 2
+    task = store.tasks[0]
+    assert task["id"] == "train-000-s1-bpr-pl" and task["instruction"] == combination().train[0].instruction
+    assert "(:goal" in task["info"]["problem"]  # the task's BDDL travels with the store
+    report = store.attrs["generation"]
+    assert report["unsupported"] == [combination().train[DRAWER].instruction] and report["stored"] == 2
+    assert {"action", "proprio", "object_state", "sim_state", "agentview"} <= set(store.keys)
+    assert store.array("action").shape[1] == 7 and np.abs(store.array("action")).max() <= 1.0
+    assert store.column(dataset.GOAL_KEY).shape == (2, 32, 32, 3)
+    assert not list(store.path.parent.glob(".*journal*"))  # the journal is gone once the store is written
+
+
+def test_a_stored_step_renders_the_same_image_again(store):
+    sl = store.episode_slice(1)
+    states = store["sim_state"][sl][[0, 40, -1]]
+    again = _render(store, 1, states, "agentview", 32)
+    np.testing.assert_array_equal(again, store["agentview"][sl][[0, 40, -1]])
+    assert np.abs(again[2].astype(int) - again[0]).max() > 20  # the arm moved: the frames differ
+    assert BENCHMARK.frames(store, 1, "agentview", 16).shape == (sl.stop - sl.start, 16, 16, 3)
+    with pytest.raises(ValueError, match="cameras agentview, eye_in_hand"):
+        BENCHMARK.frames(store, 0, "image", 32)
+
+
+def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypatch):
+    cfg = dataset.LiberoDataConfig(task_indices=(0, 1), demos_per_task=1, goal_size=0)
+    real, calls = dataset._task_job, []
+
+    def killed_on_the_second(job):
+        calls.append(job[0])
+        if job[0] == 1:
+            raise KeyboardInterrupt
+        return real(job)
+
+    monkeypatch.setattr(dataset, "_task_job", killed_on_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
+    assert not (tmp_path / "s.zarr").exists() and (tmp_path / ".s.zarr.journal" / "task-0000.npz").is_file()
+    monkeypatch.setattr(dataset, "_task_job", lambda job: (calls.append(job[0]), real(job))[1])
+    store = dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
+    assert calls == [0, 1, 1]  # task 0 was not demonstrated again
+    assert [t["id"] for t in store.tasks][0] == "train-000-s1-bpr-pl" and store.num_tasks == 2
+    with pytest.raises(StoreError, match="already exists"):
+        dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "language", "icrt"])
+def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, capsys):
+    run = tmp_path / "run"
+    main(["train", "--method", method, "--data", str(store.path), "--out", str(run), "--preset", "debug", "--steps=2"])
+    out = tmp_path / "eval"
+    flags = ["--tasks", "train", "--rollouts", "1", "--max-steps", "12", "--workers", "1", "--videos", "1"]
+    main(["eval", str(run), *flags, "--out", str(out)])
+    results = json.loads((out / "results.json").read_text())
+    (row,) = results["rollouts"]
+    assert row["score"] in (0.0, 1.0) and row["steps"] == 12  # an untrained policy does not succeed in 12 steps
+    assert "init_seed" in row and (out / "grid.png").is_file() and list(out.glob("rollout_*.mp4"))
+
+
+def test_bad_input_is_refused_with_a_clear_message(store, debug_store, tmp_path, capsys):
+    with pytest.raises(SystemExit, match="task_indices \\[500\\] out of range"):
+        main(["libero", "generate", "--out", str(tmp_path / "x.zarr"), "--task-indices", "500"])
+    with pytest.raises(SystemExit, match="not libero_gen"):
+        main(["libero", "video", str(debug_store.path), "--out", str(tmp_path / "v.gif")])
+    with pytest.raises(SystemExit):
+        main(["libero", "tasks", "--suite", "chains"])
+    assert "suite must be one of combination, got 'chains'" in capsys.readouterr().err
+    assert not (tmp_path / "x.zarr").exists()
