@@ -13,16 +13,15 @@ from bpp.cli import main
 from bpp.data.store import EpisodeStore, StoreError
 from bpp.envs.libero import dataset
 from bpp.envs.libero.benchmark import BENCHMARK, _render
+from bpp.envs.libero.demonstrator import DemoConfig
 from bpp.envs.libero.suites import combination
-
-DRAWER = next(i for i, t in enumerate(combination().train) if t.pick == "TD")  # not demonstrated yet
 
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
-    """Task 0 (two demonstrations, agent-view frames at 32 px) and a drawer task the demonstrator refuses."""
+    """Task 0: two demonstrations, with agent-view frames at 32 px."""
     out = tmp_path_factory.mktemp("libero") / "train.zarr"
-    flags = ["--task-indices", "0", str(DRAWER), "--demos-per-task", "2", "--cameras", "agentview"]
+    flags = ["--task-indices", "0", "--demos-per-task", "2", "--cameras", "agentview"]
     main(["libero", "generate", "--preset", "debug", "--out", str(out), "--workers", "1", "--image-size", "32", *flags])
     return EpisodeStore(out)
 
@@ -33,7 +32,7 @@ def test_generation_stores_only_demonstrations_that_libero_accepts(store):
     assert task["id"] == "train-000-s1-bpr-pl" and task["instruction"] == combination().train[0].instruction
     assert "(:goal" in task["info"]["problem"]  # the task's BDDL travels with the store
     report = store.attrs["generation"]
-    assert report["unsupported"] == [combination().train[DRAWER].instruction] and report["stored"] == 2
+    assert report["stored"] == 2 and report["successes"]["place PL"] == 2 and report["without_demonstrations"] == []
     assert {"action", "proprio", "object_state", "sim_state", "agentview"} <= set(store.keys)
     assert store.array("action").shape[1] == 7 and np.abs(store.array("action")).max() <= 1.0
     assert store.column(dataset.GOAL_KEY).shape == (2, 32, 32, 3)
@@ -49,6 +48,13 @@ def test_a_stored_step_renders_the_same_image_again(store):
     assert BENCHMARK.frames(store, 1, "agentview", 16).shape == (sl.stop - sl.start, 16, 16, 3)
     with pytest.raises(ValueError, match="cameras agentview, eye_in_hand"):
         BENCHMARK.frames(store, 0, "image", 32)
+
+
+def test_failed_demonstrations_are_counted_and_never_stored(tmp_path):
+    cfg = dataset.LiberoDataConfig(task_indices=(0,), demos_per_task=1, max_tries=2, demo=DemoConfig(max_steps=20))
+    with pytest.raises(StoreError, match="no demonstration of 1 tasks succeeded"):
+        dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)  # 20 steps cannot move a bowl
+    assert not (tmp_path / "s.zarr").exists()
 
 
 def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypatch):

@@ -123,14 +123,14 @@ def problem_text(task: PickPlace) -> str:
 # ----------------------------------------------------------------------------------------------- workers
 def _task_job(job) -> dict:
     """Worker: demonstrate one task and write its demonstrations to `journal/<task>.npz` (atomically). Returns
-    a summary: tries, kept, unsupported."""
+    a summary: tries and demonstrations kept."""
     index, task, cfg, journal = job
     import tempfile
 
-    from bpp.envs.libero.demonstrator import Unsupported, demonstrate
+    from bpp.envs.libero.demonstrator import demonstrate
     from bpp.envs.libero.sim import make_env, render_now, render_states
 
-    summary = {"index": index, "place": task.place, "kept": 0, "tries": 0, "unsupported": False}
+    summary = {"index": index, "kept": 0, "tries": 0}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
         problem = Path(folder) / "task.bddl"
         problem.write_text(problem_text(task))
@@ -142,11 +142,7 @@ def _task_job(job) -> dict:
                     break
                 seed = cfg.seed * 1_000_003 + index * 1009 + attempt
                 summary["tries"] += 1
-                try:
-                    demo = demonstrate(env, task, seed, cfg.demo)
-                except Unsupported:
-                    summary["unsupported"] = True
-                    break
+                demo = demonstrate(env, task, seed, cfg.demo)
                 if not demo.success:
                     continue
                 episode = {
@@ -203,8 +199,9 @@ def generate(
     cfg: LiberoDataConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
 ) -> EpisodeStore:
     """Demonstrate `cfg`'s tasks into the store `out`, over `workers` processes (0: one per core), resuming a
-    killed run's finished tasks. The generation report (tries and successes per place, unsupported tasks,
-    demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
+        killed run's finished tasks. The generation report (tries and successes per pick and per place, tasks left
+    without a demonstration,
+        demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
     out = Path(out)
     if out.exists() and not overwrite:
         raise StoreError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
@@ -238,7 +235,7 @@ def generate(
 
 
 def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool) -> dict:
-    tries, successes, unsupported = Counter(), Counter(), []
+    tries, successes, missing = Counter(), Counter(), []
     writer = EpisodeWriter(
         out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=("action", "proprio",
         "object_state")
@@ -246,11 +243,11 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
     with writer:
         for index, task in tasks:
             summary, episodes = _read_journal(journal / f"task-{index:04d}.npz")
-            tries[task.place] += summary["tries"]
-            successes[task.place] += summary["kept"]
-            if summary["unsupported"]:
-                unsupported.append(task.instruction)
+            for family in (f"pick {task.pick}", f"place {task.place}"):
+                tries[family] += summary["tries"]
+                successes[family] += summary["kept"]
             if not episodes:
+                missing.append(task.instruction)
                 continue
             info = {k: v for k, v in task.describe().items() if k != "instruction"}
             info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task))
@@ -262,10 +259,10 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
                 writer.add_episode(episode, task_index, **columns)
         report = {
             "tasks": len(tasks),
-            "stored": sum(successes.values()),
+            "stored": sum(v for k, v in successes.items() if k.startswith("pick")),
             "tries": dict(tries),
             "successes": dict(successes),
-            "unsupported": unsupported,
+            "without_demonstrations": missing,
         }
         if not report["stored"]:
             writer.abort()
@@ -276,10 +273,11 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
 
 def describe_report(report: dict) -> str:
     lines = [f"[generate] {report['stored']} demonstrations of {report['tasks']} tasks"]
-    for place in sorted(report["tries"]):
-        lines.append(f"  place {place:5s} {report['successes'].get(place, 0)}/{report['tries'][place]} tries succeeded")
-    if report["unsupported"]:
-        lines.append(f"  not demonstrated (the demonstrator cannot do them yet): {len(report['unsupported'])} tasks")
+    for family in sorted(report["tries"]):
+        done, tries = report["successes"].get(family, 0), report["tries"][family]
+        lines.append(f"  {family:11s} {done}/{tries} tries succeeded")
+    if report["without_demonstrations"]:
+        lines.append(f"  tasks left without a demonstration: {len(report['without_demonstrations'])}")
     if "demos_per_hour_this_run" in report:
         lines.append(f"  {report['demos_per_hour_this_run']} demonstrations per hour in this run")
     return "\n".join(lines)

@@ -7,8 +7,8 @@ releases, and rises. The grasp side, the point on the rim, the heights and a mid
 as teleoperated demonstrations do. LIBERO's own predicate judges every demonstration: a failure is returned as
 such, never stored as a success.
 
-Bowls in the cabinet's top drawer are not handled yet (the drawer's walls need another approach): those tasks
-raise :class:`Unsupported`.
+A bowl in the cabinet's open top drawer has the drawer's walls close around it: the gripper first turns so that
+its fingers close across the drawer's width (the roomier axis), half-closes, and then takes the rim on that axis.
 """
 
 from __future__ import annotations
@@ -22,12 +22,11 @@ from bpp.envs.libero.suites import BOWL, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
 """Table regions: LIBERO's goal check wants the bowl's centre inside a range of a few centimetres."""
+NARROW_PICKS = ("TD",)
+"""Starts with walls close around the bowl: in the open top drawer the front and back panels are about 8 cm from
+the bowl's centre and the sides about 10 cm, where a fully open gripper's outer finger reaches 9.5 cm."""
 SETTLE_STEPS = 10
 """No-op steps after a reset: LIBERO's initial placements start objects slightly in the air."""
-
-
-class Unsupported(ValueError):
-    """A task this demonstrator cannot do yet."""
 
 
 @dataclass(frozen=True)
@@ -42,6 +41,8 @@ class DemoConfig:
     """Height above the target at which the gripper opens (m)."""
     jitter: float = 0.005
     """Std of the grasp point's and the release point's horizontal jitter (m)."""
+    narrow_close_steps: int = 4
+    """Steps of closing before going down in a narrow start (the gripper moves a quarter of its range per step)."""
     max_step: float = 0.05
     """Position change per step at full action (the controller's output_max)."""
     max_steps: int = 600
@@ -70,8 +71,6 @@ def target_position(env, obs: dict, task: PickPlace) -> np.ndarray:
 
 def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig()) -> Demonstration:
     """Reset `env` (made from `task`'s problem) with `seed` and demonstrate the task once."""
-    if task.pick == "TD":
-        raise Unsupported("bowls in the top drawer are not demonstrated yet")
     rng = np.random.default_rng(seed)
     env.seed(seed)
     obs = env.reset()
@@ -100,13 +99,30 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
         for _ in range(steps):
             step(np.r_[np.zeros(6), grip])
 
+    def turn(axis: np.ndarray, grip: float, limit: int = 40) -> None:
+        """Yaw the gripper until its fingers close along the horizontal `axis` (either way round)."""
+        for _ in range(limit):
+            closing = _rotation(obs["robot0_eef_quat"])[:2, 1]  # the fingers close along the hand's y axis
+            error = np.arctan2(closing[0] * axis[1] - closing[1] * axis[0], closing @ axis)
+            error = (error + np.pi / 2) % np.pi - np.pi / 2
+            if abs(error) < 0.03:
+                return
+            step(np.r_[np.zeros(5), np.clip(error / 0.5, -1.0, 1.0), grip])
+
     start = np.asarray(obs[f"{bowl}_pos"], dtype=float).copy()
     side = rng.choice([-1.0, 1.0])  # which side of the rim the fingers take
-    rim = np.array([0.0, side * cfg.rim_offset, 0.0]) + np.r_[rng.normal(0.0, cfg.jitter, 2), 0.0]
+    across = drawer_width_axis(env) if task.pick in NARROW_PICKS else np.array([0.0, 1.0])  # the fingers' axis
+    rim = np.r_[side * cfg.rim_offset * across + rng.normal(0.0, cfg.jitter, 2), 0.0]
     carry = rng.uniform(*cfg.carry_height)
     try:
         go(start + rim + [0.0, 0.0, 0.12], -1.0)
-        go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], -1.0, tol=0.003)
+        grip = -1.0
+        if task.pick in NARROW_PICKS:  # fingers across the drawer, half-closed: the outer one clears its walls
+            turn(across, grip)
+            go(start + rim + [0.0, 0.0, 0.12], -1.0)
+            hold(1.0, cfg.narrow_close_steps)
+            grip = 0.0  # the gripper holds its opening
+        go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], grip, tol=0.003)
         hold(1.0, 15)
         go(start + rim + [0.0, 0.0, carry], 1.0)
         # Where the bowl actually sits in the hand (it may have slipped): the release point puts its centre, not
@@ -129,6 +145,28 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
         {k: np.stack([o[k] for o in observed]) for k in keys},
         np.array(states),
         bool(env.env._check_success()),
+    )
+
+
+def drawer_width_axis(env) -> np.ndarray:
+    """The horizontal unit vector across the wooden cabinet's top drawer (perpendicular to the way it opens)."""
+    sim = env.env.sim
+    cabinet, drawer = (
+        sim.data.body_xpos[sim.model.body_name2id(f"wooden_cabinet_1_{b}")] for b in ("main", "cabinet_top")
+    )
+    pull = (drawer - cabinet)[:2] / np.linalg.norm((drawer - cabinet)[:2])
+    return np.array([pull[1], -pull[0]])
+
+
+def _rotation(quat_xyzw) -> np.ndarray:
+    """The rotation matrix of a unit quaternion in robosuite's (x, y, z, w) order."""
+    x, y, z, w = np.asarray(quat_xyzw, dtype=float)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
     )
 
 
