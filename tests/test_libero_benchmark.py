@@ -50,6 +50,25 @@ def test_a_stored_step_renders_the_same_image_again(store):
         BENCHMARK.frames(store, 0, "image", 32)
 
 
+def test_a_store_exports_to_libero_hdf5_files(store, tmp_path, capsys):
+    import h5py
+
+    main(["libero", "export", str(store.path), "--out", str(tmp_path / "x")])
+    (path,) = (tmp_path / "x").glob("*.hdf5")
+    assert path.name == "train-000-s1-bpr-pl_demo.hdf5" and (tmp_path / "x" / "train-000-s1-bpr-pl.bddl").is_file()
+    sl = store.episode_slice(1)
+    with h5py.File(path) as f:
+        assert f["data"].attrs["num_demos"] == 2 and "(:goal" in f["data"].attrs["bddl_file_content"]
+        demo = f["data/demo_1"]
+        np.testing.assert_array_equal(demo["actions"][:], store["action"][sl])
+        np.testing.assert_array_equal(demo["states"][:], store["sim_state"][sl])
+        np.testing.assert_array_equal(demo["obs/agentview_rgb"][:][:, ::-1, ::-1], store["agentview"][sl])
+        assert demo["dones"][-1] == 1 and demo["dones"][:-1].sum() == 0
+        assert demo["obs/ee_pos"].shape == (sl.stop - sl.start, 3)
+    with pytest.raises(SystemExit, match="not empty"):
+        main(["libero", "export", str(store.path), "--out", str(tmp_path / "x")])
+
+
 def test_failed_demonstrations_are_counted_and_never_stored(tmp_path):
     cfg = dataset.LiberoDataConfig(task_indices=(0,), demos_per_task=1, max_tries=2, demo=DemoConfig(max_steps=20))
     with pytest.raises(StoreError, match="no demonstration of 1 tasks succeeded"):

@@ -1,4 +1,4 @@
-"""LIBERO-Gen's own commands: ``bpp libero tasks|video`` (``bpp libero generate`` is generic)."""
+"""LIBERO-Gen's own commands: ``bpp libero tasks|video|export`` (``bpp libero generate`` is generic)."""
 
 from __future__ import annotations
 
@@ -57,17 +57,48 @@ class LiberoVideo:
 
 
 def libero_video(args: LiberoVideo) -> None:
-    from bpp.data.store import EpisodeStore
     from bpp.envs.libero.benchmark import BENCHMARK
     from bpp.media import save_animation
 
-    store = EpisodeStore(args.store)
-    if store.benchmark != BENCHMARK.name:
-        raise ValueError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")
+    store = _libero_store(args.store)
     store.episode_slice(args.episode)  # an IndexError naming the store's episode count if out of range
     frames = BENCHMARK.frames(store, args.episode, args.camera, args.size)
     print(f"wrote {save_animation(list(frames), args.out)} ({len(frames)} frames)")
 
 
-COMMANDS = {"tasks": (LiberoTasks, libero_tasks), "video": (LiberoVideo, libero_video)}
+@dataclass(frozen=True)
+class LiberoExport:
+    """Export a LIBERO-Gen store in LIBERO's dataset layout: one robomimic-style HDF5 file and one BDDL file per
+    task (actions, simulator states, proprioception, object states, camera frames if stored)."""
+
+    store: tyro.conf.Positional[Path]
+    out: Path = Path("exports/libero")
+    """Folder to write into."""
+    overwrite: bool = False
+    """Write into a folder that is not empty."""
+
+
+def libero_export(args: LiberoExport) -> None:
+    from bpp.envs.libero.export import export_store
+
+    store = _libero_store(args.store)
+    paths = export_store(store, args.out, args.overwrite)
+    print(f"wrote {len(paths)} HDF5 files ({store.num_episodes} demonstrations) into {args.out}")
+
+
+def _libero_store(path: Path):
+    from bpp.data.store import EpisodeStore
+    from bpp.envs.libero.benchmark import BENCHMARK
+
+    store = EpisodeStore(path)
+    if store.benchmark != BENCHMARK.name:
+        raise ValueError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")
+    return store
+
+
+COMMANDS = {
+    "tasks": (LiberoTasks, libero_tasks),
+    "video": (LiberoVideo, libero_video),
+    "export": (LiberoExport, libero_export),
+}
 """``bpp libero <name>``."""
