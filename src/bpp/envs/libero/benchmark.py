@@ -55,7 +55,10 @@ class LiberoGen:
     )
     max_steps = 550
     """The authors' step limit (ANCHORS.md)."""
-    task_sets = {"held-out": "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)"}
+    task_sets = {
+        "held-out": "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
+        "libero-spatial": "LIBERO-Spatial's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
+    }
 
     def default_observation(self, size: str) -> str:
         return "image" if size == "paper" else "state"
@@ -86,12 +89,12 @@ class LiberoGen:
         if name not in self.task_sets:
             raise ValueError(f"LIBERO-Gen has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         cfg = dataset.PRESETS[name]
-        path = Path(data_dir) / f"{cfg.suite}-{name}.zarr"
+        path = Path(data_dir) / f"task-set-{name}.zarr"
         store = stored_with(path, cfg)
         if store is None:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
             store = dataset.generate(cfg, path, overwrite=True)
-        return TaskSet(store, f"{cfg.suite}: held-out tasks")
+        return TaskSet(store, self.task_sets[name].split(" x ")[0])
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
         raise ValueError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")

@@ -84,9 +84,16 @@ class LiberoDataConfig:
     def tries(self) -> int:
         return self.max_tries or 2 * self.demos_per_task + 2
 
+    @property
+    def original(self) -> bool:
+        """Whether the suite is one of LIBERO's own (its problems verbatim, its initial states for rollouts)."""
+        return SUITES_BY_NAME[self.suite]().original
+
     def tasks(self) -> list[tuple[int, PickPlace]]:
         """(index in the split, task) of the tasks to demonstrate."""
         split = list(getattr(SUITES_BY_NAME[self.suite](), self.split))
+        if not split:
+            raise ValueError(f"the {self.suite} suite has no {self.split} tasks")
         if self.task_indices:
             bad = [i for i in self.task_indices if i >= len(split)]
             if bad:
@@ -100,24 +107,27 @@ class LiberoDataConfig:
 PRESETS: dict[str, LiberoDataConfig] = {
     "cpu": LiberoDataConfig(demos_per_task=3),
     "held-out": LiberoDataConfig(split="test", demos_per_task=5),
+    "libero-spatial": LiberoDataConfig(suite="libero_spatial", demos_per_task=5),
     "paper": LiberoDataConfig(demos_per_task=50, cameras=tuple(CAMERAS)),
     "debug": LiberoDataConfig(task_indices=(0,), demos_per_task=2, goal_size=32),
 }
 """``cpu``: every Combination training task x 3 demonstrations, state only (about an hour on 2 cores);
 ``held-out``: the 10 held-out tasks x 5 (evaluation prompts); ``paper``: 50 per task with both cameras (LIBERO's
-own count per task; the paper does not state LIBERO-Gen's); ``debug``: one task x 2, for tests."""
+own count per task; the paper does not state LIBERO-Gen's); ``libero-spatial``: LIBERO-Spatial's own 10 tasks x 5
+(prompts for evaluating on LIBERO's suite from its initial states); ``debug``: one task x 2, for tests."""
 
 
 def task_id(split: str, index: int, task: PickPlace) -> str:
     return f"{split}-{index:03d}-{task.name}"
 
 
-def problem_text(task: PickPlace) -> str:
-    """The BDDL problem of a task (its scene's LIBERO problem, edited)."""
+def problem_text(task: PickPlace, original: bool = False) -> str:
+    """The BDDL problem of a task: its scene's LIBERO problem, edited (or as LIBERO ships it, for `original` tasks)."""
     from bpp.envs.libero.bddl import combination_problem
     from bpp.envs.libero.sim import spatial_problem
 
-    return combination_problem(task, spatial_problem(task.scene.base))
+    base = spatial_problem(task.scene.base)
+    return base if original else combination_problem(task, base)
 
 
 # ----------------------------------------------------------------------------------------------- workers
@@ -133,7 +143,7 @@ def _task_job(job) -> dict:
     summary = {"index": index, "kept": 0, "tries": 0}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
         problem = Path(folder) / "task.bddl"
-        problem.write_text(problem_text(task))
+        problem.write_text(problem_text(task, cfg.original))
         env = make_env(problem, render=bool(cfg.cameras or cfg.goal_size))
         episodes: list[dict] = []
         try:
@@ -250,7 +260,9 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
                 missing.append(task.instruction)
                 continue
             info = {k: v for k, v in task.describe().items() if k != "instruction"}
-            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task))
+            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, cfg.original))
+            if cfg.original:  # rollouts start from LIBERO's own initial states of the task
+                info["initial_states"] = f"{cfg.suite}/{task.scene.base}.pruned_init"
             task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
             for episode in episodes:
                 columns = {"seed": int(episode.pop("seed"))}

@@ -17,7 +17,7 @@ import numpy as np
 from bpp.data.store import EpisodeStore
 from bpp.envs.benchmark import RolloutResult
 from bpp.envs.libero.demonstrator import SETTLE_STEPS
-from bpp.envs.libero.sim import CAMERAS, make_env, render_now
+from bpp.envs.libero.sim import CAMERAS, initial_states, make_env, render_now
 
 VIDEO_SIZE = 128
 
@@ -50,8 +50,9 @@ def run_rollouts(
     record_frames: Sequence[bool] | None = None,
 ) -> list[RolloutResult]:
     """Rollout i starts from the initial state LIBERO samples with ``rollouts[i]["init_seed"]`` in the problem of
-    ``rollouts[i]["target_episode"]``'s task and succeeds when that task's goal holds. `agent` must already be
-    reset with the rollouts' contexts."""
+    ``rollouts[i]["target_episode"]``'s task (for LIBERO's own tasks: its initial state number init_seed modulo
+    their count, as LIBERO's evaluation uses them) and succeeds when that task's goal holds. `agent` must already
+    be reset with the rollouts' contexts."""
     spec = agent.data_spec
     cameras = tuple(spec.image_keys)
     unknown = sorted(set(cameras) - set(CAMERAS))
@@ -73,6 +74,10 @@ def run_rollouts(
                 envs.append(env)
                 env.seed(int(row["init_seed"]))
                 raw = env.reset()
+                named = store.tasks[task]["info"].get("initial_states")
+                if named:
+                    states = initial_states(named)
+                    raw = env.set_init_state(states[int(row["init_seed"]) % len(states)])
                 for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))

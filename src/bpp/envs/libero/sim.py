@@ -49,6 +49,19 @@ CAMERAS = {"agentview": "agentview", "eye_in_hand": "robot0_eye_in_hand"}
 """Image observation keys -> LIBERO's camera names: the paper's agent view (the whole work area) and wrist camera."""
 
 
+def initial_states(name: str):
+    """LIBERO's own initial states of one of its tasks, (N, 92) flattened simulator states; `name` is relative to
+    LIBERO's init_files folder, e.g. ``libero_spatial/<problem>.pruned_init``."""
+    import numpy as np
+
+    path = Path(_libero().get_libero_path("init_states")) / name
+    path = path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
+    if not path.is_file():
+        raise ValueError(f"LIBERO has no initial states {name!r} ({path})")
+    with np.load(path, allow_pickle=False) as data:
+        return data["states"]
+
+
 def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128, render: bool = False):
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
     cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`

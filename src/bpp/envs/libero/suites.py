@@ -124,6 +124,9 @@ class Suite:
     name: str
     train: tuple[PickPlace, ...]
     test: tuple[PickPlace, ...]
+    original: bool = False
+    """Tasks LIBERO itself ships: their problems are LIBERO's own files (``scene.base``), used verbatim, and rollouts
+    start from LIBERO's own initial states."""
 
     def similar(self, task: PickPlace) -> tuple[int, int]:
         """The appendix's two counts for a held-out task: how many different places training tasks with its pick
@@ -212,5 +215,14 @@ def instruction_counts(tasks) -> Counter:
     return Counter((PICK_PHRASES[t.pick], t.place_phrase) for t in tasks)
 
 
-SUITES_BY_NAME = {"combination": combination}
-"""LIBERO-Gen's suites by name (the Chain suite is still to come)."""
+def libero_spatial() -> Suite:
+    """LIBERO-Spatial's own 10 tasks (pick akita_black_bowl_1 and place it on the plate), as LIBERO ships them: the
+    problem of scene S1-S9 and one more, "on the wooden cabinet", which starts the bowls where S9 does with their
+    roles swapped."""
+    scenes = [s for s in COMBINATION_SCENES if s.name.startswith("S")]
+    scenes.append(Scene("S10", ("WC", "ST"), _SPATIAL.format("on_the_wooden_cabinet")))
+    return Suite("libero_spatial", tuple(PickPlace(s, 1, "PL") for s in scenes), (), original=True)
+
+
+SUITES_BY_NAME = {"combination": combination, "libero_spatial": libero_spatial}
+"""LIBERO-Gen's suites, and LIBERO's own suites that bpp can demonstrate, by name (the Chain suite is to come)."""

@@ -12,14 +12,13 @@ import json
 import shutil
 from pathlib import Path
 
-from bpp.envs.libero.bddl import combination_problem
 from bpp.envs.libero.suites import Suite
 
 
 def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
     """Write `suite` into the folder `out`: ``problems/<id>.bddl`` and ``tasks.json``. Returns the index path.
     The folder is built beside `out` and renamed into place, so an interrupted run leaves nothing half-written."""
-    from bpp.envs.libero.sim import spatial_problem
+    from bpp.envs.libero.dataset import problem_text, task_id
 
     out = Path(out)
     if out.exists() and not overwrite:
@@ -30,13 +29,11 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "problems").mkdir(parents=True)
     index = {"suite": suite.name, "train": [], "test": []}
-    bases: dict[str, str] = {}
     for split, tasks in (("train", suite.train), ("test", suite.test)):
         for i, task in enumerate(tasks):
-            base = bases.setdefault(task.scene.base, spatial_problem(task.scene.base))
-            task_id = f"{split}-{i:03d}-{task.name}"
-            (tmp / "problems" / f"{task_id}.bddl").write_text(combination_problem(task, base))
-            entry = {"id": task_id, **task.describe(), "problem": f"problems/{task_id}.bddl"}
+            name = task_id(split, i, task)
+            (tmp / "problems" / f"{name}.bddl").write_text(problem_text(task, suite.original))
+            entry = {"id": name, **task.describe(), "problem": f"problems/{name}.bddl"}
             if split == "test":
                 entry["similar"] = dict(zip(("same_pick", "same_place"), suite.similar(task), strict=True))
             index[split].append(entry)
