@@ -209,9 +209,8 @@ def generate(
     cfg: LiberoDataConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
 ) -> EpisodeStore:
     """Demonstrate `cfg`'s tasks into the store `out`, over `workers` processes (0: one per core), resuming a
-        killed run's finished tasks. The generation report (tries and successes per pick and per place, tasks left
-    without a demonstration,
-        demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
+    killed run's finished tasks. The generation report (tries and successes per pick and per place, tasks left
+    without a demonstration, demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
     out = Path(out)
     if out.exists() and not overwrite:
         raise StoreError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
@@ -234,9 +233,8 @@ def generate(
         if pool is not None:
             pool.terminate()
     seconds = time.perf_counter() - t0
-    report = _write_store(cfg, tasks, journal, out, overwrite)
-    report["seconds_this_run"] = round(seconds, 1)
-    report["demos_per_hour_this_run"] = round(3600 * made / max(seconds, 1e-9), 1)
+    timing = {"seconds_this_run": round(seconds, 1), "demos_per_hour_this_run": round(3600 * made / seconds, 1)}
+    report = _write_store(cfg, tasks, journal, out, overwrite, timing)
     store = EpisodeStore(out)
     shutil.rmtree(journal, ignore_errors=True)
     if progress:
@@ -244,13 +242,13 @@ def generate(
     return store
 
 
-def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool) -> dict:
+def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:
+    """The store from the journal's tasks, in the split's order; returns the generation report."""
     tries, successes, missing = Counter(), Counter(), []
-    writer = EpisodeWriter(
-        out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=("action", "proprio",
-        "object_state")
-    )  # fmt: skip
-    with writer:
+    stats_keys = ("action", "proprio", "object_state")
+    with EpisodeWriter(
+        out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=stats_keys
+    ) as writer:
         for index, task in tasks:
             summary, episodes = _read_journal(journal / f"task-{index:04d}.npz")
             for family in (f"pick {task.pick}", f"place {task.place}"):
@@ -275,6 +273,7 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
             "tries": dict(tries),
             "successes": dict(successes),
             "without_demonstrations": missing,
+            **timing,
         }
         if not report["stored"]:
             writer.abort()
