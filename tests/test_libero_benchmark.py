@@ -161,3 +161,38 @@ def test_libero_own_tasks_are_evaluated_from_libero_own_initial_states(tmp_path)
     finally:
         env.close()
     np.testing.assert_allclose(agent.seen[0]["object_state"][0], obs["object-state"], atol=1e-5)
+
+
+def test_a_terminated_generation_stops_its_workers(tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = (
+        "from bpp.envs.libero.dataset import LiberoDataConfig, generate\n"
+        f"generate(LiberoDataConfig(task_indices=(0, 1), demos_per_task=1, goal_size=0), {str(tmp_path / 's.zarr')!r},"
+        " workers=2, progress=False)\n"
+    )
+    main_process = subprocess.Popen([sys.executable, "-c", code])
+    journal = tmp_path / ".s.zarr.journal"
+    children: list[int] = []
+    deadline = time.time() + 120
+    while len(children) < 2 and time.time() < deadline and main_process.poll() is None:
+        time.sleep(0.5)
+        found = subprocess.run(["pgrep", "-P", str(main_process.pid)], capture_output=True, text=True).stdout
+        children = [int(pid) for pid in found.split()]
+    assert journal.is_dir() and len(children) >= 2  # the workers are demonstrating
+    main_process.send_signal(signal.SIGTERM)
+    assert main_process.wait(timeout=60) != 0
+    time.sleep(2)
+    alive = []
+    for pid in children:
+        try:
+            os.kill(pid, 0)
+            alive.append(pid)
+        except ProcessLookupError:
+            pass
+    assert not alive, f"workers {alive} outlived the terminated generation"
+    assert not (tmp_path / "s.zarr").exists()

@@ -221,6 +221,7 @@ def generate(
     workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
     t0 = time.perf_counter()
     pool = mp.get_context("spawn").Pool(workers) if workers > 1 else None
+    stop = _exit_on_sigterm()  # a `kill` stops the workers too (the journal keeps every finished task)
     try:
         results = pool.imap_unordered(_task_job, jobs) if pool else map(_task_job, jobs)
         bar = tqdm(results, total=len(tasks), initial=len(tasks) - len(jobs), desc=f"demonstrating {out.name}",
@@ -232,6 +233,7 @@ def generate(
     finally:
         if pool is not None:
             pool.terminate()
+        stop()
     seconds = time.perf_counter() - t0
     timing = {"seconds_this_run": round(seconds, 1), "demos_per_hour_this_run": round(3600 * made / seconds, 1)}
     report = _write_store(cfg, tasks, journal, out, overwrite, timing)
@@ -240,6 +242,22 @@ def generate(
     if progress:
         print(describe_report(report))
     return store
+
+
+def _exit_on_sigterm():
+    """Turn SIGTERM into SystemExit while generating (the default would leave the pool's workers running);
+    returns the function that restores the previous handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def exit_(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, exit_)
+    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:
