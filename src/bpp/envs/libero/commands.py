@@ -13,11 +13,13 @@ from bpp.utils import check_fields
 
 @dataclass(frozen=True)
 class LiberoTasks:
-    """Print a LIBERO-Gen suite's split (each held-out task with how many training tasks share its pick and its
-    place, as the paper's appendix lists them) and, with --out, write its tasks as BDDL problems + tasks.json."""
+    """Print a LIBERO-Gen suite's split and, with --out, write its tasks as BDDL problems + tasks.json.
+
+    Each held-out task is listed with how many training tasks share its pick and its place (the paper's appendix
+    lists these counts)."""
 
     suite: str = "combination"
-    """A LIBERO-Gen suite (combination)."""
+    """combination (LIBERO-Gen) or libero_spatial (LIBERO-Spatial's own 10 tasks)."""
     out: Path | None = None
     """Folder to write (default: only print the report)."""
     overwrite: bool = False
@@ -37,8 +39,9 @@ def libero_tasks(args: LiberoTasks) -> None:
 
 @dataclass(frozen=True)
 class LiberoVideo:
-    """Animate one stored demonstration as a GIF (or MP4 if --out ends in .mp4), rendered from its stored
-    simulator states (agent view)."""
+    """Animate one stored demonstration as a GIF (or MP4 if --out ends in .mp4).
+
+    The frames are rendered from the episode's stored simulator states."""
 
     store: tyro.conf.Positional[Path]
     episode: int = 0
@@ -68,8 +71,9 @@ def libero_video(args: LiberoVideo) -> None:
 
 @dataclass(frozen=True)
 class LiberoExport:
-    """Export a LIBERO-Gen store in LIBERO's dataset layout: one robomimic-style HDF5 file and one BDDL file per
-    task (actions, simulator states, proprioception, object states, camera frames if stored)."""
+    """Export a store in LIBERO's dataset layout (robomimic-style HDF5 + BDDL, one pair per task).
+
+    Each file holds the actions, simulator states, proprioception, object states and any stored camera frames."""
 
     store: tyro.conf.Positional[Path]
     out: Path = Path("exports/libero")

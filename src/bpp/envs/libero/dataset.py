@@ -47,7 +47,8 @@ class LiberoDataConfig:
     """Which tasks to demonstrate, how many times, and which frames to render into the store."""
 
     suite: str = "combination"
-    """A LIBERO-Gen suite (combination)."""
+    """combination (LIBERO-Gen) or libero_spatial (LIBERO-Spatial's own 10 tasks, evaluated from LIBERO's initial
+    states)."""
     split: Literal["train", "test"] = "train"
     """train: the suite's training tasks; test: its held-out tasks."""
     num_tasks: int = 0
