@@ -3,7 +3,7 @@
     OMP_NUM_THREADS=1 python bench/draw_ablations.py --prepare-only          # generate every store once
     OMP_NUM_THREADS=1 python bench/draw_ablations.py --lane 0 --lanes 2 &    # two one-thread lanes on 2 cores
     OMP_NUM_THREADS=1 python bench/draw_ablations.py --lane 1 --lanes 2 &
-    python bench/draw_ablations.py --report-only                            # figure + table from stored results
+    python bench/draw_ablations.py --report-only --figure docs/figures/draw_ablations.png   # figure + table
 
 Panels (the paper's Fig. "BPP ablations on DrawAnything-Sim"); every arm is BPP with the main table's size and
 observation preset (`cpu`, `board`: state-only, board-frame actions) and changes one thing against the shared
@@ -279,7 +279,9 @@ def report(args) -> str:
     )
     fig.tight_layout()
     args.out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(args.out / "ablations.png", dpi=120)
+    for path in (args.out / "ablations.png", *([args.figure] if args.figure else [])):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fig.savefig(path, dpi=120)
     plt.close(fig)
     header = ["panel", "arm", "Chamfer (px)", "minus baseline (paired, ± s.e.)", "vs the paper", "train min"]
     lines.append(markdown_table(header, rows))
@@ -317,6 +319,7 @@ def main() -> None:
     parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
     parser.add_argument("--runs", type=Path, default=Path("runs/ablations"))
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/ablations"))
+    parser.add_argument("--figure", type=Path, default=None, help="also write the figure here (e.g. docs/figures/)")
     args = parser.parse_args()
     if not 0 <= args.lane < args.lanes:
         parser.error(f"--lane must be in [0, --lanes), got {args.lane} of {args.lanes}")
