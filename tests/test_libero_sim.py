@@ -123,3 +123,18 @@ def test_torch_can_load_its_compiler_after_a_camera_env(tmp_path):
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0 and "alive" in result.stdout, result.stderr[-2000:]
+
+
+def test_a_missing_renderer_is_named_with_its_package(monkeypatch):
+    import pytest
+
+    from bpp.envs.libero import sim
+
+    monkeypatch.setenv("MUJOCO_GL", "egl")
+    sim._check_renderer()  # Debian's Mesa provides EGL here
+    monkeypatch.setitem(sim.RENDERER_LIBRARIES, "egl", ("NoSuchRendererLibrary", "libegl1 and libgl1-mesa-dri"))
+    with pytest.raises(sim.LiberoUnavailable, match="apt-get install libegl1 and libgl1-mesa-dri"):
+        sim._check_renderer()
+    monkeypatch.setenv("MUJOCO_GL", "vulkan")
+    with pytest.raises(sim.LiberoUnavailable, match="not a renderer; use one of egl, osmesa, glfw"):
+        sim._check_renderer()

@@ -17,8 +17,31 @@ class LiberoUnavailable(RuntimeError):
     """LIBERO (or its renderer) is missing; the message says what to install or set."""
 
 
+RENDERER_LIBRARIES = {
+    "egl": ("EGL", "libegl1 and libgl1-mesa-dri"),
+    "osmesa": ("OSMesa", "libosmesa6"),
+    "glfw": ("glfw", "libglfw3 (and a display)"),
+}
+"""MUJOCO_GL value -> (the shared library it loads, the Debian packages that provide it)."""
+
+
+def _check_renderer() -> None:
+    import ctypes.util
+
+    backend = os.environ["MUJOCO_GL"]
+    if backend not in RENDERER_LIBRARIES:
+        raise LiberoUnavailable(f"MUJOCO_GL={backend!r} is not a renderer; use one of {', '.join(RENDERER_LIBRARIES)}")
+    library, packages = RENDERER_LIBRARIES[backend]
+    if ctypes.util.find_library(library) is None:
+        raise LiberoUnavailable(
+            f"MUJOCO_GL={backend} needs lib{library}, which is not installed: apt-get install {packages}, or choose "
+            f"another renderer ({', '.join(k for k in RENDERER_LIBRARIES if k != backend)})"
+        )
+
+
 def _libero():
     os.environ.setdefault("MUJOCO_GL", "egl")
+    _check_renderer()
     # Mesa's software renderer links its own LLVM, and so does triton (which torch loads lazily, e.g. on its first
     # optimizer step): loading triton after a GL context exists crashes the process, loading it first is safe.
     with contextlib.suppress(ImportError):
