@@ -30,6 +30,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
+from draw_ablations import per_drawing
 from draw_cpu_benchmark import NAMES, train_run
 
 PAPER = {"goal_image": (59.1, 47.9), "language": (80.0, 69.9), "bpp": (88.4, 79.1)}
@@ -60,18 +61,12 @@ def run_method(method: str, seed: int, args) -> None:
         evaluate(checkpoint, task_set, indices, args.out / f"{method}-s{seed}" / name, protocol, workers=1, videos=2)
 
 
-def per_task(path: Path) -> dict[str, float] | None:
-    if not path.is_file():
-        return None
-    return {t["task_id"]: t["score_mean"] for t in json.loads(path.read_text())["tasks"]}
-
-
 def report(args) -> str:
     rows, chart = [], {}
     for method in args.methods:
         cells = []
         for split in ("train", "held-out"):
-            seeds = [per_task(args.out / f"{method}-s{s}" / split / "results.json") for s in args.seeds]
+            seeds = [per_drawing(args.out / f"{method}-s{s}" / split / "results.json") for s in args.seeds]
             seeds = [s for s in seeds if s]
             if not seeds:
                 cells.append("not run yet")

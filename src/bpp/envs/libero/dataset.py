@@ -265,6 +265,7 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
     """The store from the journal's tasks, in the split's order; returns the generation report."""
     tries, successes, missing = Counter(), Counter(), []
     stats_keys = ("action", "proprio", "object_state")
+    original = cfg.original
     with EpisodeWriter(
         out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=stats_keys
     ) as writer:
@@ -277,8 +278,8 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
                 missing.append(task.instruction)
                 continue
             info = {k: v for k, v in task.describe().items() if k != "instruction"}
-            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, cfg.original))
-            if cfg.original:  # rollouts start from LIBERO's own initial states of the task
+            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, original))
+            if original:  # rollouts start from LIBERO's own initial states of the task
                 info["initial_states"] = f"{cfg.suite}/{task.scene.base}.pruned_init"
             task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
             for episode in episodes:

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from bpp.envs.libero.bddl import BOWLS, LOCATION_TARGETS
 from bpp.envs.libero.suites import BOWL, PickPlace
@@ -102,7 +103,8 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     def turn(axis: np.ndarray, grip: float, limit: int = 40) -> None:
         """Yaw the gripper until its fingers close along the horizontal `axis` (either way round)."""
         for _ in range(limit):
-            closing = _rotation(obs["robot0_eef_quat"])[:2, 1]  # the fingers close along the hand's y axis
+            hand = Rotation.from_quat(obs["robot0_eef_quat"]).as_matrix()  # robosuite's (x, y, z, w) order
+            closing = hand[:2, 1]  # the fingers close along the hand's y axis
             error = np.arctan2(closing[0] * axis[1] - closing[1] * axis[0], closing @ axis)
             error = (error + np.pi / 2) % np.pi - np.pi / 2
             if abs(error) < 0.03:
@@ -156,18 +158,6 @@ def drawer_width_axis(env) -> np.ndarray:
     )
     pull = (drawer - cabinet)[:2] / np.linalg.norm((drawer - cabinet)[:2])
     return np.array([pull[1], -pull[0]])
-
-
-def _rotation(quat_xyzw) -> np.ndarray:
-    """The rotation matrix of a unit quaternion in robosuite's (x, y, z, w) order."""
-    x, y, z, w = np.asarray(quat_xyzw, dtype=float)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
 
 
 class _OutOfSteps(Exception):

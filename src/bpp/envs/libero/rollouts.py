@@ -63,6 +63,7 @@ def run_rollouts(
     envs, obs = [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
+        starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
         try:
             for row, rec in zip(rollouts, record, strict=True):
                 episode = int(row["target_episode"])
@@ -70,13 +71,14 @@ def run_rollouts(
                 if task not in problems:
                     problems[task] = Path(folder) / f"task-{task}.bddl"
                     problems[task].write_text(task_problem(store, episode))
+                    named = store.tasks[task]["info"].get("initial_states")
+                    starts[task] = initial_states(named) if named else None
                 env = make_env(problems[task], render=bool(cameras) or rec)
                 envs.append(env)
                 env.seed(int(row["init_seed"]))
                 raw = env.reset()
-                named = store.tasks[task]["info"].get("initial_states")
-                if named:
-                    states = initial_states(named)
+                states = starts[task]
+                if states is not None:
                     raw = env.set_init_state(states[int(row["init_seed"]) % len(states)])
                 for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
                     raw, *_ = env.step(np.zeros(7))
