@@ -50,7 +50,8 @@ class TrainConfig:
     seed: int = 0
     workers: int = -1
     """Data-loader worker processes per training process (0: load in the training process; -1: auto, 0 on a CPU,
-    where a loader process competes with torch for the cores, and 2 on a GPU)."""
+    where a loader process competes with torch for the cores, and on a GPU the process's share of the cores less
+    two, for the training process itself and the thread that pins its batches)."""
     device: str = "auto"
     """auto (cuda if available), cpu, cuda, cuda:N."""
     amp: bool = True
@@ -67,9 +68,13 @@ class TrainConfig:
     wait for each other at every operation, so with as many threads as cores any other busy program slowed training
     30-fold here, while one core left free costs about a third alone; see BENCHMARKS.md)."""
     frame_cache_gb: float = 4.0
-    """Image observations each loader process keeps once its benchmark has rendered or read them (a benchmark may
-    render frames from stored state; all 64x64 frames of 2500 demonstrations take about 3 GB, and rendering them anew
-    dominates a CPU step)."""
+    """Image observations a training process keeps once its benchmark has rendered or read them, shared evenly by
+    its loader processes. Where all of the dataset's frames fit a loader's share (the CPU preset's 64x64 frames of
+    2500 demonstrations take about 3 GB), whole episodes are rendered once and kept; where they do not (224x224), each
+    batch renders just the frames it needs (see :class:`bpp.data.prompt_dataset.PromptBatchDataset`)."""
+    channels_last: bool = True
+    """On a GPU, keep the image encoders' weights and activations channels-last (NHWC), the layout the GPU's
+    convolutions run fastest in; camera frames arrive in that layout already."""
 
     def __post_init__(self):
         check_fields(
@@ -116,20 +121,64 @@ def _setup_distributed(requested: str) -> tuple[int, int, torch.device]:
 
 def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
     """(loader workers, torch threads; 0: torch's default) for `cfg`'s auto settings on `device`."""
-    workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else 2)
+    cores = usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # shared by torchrun's processes
+    workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else max(1, cores - 2))
     threads = cfg.threads
     if not threads and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
-        cores = usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # shared by torchrun's processes
         threads = max(1, cores - 1 - workers)
     return workers, threads
 
 
 @torch.no_grad()
 def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> None:
-    for e, p in zip(ema.parameters(), model.parameters(), strict=True):
-        e.lerp_(p.detach(), 1.0 - decay)
+    # One multi-tensor kernel per list on a GPU instead of one launch per tensor (the same arithmetic as lerp_).
+    torch._foreach_lerp_(list(ema.parameters()), [p.detach() for p in model.parameters()], 1.0 - decay)
     for e, b in zip(ema.buffers(), model.buffers(), strict=True):
         e.copy_(b)
+
+
+def uses_amp(cfg: TrainConfig, device: torch.device) -> bool:
+    """Whether training on `device` runs under bf16 autocast (CUDA devices that support it well)."""
+    return cfg.amp and device.type == "cuda" and torch.cuda.is_bf16_supported()
+
+
+def build_training(cfg: TrainConfig, model: torch.nn.Module, device: torch.device):
+    """`model` on `device` in training form, its EMA copy and the optimiser: (model, ema, optimizer)."""
+    assert isinstance(model, PolicyModelContract), f"{cfg.method}'s model does not satisfy the model contract"
+    model = model.to(device)
+    cuda = device.type == "cuda"
+    if cuda:
+        # cuDNN's own choice of algorithms, not timed ones (cudnn.benchmark): a prompt's length, and with it the
+        # number of frames its encoder sees, changes from batch to batch, and each new shape would be timed anew.
+        torch.backends.cuda.matmul.allow_tf32 = True  # what autocast leaves in fp32
+        if cfg.channels_last:
+            model = model.to(memory_format=torch.channels_last)
+    ema = copy.deepcopy(model).requires_grad_(False).eval()
+    optimizer = torch.optim.AdamW(
+        model.parameters(), lr=cfg.lr, betas=(0.95, 0.999), weight_decay=cfg.weight_decay, fused=cuda or None
+    )
+    return model, ema, optimizer
+
+
+def train_step(cfg: TrainConfig, net, model, ema, optimizer, batch, step: int, amp: bool, world: int = 1, rank=0):
+    """One optimisation step on a batch already on the device: (loss, gradient norm), both tensors (reading them
+    waits for the device). `net` is `model` or its DDP wrapper."""
+    for group in optimizer.param_groups:
+        group["lr"] = lr_at(step, cfg)
+    # Every random draw of a step (diffusion noise and time steps, dropout) depends only on
+    # (seed, step, rank): a resumed run continues exactly as an uninterrupted one.
+    step_seed = (cfg.seed * 1_000_003 + step) * max(world, 1) + rank
+    torch.manual_seed(step_seed)
+    device = next(model.parameters()).device
+    generator = torch.Generator(device).manual_seed(step_seed)
+    with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+        loss = net(batch, generator)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+    optimizer.step()
+    _ema_update(ema, model, min(cfg.ema_decay, (1 + step) / (10 + step)))
+    return loss, grad_norm
 
 
 def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
@@ -180,10 +229,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     store = EpisodeStore(cfg.data)
     method = get_method(cfg.method)
     torch.manual_seed(cfg.seed)
-    model: PolicyModelContract = method.model_cls(model_cfg, store.stats).to(device)
-    assert isinstance(model, PolicyModelContract), f"{cfg.method}'s model does not satisfy the model contract"
-    ema = copy.deepcopy(model).requires_grad_(False).eval()
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(0.95, 0.999), weight_decay=cfg.weight_decay)
+    model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)
+    cuda = device.type == "cuda"
     start = load_training_state(run, model, ema, optimizer) if cfg.resume else 0
     meta = {
         "method": cfg.method,
@@ -212,7 +259,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         seed=cfg.seed,
         rank=rank,
         tasks_per_batch=cfg.tasks_per_batch,
-        frame_cache_bytes=int(cfg.frame_cache_gb * 2**30),
+        frame_cache_bytes=int(cfg.frame_cache_gb * 2**30) // max(1, workers),
     )
     loader = torch.utils.data.DataLoader(
         dataset,
@@ -221,44 +268,31 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         num_workers=workers,
         persistent_workers=False,
         prefetch_factor=4 if workers else None,
+        pin_memory=cuda,  # page-locked batches copy to the GPU while it computes
     )
     writer = None
     if main:
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(run / "tb"), purge_step=start)
-    amp = cfg.amp and device.type == "cuda" and torch.cuda.is_bf16_supported()
+    amp = uses_amp(cfg, device)
     bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.method}", disable=not (main and progress))
     t_last, n_last = time.perf_counter(), start
-    loss_sum, loss_n = 0.0, 0
+    loss_sum, loss_n = torch.zeros((), device=device), 0  # summed on the device: no wait for the GPU per step
     step = start
     model.train()
     for step, batch in zip(range(start, cfg.steps), loader, strict=False):
         lr = lr_at(step, cfg)
-        for group in optimizer.param_groups:
-            group["lr"] = lr
-        # Every random draw of a step (diffusion noise and time steps, dropout) depends only on
-        # (seed, step, rank): a resumed run continues exactly as an uninterrupted one.
-        step_seed = (cfg.seed * 1_000_003 + step) * max(world, 1) + rank
-        torch.manual_seed(step_seed)
-        generator = torch.Generator(device).manual_seed(step_seed)
-        batch = to_torch(batch, device)
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-            loss = net(batch, generator)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-        optimizer.step()
-        _ema_update(ema, model, min(cfg.ema_decay, (1 + step) / (10 + step)))
-        loss_sum += loss.item()
+        loss, grad_norm = train_step(cfg, net, model, ema, optimizer, to_torch(batch, device), step, amp, world, rank)
+        loss_sum += loss.detach().float()
         loss_n += 1
         bar.update(1)
         if main and ((step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps):
             now = time.perf_counter()
             rate = (step + 1 - n_last) * cfg.batch_size * world / max(now - t_last, 1e-9)
             t_last, n_last = now, step + 1
-            mean_loss = loss_sum / loss_n
-            loss_sum, loss_n = 0.0, 0
+            mean_loss = loss_sum.item() / loss_n
+            loss_sum, loss_n = torch.zeros((), device=device), 0
             bar.set_postfix(loss=f"{mean_loss:.4f}", lr=f"{lr:.2e}", samples_s=f"{rate:.0f}")
             writer.add_scalar("train/loss", mean_loss, step + 1)
             writer.add_scalar("train/lr", lr, step + 1)

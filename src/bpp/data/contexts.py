@@ -18,18 +18,25 @@ from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
 
 FrameSource = Callable[..., np.ndarray]
-"""``frames(store, episode, key, size, last_only=False)``: (T, size, size, 3) uint8 frames of an episode's
-observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3). Each benchmark
-provides one (see :class:`bpp.envs.benchmark.Benchmark`)."""
+"""``frames(store, episode, key, size, last_only=False, steps=None)``: (T, size, size, 3) uint8 frames of an
+episode's observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3); with
+``steps``, those steps' (k, size, size, 3). Each benchmark provides one (see :class:`bpp.envs.benchmark.Benchmark`)."""
 
 
 def task_context(
-    store: EpisodeStore, episode: int, spec: DataSpec, frames: FrameSource | None = None, max_steps: int | None = None
+    store: EpisodeStore,
+    episode: int,
+    spec: DataSpec,
+    frames: FrameSource | None = None,
+    max_steps: int | None = None,
+    obs_stride: int = 1,
 ) -> dict:
     """The raw task context of kind ``spec.context`` from demonstration `episode` of `store`.
 
     `frames` renders or reads camera frames (needed for image keys and goal images); `max_steps` cuts a
-    demonstration prompt (training does, to the model's limit; evaluation passes whole prompts to validation).
+    demonstration prompt (training does, to the model's limit; evaluation passes whole prompts to validation);
+    with `obs_stride` k > 1 a demonstration's observations are those of steps 0, k, 2k, ... only, and the context
+    says so (``"obs_stride": k``; training's batches, for a method whose ``spec.context_obs_stride`` is k).
     """
     kind = spec.context
     if kind == "instruction":
@@ -44,10 +51,16 @@ def task_context(
     stop = sl.stop if max_steps is None else min(sl.stop, sl.start + max_steps)
     # Copies of the store's in-memory arrays, which a caller may not edit through its context; frames are the
     # benchmark's own (or, in training, cached ones that batching copies), so they are not copied again.
-    obs = {key: store.array(key)[sl.start : stop].copy() for key in spec.lowdim_keys}
+    obs = {key: store.array(key)[sl.start : stop : obs_stride].copy() for key in spec.lowdim_keys}
     for key in spec.image_keys:
-        obs[key] = frames(store, episode, key, spec.image_size)[: stop - sl.start]
-    return {"obs": obs, "action": store.array(spec.action_key)[sl.start : stop].copy()}
+        if obs_stride == 1 and stop == sl.stop:
+            obs[key] = frames(store, episode, key, spec.image_size)
+        else:
+            obs[key] = frames(store, episode, key, spec.image_size, steps=np.arange(0, stop - sl.start, obs_stride))
+    context = {"obs": obs, "action": store.array(spec.action_key)[sl.start : stop].copy()}
+    if obs_stride > 1:
+        context["obs_stride"] = obs_stride
+    return context
 
 
 def batch_context(kind: str, context: Mapping) -> dict:
@@ -57,11 +70,14 @@ def batch_context(kind: str, context: Mapping) -> dict:
     if kind == "goal_image":
         return {"image": np.asarray(context["image"])[None]}
     actions = np.asarray(context["action"])
-    return {
+    batched = {
         "obs": {k: np.asarray(v)[None] for k, v in context["obs"].items()},
         "action": actions[None],
         "valid": np.ones((1, len(actions)), dtype=bool),
     }
+    if context.get("obs_stride", 1) > 1:
+        batched["obs_stride"] = np.array([context["obs_stride"]])
+    return batched
 
 
 def collate_contexts(items: list) -> object:

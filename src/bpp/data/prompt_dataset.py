@@ -121,6 +121,11 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         self._arrays: dict[str, np.ndarray] | None = None
         self._frame_cache = ArrayCache(frame_cache_bytes)  # all frames of episodes, by (episode, camera, size)
         self._goal_cache = ArrayCache(goal_cache_bytes)  # final frames alone: the goal images of episodes
+        # Whether every frame the method observes fits the cache: then each episode is rendered whole, once, and
+        # kept; if not, keeping a few episodes would rarely help a random draw, so each batch renders just the
+        # frames it uses (a 224x224 dataset of 2000 x 5 demonstrations would need hundreds of GB).
+        frame_bytes = len(spec.image_keys) * spec.image_size**2 * 3
+        self.whole_episodes = int((self.ends - self.starts).sum()) * frame_bytes <= frame_cache_bytes
 
     def __len__(self) -> int:
         return self.num_batches
@@ -140,33 +145,47 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         dominates a training step that observes images otherwise)."""
         return self._frame_cache.get((episode, key, size), lambda: self.frames(self.store, episode, key, size))
 
-    def _cached_frames(self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False):
-        """The benchmark's frames through the caches. A final frame alone (a goal image) comes from the episode's
-        cached frames if a policy that observes images has them, else is rendered alone and kept."""
-        if not last_only:
-            return self._episode_frames(episode, key, size)
-        frames = self._frame_cache.peek((episode, key, size))
-        if frames is not None:
-            return frames[-1:]
-        return self._goal_cache.get(episode, lambda: self.frames(store, episode, key, size, last_only=True))
+    def _cached_frames(
+        self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
+    ) -> np.ndarray:
+        """The benchmark's frames (a :data:`FrameSource`) through the caches. A final frame alone (a goal image)
+        comes from the episode's cached frames if a policy that observes images has them, else is rendered alone
+        and kept."""
+        if last_only:
+            frames = self._frame_cache.peek((episode, key, size))
+            if frames is not None:
+                return frames[-1:]
+            return self._goal_cache.get(episode, lambda: self.frames(store, episode, key, size, last_only=True))
+        if not self.whole_episodes:
+            return self.frames(store, episode, key, size, steps=steps)
+        frames = self._episode_frames(episode, key, size)
+        return frames if steps is None else frames[steps]
 
     def _gather(self, episodes: np.ndarray, index: np.ndarray) -> dict:
         """Observations of `episodes` (B,) at their step indices `index` (B, N): ``{key: (B, N, ...)}``."""
         data, base = self._data(), self.starts[episodes][:, None]
         obs = {k: data[k][base + index] for k in self.spec.lowdim_keys}
+        size = self.spec.image_size
         for key in self.spec.image_keys:
-            obs[key] = np.stack(
-                [
-                    self._episode_frames(int(e), key, self.spec.image_size)[i]
-                    for e, i in zip(episodes, index, strict=True)
-                ]
-            )
+            frames = obs[key] = np.empty((*index.shape, size, size, 3), dtype=np.uint8)
+            for episode in np.unique(episodes):  # each episode's frames made once per batch
+                rows = episodes == episode
+                steps, inverse = np.unique(index[rows], return_inverse=True)
+                made = self._cached_frames(self.store, int(episode), key, size, steps=steps)
+                frames[rows] = made[inverse.reshape(-1)].reshape(frames[rows].shape)
         return obs
 
     def context(self, episode: int) -> dict:
         """The task context the method is conditioned on, from context demonstration `episode`, batch dimension 1
         (the same :func:`~bpp.data.contexts.task_context` evaluation uses; prompts cut to ``max_prompt_steps``)."""
-        raw = task_context(self.store, episode, self.spec, self._cached_frames, self.spec.max_prompt_steps)
+        raw = task_context(
+            self.store,
+            episode,
+            self.spec,
+            self._cached_frames,
+            self.spec.max_prompt_steps,
+            obs_stride=self.spec.context_obs_stride,
+        )
         return batch_context(self.spec.context, raw)
 
     def __getitem__(self, index: int) -> dict:

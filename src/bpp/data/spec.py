@@ -61,6 +61,9 @@ class DataSpec:
     samples: Literal["windows", "episodes"] = "windows"
     """windows: (observation history, action chunk) windows; episodes: whole demonstrations, padded (ICRT)."""
     max_prompt_steps: int = 800
+    context_obs_stride: int = 1
+    """A demonstration context's observations at every k-th step only (its actions stay whole): BPP reads one
+    observation per prompt chunk, so training renders and sends just those (the context then says ``obs_stride``)."""
     max_episode_steps: int = 400
     """Whole-episode samples are cut to this length."""
 

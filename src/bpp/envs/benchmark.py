@@ -115,9 +115,13 @@ class Benchmark(Protocol):
         """Generate tasks and demonstrations into a new store at `out` (atomically); returns the EpisodeStore."""
         ...
 
-    def frames(self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False) -> np.ndarray:
-        """Camera `key`'s observations of a stored episode, (T, size, size, 3) uint8 ((1, ...) with `last_only`).
-        Raise ValueError if the benchmark has no such camera."""
+    def frames(
+        self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
+    ) -> np.ndarray:
+        """Camera `key`'s observations of a stored episode, (T, size, size, 3) uint8; with `last_only`, the last one
+        (1, ...); with `steps` (k,) (step indices within the episode, any order), those (k, ...), made without the
+        others where the benchmark can (a batch needs a few frames of each episode). Raise ValueError if the
+        benchmark has no such camera."""
         ...
 
     # ---------------------------------------------------------- observations

@@ -34,15 +34,26 @@ class BasicBlock(nn.Module):
 class ResNetGN(nn.Module):
     """(B, 3, H, W) uint8-range or [0, 1] float images -> (B, out_dim) features.
 
-    ``widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2)`` is ResNet-18 with GroupNorm (the paper-sized encoder);
-    the CPU presets use narrower, shallower versions. Features are globally average-pooled and projected.
+    ``widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem="resnet"`` is ResNet-18 with GroupNorm (the
+    paper-sized encoder); the CPU presets use narrower, shallower versions. Features are globally average-pooled and
+    projected.
+
+    The stem: ``"resnet"`` is ResNet's (a 7x7 stride-2 convolution, then a 3x3 stride-2 max-pool: the first stage
+    runs at a quarter of the image size); ``"conv5"`` one 5x5 stride-2 convolution, which keeps twice the resolution
+    for small images (the CPU presets' 64x64 cameras) and costs 4x the first stages' compute at 224x224.
     """
 
-    def __init__(self, out_dim: int, widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem_stride: int = 2):
+    def __init__(self, out_dim: int, widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem: str = "conv5"):
         super().__init__()
-        self.stem = nn.Sequential(
-            nn.Conv2d(3, widths[0], 5, stem_stride, 2, bias=False), _group_norm(widths[0]), nn.ReLU(inplace=True)
-        )
+        if stem == "resnet":
+            first = [nn.Conv2d(3, widths[0], 7, 2, 3, bias=False), _group_norm(widths[0]), nn.ReLU(inplace=True)]
+            self.stem = nn.Sequential(*first, nn.MaxPool2d(3, 2, 1))
+        elif stem == "conv5":
+            self.stem = nn.Sequential(
+                nn.Conv2d(3, widths[0], 5, 2, 2, bias=False), _group_norm(widths[0]), nn.ReLU(inplace=True)
+            )
+        else:
+            raise ValueError(f"image stem must be 'resnet' or 'conv5', got {stem!r}")
         layers, c = [], widths[0]
         for i, (w, n) in enumerate(zip(widths, blocks, strict=True)):
             for j in range(n):
@@ -54,6 +65,13 @@ class ResNetGN(nn.Module):
         self.register_buffer("std", torch.tensor([0.25, 0.25, 0.25]).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
+        # Frames arrive channels-last (an (H, W, 3) image permuted). Convolve them in the layout the weights have:
+        # channels-first unless a GPU run made the encoder channels-last. Mixed layouts are slower, and on a CPU
+        # with several threads PyTorch's backward of the strided 1x1 skip convolution on channels-last input
+        # corrupts memory (torch 2.15; the crash once seen on the GPU machine's 16 cores; see BENCHMARKS.md).
+        weight = self.stem[0].weight
+        layout = torch.channels_last if not weight.is_contiguous() else torch.contiguous_format
+        images = images.contiguous(memory_format=layout)
         x = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
         x = (x - self.mean) / self.std
         x = self.layers(self.stem(x))

@@ -113,6 +113,9 @@ class ObsConfig:
     image_features: int = 256
     image_widths: tuple[int, ...] = (32, 64, 128, 256)
     image_blocks: tuple[int, ...] = (1, 1, 1, 1)
+    image_stem: str = "conv5"
+    """resnet: ResNet's 7x7 stride-2 convolution and max-pool (the paper's ResNet-18); conv5: one 5x5 stride-2
+    convolution, twice the resolution after the stem, for small images (see :class:`bpp.nn.vision.ResNetGN`)."""
     lowdim_fourier_octaves: int = 0
     """0: low-dimensional entries are their normalised values; k > 0: Fourier features over k octaves and an MLP
     to ``lowdim_features`` (a nonlinear embedding, so that attention can match nearby states; see bpp.nn.lowdim)."""
@@ -126,6 +129,7 @@ class ObsConfig:
             ("image_features", self.image_features >= 1, ">= 1"),
             ("image_widths", len(widths) >= 1 and all(group_normable(w) for w in widths), IMAGE_WIDTHS_RULE),
             ("image_blocks", len(blocks) == len(widths) and all(b >= 1 for b in blocks), "one count >= 1 per width"),
+            ("image_stem", self.image_stem in ("resnet", "conv5"), "'resnet' or 'conv5'"),
             ("lowdim_fourier_octaves", 0 <= self.lowdim_fourier_octaves <= 16, "in [0, 16]"),
             ("lowdim_features", self.lowdim_features >= 1, ">= 1"),
         )
@@ -155,7 +159,10 @@ class ObsEncoder(nn.Module):
         self.cfg = cfg
         self.normalizer = normalizer
         self.cameras = nn.ModuleDict(
-            {k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks) for k in cfg.image_keys}
+            {
+                k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks, cfg.image_stem)
+                for k in cfg.image_keys
+            }
         )
         lowdim = (*cfg.lowdim_keys, *cfg.proprio_keys)
         self.lowdim = nn.ModuleDict(
@@ -231,6 +238,9 @@ class DiffusionHead(nn.Module):
         )
         self.train_scheduler = DDPMScheduler(**common)
         self.sample_scheduler = (DDIMScheduler if cfg.sampler == "ddim" else DDPMScheduler)(**common)
+        self.cuda_graphs = False
+        """Replay DDIM sampling on a GPU from a CUDA graph (see :meth:`sample`); the agent turns it on for CUDA."""
+        self._graphs: dict = {}
 
     def loss(self, actions: torch.Tensor, cond: torch.Tensor, generator: torch.Generator | None = None):
         """Mean squared noise-prediction error for normalised actions (B, T, A)."""
@@ -260,18 +270,48 @@ class DiffusionHead(nn.Module):
         """Denoise from `noise` (B, T, A) (drawn if None) to normalised actions (B, T, A).
 
         `generator`: one for the batch, or a list of B, one per sample, so that a sample's result (including the
-        DDPM sampler's per-step noise) does not depend on which other samples share its batch."""
+        DDPM sampler's per-step noise) does not depend on which other samples share its batch. With
+        :attr:`cuda_graphs` set, a DDIM loop on a GPU is recorded once per shape as a CUDA graph and replayed."""
         from diffusers.utils.torch_utils import randn_tensor
 
         if noise is None:
             noise = randn_tensor((cond.shape[0], *shape), generator=generator, device=cond.device)
-        scheduler = self.sample_scheduler
-        scheduler.set_timesteps(self.cfg.num_inference_steps, device=cond.device)
-        x = noise
-        for t in scheduler.timesteps:
-            eps = self.net(x, t.to(cond.device).expand(x.shape[0]), cond)
-            x = scheduler.step(eps, t, x, generator=generator).prev_sample
+        # The time steps stay on the CPU and the loop reads them as Python ints: nothing waits for the GPU between
+        # denoising steps (a CUDA time step made the scheduler read it back three times per step).
+        self.sample_scheduler.set_timesteps(self.cfg.num_inference_steps)
+        if self.cuda_graphs and cond.is_cuda and self.cfg.sampler == "ddim":
+            return self._graphed_denoise(cond, noise)
+        return self._denoise(cond, noise, generator)
+
+    def _denoise(self, cond: torch.Tensor, x: torch.Tensor, generator=None) -> torch.Tensor:
+        for t in self.sample_scheduler.timesteps.tolist():
+            eps = self.net(x, torch.full((x.shape[0],), t, dtype=torch.long, device=x.device), cond)
+            x = self.sample_scheduler.step(eps, t, x, generator=generator).prev_sample
         return x
+
+    def _graphed_denoise(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """The DDIM loop as one CUDA graph: launching a small network's kernels one by one costs more than running
+        them at batch 1. DDIM draws no noise, and the schedule's scalars are fixed per step count, so the whole loop
+        replays from new `cond` and `noise` copied into the recorded inputs."""
+        weights = next(self.net.parameters()).data_ptr()  # a moved model needs a new graph
+        key = (tuple(noise.shape), tuple(cond.shape), cond.dtype, self.cfg.num_inference_steps, weights)
+        if key not in self._graphs:
+            self._graphs.clear()
+            static_cond, static_noise = cond.clone(), noise.clone()
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):  # warm-up outside the graph (cuDNN's choices, the allocator)
+                self._denoise(static_cond, static_noise)
+            torch.cuda.current_stream().wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                out = self._denoise(static_cond, static_noise)
+            self._graphs[key] = (graph, static_cond, static_noise, out)
+        graph, static_cond, static_noise, out = self._graphs[key]
+        static_cond.copy_(cond)
+        static_noise.copy_(noise)
+        graph.replay()
+        return out.clone()
 
 
 @dataclass(frozen=True)
@@ -304,8 +344,10 @@ DEBUG_OBS = ObsConfig(image_features=16, image_widths=(8, 16), image_blocks=(1, 
 CPU_OBS = ObsConfig(lowdim_fourier_octaves=6, image_features=128, image_widths=(16, 32, 64, 128))
 """The ``cpu`` presets' encoders: Fourier-feature embeddings of every low-dimensional entry (see bpp.nn.lowdim for
 why), a small ResNet-GN for cameras (64x64 images on a CPU)."""
-PAPER_OBS = ObsConfig(image_features=512, image_widths=(64, 128, 256, 512), image_blocks=(2, 2, 2, 2))
-"""The paper's encoders: ResNet-18 (GroupNorm) for cameras."""
+PAPER_OBS = ObsConfig(
+    image_features=512, image_widths=(64, 128, 256, 512), image_blocks=(2, 2, 2, 2), image_stem="resnet"
+)
+"""The paper's encoders: ResNet-18 (GroupNorm, ResNet's stem) for cameras."""
 PAPER_DIFFUSION = DiffusionConfig(down_dims=(256, 512, 1024), step_embed_dim=128)
 """The paper's action decoder: U-Net [256, 512, 1024], kernel 5, step embedding 128."""
 
@@ -391,13 +433,27 @@ class PolicyModel(nn.Module):
         P = self.relative_dims
         return torch.cat([x[..., :P] / self._relative_scale() + origin, actions[..., P:]], dim=-1)
 
-    def chunk_origins(self, obs: Mapping[str, torch.Tensor], chunk_len: int) -> torch.Tensor | None:
+    @staticmethod
+    def chunk_obs(demo: Mapping, chunk_len: int) -> dict[str, torch.Tensor]:
+        """A demonstration context's observations at its chunks' first steps, ``{key: (B, n, ...)}``: taken here
+        from every step's, or already so by the data loader (a context with ``obs_stride``; see
+        :attr:`bpp.data.spec.DataSpec.context_obs_stride`, which a model sets to its chunk length)."""
+        if "obs_stride" in demo:
+            return dict(demo["obs"])
+        return {k: v[:, ::chunk_len] for k, v in demo["obs"].items()}
+
+    def chunk_origins(
+        self, obs: Mapping[str, torch.Tensor], chunk_len: int, steps: int | None = None
+    ) -> torch.Tensor | None:
         """Per-step origins (B, L, P) for demonstrations ``{key: (B, L, ...)}`` cut into chunks of `chunk_len`
-        steps: each step's actions are relative to the observation at its chunk's first step."""
+        steps: each step's actions are relative to the observation at its chunk's first step. With `steps` (L),
+        `obs` holds the chunks' first steps only, ``{key: (B, n, ...)}`` (:meth:`chunk_obs`)."""
         if not self.relative_dims:
             return None
         value = obs[self.cfg.action_relative_to].float()
-        return value[:, ::chunk_len].repeat_interleave(chunk_len, dim=1)[:, : value.shape[1]]
+        if steps is None:
+            value, steps = value[:, ::chunk_len], value.shape[1]
+        return value.repeat_interleave(chunk_len, dim=1)[:, :steps]
 
     def action_origin(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
         """Where relative actions start for observations ``{key: (B, To, ...)}``: (B, 1, P) at the current step."""

@@ -75,11 +75,15 @@ class DrawAnything:
     def generate(self, cfg, out: Path, *, workers: int = 0, overwrite: bool = False, progress: bool = True):
         return dataset.generate(cfg, out, workers=workers, overwrite=overwrite, progress=progress)
 
-    def frames(self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False) -> np.ndarray:
+    def frames(
+        self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
+    ) -> np.ndarray:
         if key != "image":
             raise ValueError(f"DrawAnything has one camera, 'image'; got {key!r}")
         if last_only:
             return dataset.render_last_observation(store, episode, size)[None]
+        if steps is not None:
+            return dataset.render_episode_steps(store, episode, size, steps)
         return dataset.render_episode(store, episode, size)
 
     # ------------------------------------------------------------ evaluation

@@ -17,8 +17,7 @@ from bpp.envs.draw.drawing import Drawing
 from bpp.envs.draw.env import CURSOR_START_RANGE, action_to_board, board_pose, ink_lengths
 from bpp.envs.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.envs.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
-from bpp.envs.draw.render import SceneRenderer
-from bpp.envs.draw.viz import episode_frames
+from bpp.envs.draw.render import render_frames
 from bpp.utils import check_fields
 
 BENCHMARK = "drawanything"
@@ -171,19 +170,22 @@ def episode_paths(store: EpisodeStore, episode: int) -> list[np.ndarray]:
     return replay_paths(ep["state"], ep["action"].astype(np.float64))
 
 
+def render_episode_steps(store: EpisodeStore, episode: int, image_size: int, steps: np.ndarray) -> np.ndarray:
+    """(k, R, R, 3) uint8 image observations of a stored episode at `steps` (any order, repeats allowed), identical
+    to ``render_episode(...)[steps]`` but rendering only those frames (step T: the frame after the last step)."""
+    ep = store.episode(episode, ("state", "action"))
+    angle = float(store.column("board_angle")[episode])
+    return render_frames(ep["state"], ep["action"].astype(np.float64), angle, image_size, steps)
+
+
 def render_last_observation(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
     """(R, R, 3) uint8: the episode's final observation, identical to ``render_episode(...)[-1]`` but rendering
     one frame instead of one per step (a goal image)."""
-    ep = store.episode(episode, ("state", "action"))
-    renderer = SceneRenderer(image_size, float(store.column("board_angle")[episode]))
-    for path in replay_paths(ep["state"][:-1], ep["action"][:-1].astype(np.float64)):  # ink before the last step
-        renderer.add_ink(path)
-    return renderer.frame(ep["state"][-1, :2])
+    sl = store.episode_slice(episode)
+    return render_episode_steps(store, episode, image_size, [sl.stop - sl.start - 1])[0]
 
 
 def render_episode(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
     """(T, R, R, 3) uint8 image observations of a stored episode, identical to what the env showed."""
-    ep = store.episode(episode, ("state", "action"))
-    angle = float(store.column("board_angle")[episode])
-    # episode_frames also returns the frame after the last step, which is no observation.
-    return np.stack(episode_frames(ep["state"], ep["action"].astype(np.float64), angle, image_size)[:-1])
+    sl = store.episode_slice(episode)
+    return render_episode_steps(store, episode, image_size, np.arange(sl.stop - sl.start))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from bpp.envs.draw import physics
 from bpp.envs.draw.geometry import BOARD_CENTER, CANVAS_SIZE, board_corners, unit_to_canvas
 
 BACKGROUND_RGB = (255, 255, 255)
@@ -152,3 +153,149 @@ class SceneRenderer:
             _blend(patch, coverage(dist, CURSOR_RADIUS, self.pixel), CURSOR_RGB)
             image[rows, cols] = np.rint(patch).astype(np.uint8)
         return image
+
+
+# --------------------------------------------------------------------------- frames of a recorded episode
+def ink_segments(states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An episode's ink as (M, 4) float64 segments [x0, y0, x1, y1] and the (M,) step that inks each.
+
+    Step i inks the path of ``physics.control_step(states[i], actions[i])`` if its pen flag is down; computed once,
+    it can be cached and passed to :func:`render_frames`.
+    """
+    states = np.asarray(states, dtype=np.float64)
+    actions = np.asarray(actions, dtype=np.float64)
+    down = np.flatnonzero(actions[:, 2] > physics.PEN_THRESHOLD)
+    if not len(down):
+        return np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
+    segments = [polyline_segments(physics.control_step(states[i], actions[i])[1]) for i in down]
+    step = np.repeat(down, [len(s) for s in segments])
+    return np.concatenate(segments), step.astype(np.int64)
+
+
+def _windows(lo: np.ndarray, width: int, resolution: int) -> np.ndarray:
+    """(N, width) pixel indices lo + [0, width), clipped into the image (a clipped pixel repeats)."""
+    return np.clip(lo[:, None] + np.arange(width), 0, resolution - 1)
+
+
+def _window_starts(points_min: np.ndarray, points_max: np.ndarray, margin: float, resolution: int):
+    """Unclipped :func:`_bbox` corners of boxes (N, 2) -> (lo (N, 2), the largest width)."""
+    scale = resolution / CANVAS_SIZE
+    lo = np.floor((points_min - margin) * scale - 0.5).astype(np.int64)
+    hi = np.ceil((points_max + margin) * scale + 0.5).astype(np.int64)
+    return lo, int((hi - lo).max()) if len(lo) else 0
+
+
+def _ink_entries(segments: np.ndarray, layer: np.ndarray, resolution: int):
+    """Ink coverage of (M, 4) segments, each in its frame `layer` (M,), maxed per layer and pixel.
+
+    Returns (layer, flat pixel, coverage) of every covered pixel, sorted by layer then pixel.
+    """
+    pixel = CANVAS_SIZE / resolution
+    centers = (np.arange(resolution, dtype=np.float64) + 0.5) * pixel  # as pixel_centers
+    lo, width = _window_starts(
+        np.minimum(segments[:, :2], segments[:, 2:]),
+        np.maximum(segments[:, :2], segments[:, 2:]),
+        INK_WIDTH / 2 + pixel,
+        resolution,
+    )
+    cols = _windows(lo[:, 0], width, resolution)[:, None, :]
+    rows = _windows(lo[:, 1], width, resolution)[:, :, None]
+    x0, y0, x1, y1 = (segments[:, i, None, None] for i in range(4))
+    dx, dy = x1 - x0, y1 - y0
+    length2 = dx * dx + dy * dy
+    # segment_distance's float64 operations for all segments at once (in place where it saves a pass).
+    px, py = centers[cols] - x0, centers[rows] - y0
+    long = length2 > 0.0
+    t = px * dx + py * dy
+    t /= np.where(long, length2, 1.0)
+    np.clip(t, 0.0, 1.0, out=t)
+    t *= long  # a dot is not projected onto: t = 0 leaves px, py as they are
+    px = px - t * dx
+    py = py - t * dy
+    px *= px
+    py *= py
+    px += py
+    cover = np.sqrt(px, out=px)
+    np.subtract(INK_WIDTH / 2, cover, out=cover)  # then coverage(distance, INK_WIDTH / 2, pixel), in place
+    cover /= pixel
+    cover += 0.5
+    np.clip(cover, 0.0, 1.0, out=cover)
+    hit = cover > 0.0
+    key = (layer[:, None, None] * resolution * resolution + rows * resolution + cols)[hit]
+    order = np.argsort(key, kind="stable")  # nearly sorted already: segments come in step order
+    key = key[order]
+    starts = np.r_[0, np.flatnonzero(key[1:] != key[:-1]) + 1]
+    key = key[starts]
+    return (
+        key // (resolution * resolution),
+        key % (resolution * resolution),
+        np.maximum.reduceat(cover[hit][order], starts),
+    )
+
+
+def render_frames(
+    states: np.ndarray,
+    actions: np.ndarray,
+    angle: float,
+    resolution: int,
+    steps: np.ndarray,
+    segments: tuple[np.ndarray, np.ndarray] | None = None,
+    board: np.ndarray | None = None,
+) -> np.ndarray:
+    """(k, R, R, 3) uint8 observations at `steps` (any order, repeats allowed) of a recorded episode, identical to
+    replaying it with :class:`SceneRenderer` (``viz.episode_frames(...)[steps]``) but rendering only those frames.
+
+    Frame t shows the ink of steps < t and the cursor at ``states[t, :2]`` (t = T: after the last step).
+    `segments` is :func:`ink_segments`'s output and `board` :func:`render_board`'s, if cached.
+    """
+    if resolution < 8:
+        raise ValueError(f"image resolution must be at least 8 px, got {resolution}")
+    states = np.asarray(states, dtype=np.float64)
+    steps = np.asarray(steps, dtype=np.int64).reshape(-1)
+    if len(steps) and (steps.min() < 0 or steps.max() > len(states)):
+        raise IndexError(f"steps must lie in [0, {len(states)}], got {steps.min()}..{steps.max()}")
+    wanted, inverse = np.unique(steps, return_inverse=True)
+    k, size = len(wanted), resolution * resolution
+    if board is None:
+        board = render_board(resolution, angle)
+    # Ink: a step's segments appear from the first wanted frame after it on; frames are built in order.
+    seg, seg_step = ink_segments(states, actions) if segments is None else segments
+    layer = np.searchsorted(wanted, seg_step, side="right")
+    used = layer < k
+    if used.any():
+        layer, pixels, cover = _ink_entries(np.asarray(seg, dtype=np.float64)[used], layer[used], resolution)
+    else:
+        layer, pixels, cover = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    bounds = np.searchsorted(layer, np.arange(k + 1))
+    board = board.reshape(size, 3)
+    ink = np.zeros(size)
+    canvas = np.rint(board).astype(np.uint8)  # as SceneRenderer.canvas, flat
+    frames = np.empty((k, resolution, resolution, 3), dtype=np.uint8)
+    for m in range(k):
+        p = pixels[bounds[m] : bounds[m + 1]]
+        if len(p):
+            c = np.maximum(ink[p], cover[bounds[m] : bounds[m + 1]])
+            ink[p] = c
+            image = board[p] * (1.0 - c[:, None])  # as _blend
+            image += c[:, None] * np.asarray(INK_RGB, dtype=np.float64)
+            canvas[p] = np.rint(image).astype(np.uint8)
+        frames[m] = canvas.reshape(resolution, resolution, 3)
+    # Cursor, as SceneRenderer.frame.
+    cursor = states[np.minimum(wanted, len(states) - 1), :2]
+    if k and wanted[-1] == len(states):
+        cursor[-1] = physics.control_step(states[-1], np.asarray(actions[-1], dtype=np.float64))[0][:2]
+    pixel = CANVAS_SIZE / resolution
+    outer = CURSOR_RADIUS + CURSOR_OUTLINE_WIDTH
+    lo, width = _window_starts(cursor, cursor, outer + pixel, resolution)
+    centers = (np.arange(resolution, dtype=np.float64) + 0.5) * pixel
+    cols = _windows(lo[:, 0], width, resolution)[:, None, :]
+    rows = _windows(lo[:, 1], width, resolution)[:, :, None]
+    dist = np.hypot(centers[cols] - cursor[:, 0, None, None], centers[rows] - cursor[:, 1, None, None])
+    index = (np.arange(k)[:, None, None], rows, cols)
+    patch = frames[index].astype(np.float64)
+    _blend(patch, coverage(dist, outer, pixel), CURSOR_OUTLINE_RGB)
+    _blend(patch, coverage(dist, CURSOR_RADIUS, pixel), CURSOR_RGB)
+    frames[index] = np.rint(patch).astype(np.uint8)
+    if len(steps) == k and np.array_equal(wanted, steps):
+        return frames
+    return frames[inverse]

@@ -66,7 +66,9 @@ class LiberoGen:
     def generate(self, cfg, out: Path, *, workers: int = 0, overwrite: bool = False, progress: bool = True):
         return dataset.generate(cfg, out, workers=workers, overwrite=overwrite, progress=progress)
 
-    def frames(self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False) -> np.ndarray:
+    def frames(
+        self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
+    ) -> np.ndarray:
         """Stored frames if generation rendered them (resized if need be), else rendered from the stored states."""
         from bpp.envs.libero.sim import CAMERAS
 
@@ -80,9 +82,13 @@ class LiberoGen:
         sl = store.episode_slice(episode)
         if last_only:
             sl = slice(sl.stop - 1, sl.stop)
+        elif steps is not None:
+            sl = sl.start + np.asarray(steps, dtype=np.int64)
+        source = key if key in store.keys else "sim_state"
+        rows = store[source][sl] if isinstance(sl, slice) else store[source].oindex[sl]
         if key in store.keys:
-            return _resize(store[key][sl], size)
-        return _render(store, episode, store["sim_state"][sl], CAMERAS[key], size)
+            return _resize(rows, size)
+        return _render(store, episode, rows, CAMERAS[key], size)
 
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:

@@ -94,13 +94,14 @@ class BPPModel(ContextDiffusionPolicy):
             raise ValueError(f"prompt of {steps} steps exceeds the model's limit of {self.cfg.prompt.max_steps}")
         chunk_valid = valid[:, ::dt]  # (Bp, n): a chunk exists where its first step does
         modality = []
+        chunk_obs = self.chunk_obs(prompt, dt)
         if self.prompt_entries:
-            features = self.obs_encoder({k: v[:, ::dt] for k, v in prompt["obs"].items()})
+            features = self.obs_encoder(chunk_obs)
             for i in self.prompt_entries:
                 modality.append(self.entry_proj[i](features[i]) + self.entry_embed[i])
         if self.cfg.prompt.use_action:
             pad = n * dt - steps
-            a = self.normalize_actions(actions, self.chunk_origins(prompt["obs"], dt))
+            a = self.normalize_actions(actions, self.chunk_origins(chunk_obs, dt, steps))
             if self.action_fourier is not None:
                 a = self.action_fourier(a)
             a = a * valid[..., None]
@@ -144,7 +145,7 @@ class BPPModel(ContextDiffusionPolicy):
 
     # -------------------------------------------------------------- inference
     def context_spec(self) -> dict:
-        return {"max_prompt_steps": self.cfg.prompt.max_steps}
+        return {"max_prompt_steps": self.cfg.prompt.max_steps, "context_obs_stride": self.cfg.prompt.chunk_len}
 
     def validate_context(self, prompt: Mapping) -> dict:
         """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""

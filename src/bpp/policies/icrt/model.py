@@ -123,8 +123,9 @@ class ICRTModel(PolicyModel):
         """A demonstration (B, L) -> its interleaved tokens ``o_0 a_0 o_1 a_1 ...`` (B, 2n, D) and their validity."""
         N = self.cfg.chunk_len
         valid = demo["valid"].bool()
-        obs = self.obs_tokens({k: v[:, ::N] for k, v in demo["obs"].items()}, segment)
-        origin = self.chunk_origins(demo["obs"], N)
+        chunk_obs = self.chunk_obs(demo, N)
+        obs = self.obs_tokens(chunk_obs, segment)
+        origin = self.chunk_origins(chunk_obs, N, valid.shape[1])
         actions = self.action_tokens(demo["action"], valid, segment, origin)
         tokens = rearrange(torch.stack([obs, actions], dim=2), "b n two d -> b (n two) d")
         return tokens, repeat(valid[:, ::N], "b n -> b (n two)", two=2)  # a chunk exists where its first step does
@@ -192,6 +193,7 @@ class ICRTModel(PolicyModel):
         return {
             "samples": "episodes",
             "max_prompt_steps": self.cfg.max_prompt_steps,
+            "context_obs_stride": self.cfg.chunk_len,
             "max_episode_steps": (self.cfg.max_tokens // 2 - 1) * self.cfg.chunk_len,  # fits after a 1-chunk prompt
         }
 

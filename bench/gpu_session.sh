@@ -1,0 +1,29 @@
+#!/usr/bin/env bash
+# One lent-GPU session's work (../shared/DEVICE.md), every log under $OUT (at most 8 files come back):
+#   1. the test that once crashed on the H100, alone, with CUDA errors reported where they happen;
+#   2. bench/gpu_throughput.py (both presets, with variants);
+#   3. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
+# Each part has its own time limit, so one that hangs cannot take the others' time.
+#
+#   OUT=outputs/gpu-session SMALL=1 bash bench/gpu_session.sh    # here, on a CPU: the same steps at toy sizes
+set -uo pipefail
+OUT=${OUT:-outputs/gpu-session}
+mkdir -p "$OUT"
+PY=${PY:-python3}
+SMALL=${SMALL:-}
+{ date -u; nvidia-smi || true; nproc; df -h /dev/shm || true; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } >"$OUT/machine.txt" 2>&1
+
+CUDA_LAUNCH_BLOCKING=1 timeout 150 $PY -X faulthandler -m pytest -q -p no:cacheprovider \
+  tests/test_icrt.py::test_image_observations_train_and_act >"$OUT/icrt-test.log" 2>&1
+echo "icrt test: exit $?" | tee -a "$OUT/machine.txt"
+
+if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=300; else bench_args=(); limit=330; fi
+timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --variants --data-dir /tmp/bench-gpu \
+  --out "$OUT/gpu_throughput.json" >"$OUT/bench.log" 2>&1
+echo "bench: exit $?" | tee -a "$OUT/machine.txt"
+
+if [ -n "$SMALL" ]; then tests=(tests/test_icrt.py); else tests=(tests); fi
+timeout ${TEST_LIMIT:-190} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
+  --ignore=tests/test_libero_sim.py --ignore=tests/test_libero_benchmark.py --ignore=tests/test_studio.py >"$OUT/tests.log" 2>&1
+echo "tests: exit $?" | tee -a "$OUT/machine.txt"
+tail -3 "$OUT/tests.log"

@@ -1,0 +1,282 @@
+"""What bounds `bpp train` and `act` on this machine, per preset: the loader, the model, or neither.
+
+    python bench/gpu_throughput.py                        # on a GPU: the paper preset and cpu-image, < 8 minutes
+    python bench/gpu_throughput.py --small                # the same measurements at toy sizes (a CPU, 1-2 minutes)
+
+For each preset (a method's size preset observing a DrawAnything camera preset; ``paper`` is BPP's paper-sized
+model on 224x224 frames, ``cpu-image`` the CPU-sized one on 64x64 frames), on a procedural training store generated
+first, it measures:
+
+* loader: samples/s of ONE loader process (what a `bpp train` worker does per batch: draw, render the frames it
+  needs, collate), over batches after the first;
+* model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
+  EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, and the peak memory; with
+  ``--variants``, the same with channels-first weights, with cuDNN's timed algorithm choice, and with the 5x5-stem
+  encoder of the CPU presets, for comparison;
+* end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
+  rates after the first interval;
+* act: ms per inference call of :class:`bpp.policies.agent.PolicyAgent` (its prompt encoded once at reset), eager
+  and, on a GPU, replayed from a CUDA graph, with the largest difference between the two.
+
+Every number is written to ``--out`` (JSON) as soon as it is measured, so a run cut short keeps what it measured;
+a measurement that fails is recorded with its error and the next one runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+import traceback
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bpp.data.contexts import task_context
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.store import EpisodeStore
+from bpp.envs.draw import dataset as draw_data
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, build_training, train_step, uses_amp
+from bpp.utils import to_torch, usable_cores
+
+PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
+"""Preset name -> (method size preset, DrawAnything observation preset)."""
+BATCHES = {"paper": ([64, 128, 256], [64, 256]), "cpu-image": ([128, 256, 512], [256])}
+"""Preset name -> (model-bound batch sizes, end-to-end batch sizes) on a GPU."""
+
+
+class Results:
+    """The run's numbers, rewritten to `path` after every measurement."""
+
+    def __init__(self, path: Path, meta: dict):
+        self.path, self.data = path, {"meta": meta, "presets": {}}
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.save()
+
+    def record(self, preset: str, name: str, value) -> None:
+        self.data["presets"].setdefault(preset, {})[name] = value
+        self.save()
+        print(f"[{preset}] {name}: {json.dumps(value)}", flush=True)
+
+    def save(self) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(self.data, indent=1))
+        tmp.replace(self.path)
+
+
+def measure(results: Results, preset: str, name: str, fn) -> None:
+    """Run one measurement; a failure is recorded (with its traceback printed) and does not stop the run."""
+    try:
+        results.record(preset, name, fn())
+    except Exception as error:  # noqa: BLE001 - a benchmark reports every failure and goes on
+        traceback.print_exc()
+        results.record(preset, name, {"error": f"{type(error).__name__}: {error}"})
+
+
+def synchronize(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_bytes: int) -> dict:
+    """Samples/s of one loader process over `batches` batches after a first one (which loads the store's arrays)."""
+    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_cache_bytes=cache_bytes)
+    data[0]
+    t0 = time.perf_counter()
+    for i in range(1, batches + 1):
+        data[i]
+    seconds = time.perf_counter() - t0
+    return {
+        "samples_per_s": round(batches * batch_size / seconds, 1),
+        "ms_per_batch": round(1000 * seconds / batches, 1),
+        "whole_episodes": data.whole_episodes,
+    }
+
+
+def model_rate(
+    store, method, model_cfg, device, batch_size: int, steps: int, channels_last: bool = True, timed_convs=False
+) -> dict:
+    """Samples/s of bpp.train's training step on one batch already on `device`, and the peak memory;
+    `timed_convs`: let cuDNN time its convolution algorithms (fixed shapes here; `bpp train` does not)."""
+    torch.backends.cudnn.benchmark = timed_convs
+    cfg = TrainConfig(data=store.path, method=method.name, batch_size=batch_size, channels_last=channels_last)
+    torch.manual_seed(0)
+    model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)
+    model.train()
+    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=batch_size, seed=2)[0], device)
+    amp = uses_amp(cfg, device)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    warmup = 3
+    for step in range(warmup + steps):
+        if step == warmup:
+            synchronize(device)
+            t0 = time.perf_counter()
+        loss, _ = train_step(cfg, model, model, ema, optimizer, batch, step, amp)
+    loss = float(loss.detach())  # waits for the device
+    seconds = time.perf_counter() - t0
+    out = {
+        "batch_size": batch_size,
+        "samples_per_s": round(steps * batch_size / seconds, 1),
+        "ms_per_step": round(1000 * seconds / steps, 1),
+        "loss": round(loss, 4),
+        "parameters_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
+    }
+    if device.type == "cuda":
+        out["peak_memory_GiB"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+    del model, ema, optimizer, batch
+    torch.backends.cudnn.benchmark = False
+    if device.type == "cuda":
+        torch.cuda.empty_cache()
+    return out
+
+
+def end_to_end_rate(store_path: Path, size: str, obs: str, batch_size: int, steps: int, log_every: int, extra=()):
+    """Samples/s of `bpp train` (a subprocess with its default loader workers): the median logged rate after the
+    first interval, read back from its TensorBoard log."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    with tempfile.TemporaryDirectory(prefix="bpp-e2e-") as run:
+        command = [sys.executable, "-m", "bpp.cli", "train", "--data", str(store_path), "--out", f"{run}/run"]
+        command += ["--preset", size, "--obs", obs, "--steps", str(steps), "--batch-size", str(batch_size)]
+        command += ["--log-every", str(log_every), "--save-every", str(10 * steps), "--warmup-steps", "10", *extra]
+        t0 = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True)
+        wall = time.perf_counter() - t0
+        if done.returncode:
+            raise RuntimeError(f"bpp train failed ({done.returncode}): {done.stderr[-2000:]}")
+        events = EventAccumulator(f"{run}/run/tb")
+        events.Reload()
+        rates = [e.value for e in events.Scalars("train/samples_per_s")]
+        workers = [line for line in done.stdout.splitlines() if "loader workers" in line]
+    return {
+        "batch_size": batch_size,
+        "samples_per_s": round(float(np.median(rates[1:] if len(rates) > 1 else rates)), 1),
+        "logged_rates": [round(r, 1) for r in rates],
+        "wall_s": round(wall, 1),
+        "setup": workers[0].strip() if workers else "",
+    }
+
+
+def act_latency(store, method, model_cfg, device, calls: int) -> dict:
+    """ms per inference call (one chunk of actions), eager and from a CUDA graph (GPU), untrained weights."""
+    torch.manual_seed(0)
+    model = method.model_cls(model_cfg, store.stats)
+    agent = PolicyAgent(model, device)
+    spec = agent.data_spec
+    agent.reset(task_context(store, 0, spec, BENCHMARK.frames), seed=0)
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, (spec.image_size, spec.image_size, 3), dtype=np.uint8)
+    obs = {k: store.array(k)[0] for k in spec.lowdim_keys} | {k: frame for k in spec.image_keys}
+    agent.act(obs)
+
+    def timed(graphs: bool) -> tuple[float, np.ndarray]:
+        model.head.cuda_graphs = graphs
+        agent.generators = [torch.Generator(device).manual_seed(0)]
+        first = agent.predict_chunk()  # and warm-up (the graph is recorded here)
+        times = []
+        for _ in range(calls):
+            t0 = time.perf_counter()
+            agent.predict_chunk()
+            times.append(time.perf_counter() - t0)
+        return 1000 * float(np.median(times)), first
+
+    out = {"prompt_steps": int(store.episode_slice(0).stop - store.episode_slice(0).start)}
+    eager_ms, eager = timed(False)
+    out["eager_ms"] = round(eager_ms, 2)
+    if device.type == "cuda":
+        graph_ms, graphed = timed(True)
+        out["cuda_graph_ms"] = round(graph_ms, 2)
+        out["cuda_graph_max_abs_diff"] = float(np.abs(graphed - eager).max())
+    return out
+
+
+def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch.device, args) -> None:
+    """Every measurement of one preset (see the module docstring)."""
+    method, small = get_method("bpp"), args.small
+    size, obs = PRESETS[name]
+    size = "debug" if small else size
+    model_cfg = method.config(size, obs, BENCHMARK)
+    if small:  # toy frames too: the script's logic, not its numbers
+        model_cfg = replace(model_cfg, obs=replace(model_cfg.obs, image_size=32))
+    spec = method.model_cls(model_cfg, store.stats).data_spec()
+    batch_sizes, e2e_sizes = ([8], [8]) if small else BATCHES[name]
+    batch_sizes = args.batch_sizes or batch_sizes
+    steps = 3 if small else 15
+    # A loader process's share of the frame cache when `bpp train` runs its default workers on this machine.
+    cache = 0 if small else int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // max(1, usable_cores() - 2)
+    measure(results, name, "loader", lambda: loader_rate(store, spec, batch_sizes[0], 3 if small else 20, cache))
+    for b in batch_sizes:
+        measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
+    if args.variants and (small or name == "paper"):
+        b = batch_sizes[0]
+        first = f"model_b{b}_channels_first"
+        measure(results, name, first, lambda: model_rate(store, method, model_cfg, device, b, steps, False))
+        timed = f"model_b{b}_cudnn_benchmark"
+        measure(results, name, timed, lambda: model_rate(store, method, model_cfg, device, b, steps, timed_convs=True))
+        conv5 = replace(model_cfg, obs=replace(model_cfg.obs, image_stem="conv5"))
+        measure(results, name, f"model_b{b}_conv5_stem", lambda: model_rate(store, method, conv5, device, b, steps))
+    extra = ["--model.obs.image-size", "32"] if small else []
+    e2e_steps, log_every = (6, 2) if small else (150, 25)
+    for b in e2e_sizes:
+        measure(
+            results,
+            name,
+            f"end_to_end_b{b}",
+            lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
+        )
+    measure(results, name, "act", lambda: act_latency(store, method, model_cfg, device, 5 if small else 30))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--small", action="store_true", help="toy sizes: check the script on a CPU")
+    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
+    parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, help="model-bound batch sizes")
+    parser.add_argument(
+        "--variants", action="store_true", help="paper: also channels-first, timed cuDNN and the 5x5-stem encoder"
+    )
+    parser.add_argument("--tasks", type=int, default=None, help="procedural tasks in the training store")
+    parser.add_argument("--data-dir", type=Path, default=Path("data/bench-gpu"))
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/gpu_throughput.json"))
+    args = parser.parse_args()
+
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    small = args.small
+    results = Results(
+        args.out,
+        {
+            "command": " ".join(sys.argv),
+            "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "cpu",
+            "cores": usable_cores(),
+            "torch": torch.__version__,
+            "small": small,
+            "date": time.strftime("%Y-%m-%d %H:%M"),
+        },
+    )
+    tasks = args.tasks or (6 if small else 200)
+    store_path = args.data_dir / f"procedural-{tasks}.zarr"
+    if not (store_path / "zarr.json").exists():
+        cfg = replace(draw_data.PRESETS["cpu"], num_tasks=tasks, demos_per_task=3 if small else 5)
+        t0 = time.perf_counter()
+        draw_data.generate(cfg, store_path, overwrite=True, progress=False)
+        print(f"generated {store_path} in {time.perf_counter() - t0:.1f} s", flush=True)
+    store = EpisodeStore(store_path)
+    for name in args.presets:
+        bench_preset(results, name, store, device, args)
+    print(json.dumps(results.data, indent=1))
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+    main()

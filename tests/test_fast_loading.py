@@ -1,0 +1,107 @@
+"""The GPU-speed changes must not change what trains: selective frame rendering, prompts with one observation per
+chunk, the int-timestep sampler, and the paper encoder's ResNet stem."""
+
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from bpp.data.contexts import batch_context, task_context
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.nn.vision import ResNetGN
+from bpp.policies.common import ObsConfig
+from bpp.policies.registry import get_method
+from bpp.utils import to_torch
+from helpers import config, obs_config
+
+IMAGE_OBS = obs_config(
+    image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
+)
+
+
+def _bpp(store, relative_to: str = "", **prompt):
+    cfg = replace(config("bpp"), obs=IMAGE_OBS, action_relative_to=relative_to)
+    cfg = replace(cfg, prompt=replace(cfg.prompt, **prompt))
+    torch.manual_seed(0)
+    return get_method("bpp").model_cls(cfg, store.stats).eval()
+
+
+def _assert_same(a, b, where="batch"):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}.{k}")
+    else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
+
+
+def test_batches_rendering_only_their_frames_equal_those_from_whole_episodes(debug_store):
+    spec = _bpp(debug_store).data_spec()
+    assert spec.context_obs_stride == 10
+    whole = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=1 << 30)
+    selective = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=0)
+    assert whole.whole_episodes and not selective.whole_episodes
+    for i in range(3):
+        a, b = whole[i], selective[i]
+        _assert_same(a, b)
+    assert len(selective._frame_cache) == 0 and len(whole._frame_cache) > 0
+
+
+@pytest.mark.parametrize("relative_to", ["", "agent_pos"])
+def test_a_prompt_with_one_observation_per_chunk_encodes_like_the_whole_prompt(debug_store, relative_to):
+    model = _bpp(debug_store, relative_to)
+    spec = model.data_spec()
+    full = batch_context("demo", task_context(debug_store, 5, spec, BENCHMARK.frames))
+    strided = batch_context("demo", task_context(debug_store, 5, spec, BENCHMARK.frames, obs_stride=10))
+    steps = full["action"].shape[1]
+    assert strided["obs"]["image"].shape[1] == -(-steps // 10) and strided["obs_stride"].tolist() == [10]
+    np.testing.assert_array_equal(strided["obs"]["image"], full["obs"]["image"][:, ::10])
+    with torch.no_grad():
+        a = model.encode_prompt(to_torch(full, "cpu"))
+        b = model.encode_prompt(to_torch(strided, "cpu"))
+    assert torch.equal(a.tokens, b.tokens) and torch.equal(a.valid, b.valid)
+
+
+def test_training_batches_carry_strided_prompts_and_train(debug_store):
+    model = _bpp(debug_store).train()
+    batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=8, seed=0, tasks_per_batch=2)[0]
+    context = batch["context"]
+    assert context["obs"]["image"].shape[1] == -(-context["action"].shape[1] // 10)
+    model.compute_loss(to_torch(batch, "cpu")).backward()
+    assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0
+
+
+def test_the_paper_encoder_has_resnet_stem_and_the_cpu_one_keeps_its_own():
+    assert get_method("bpp").preset("paper").obs.image_stem == "resnet"
+    assert get_method("bpp").preset("cpu").obs.image_stem == "conv5"
+    net = ResNetGN(32, widths=(16, 32), blocks=(1, 1), stem="resnet")
+    seen = {}
+    net.layers.register_forward_hook(lambda m, i, o: seen.update(shape=tuple(i[0].shape)))
+    assert net(torch.zeros(2, 3, 224, 224, dtype=torch.uint8)).shape == (2, 32)
+    assert seen["shape"] == (2, 16, 56, 56)  # a quarter of 224 after the 7x7 stride-2 convolution and the max-pool
+    with pytest.raises(ValueError, match="image_stem"):
+        ObsConfig(image_stem="vit")
+
+
+def test_image_encoder_trains_on_frames_of_any_batch_size_with_several_threads():
+    """Frames arrive channels-last; PyTorch's multi-threaded CPU backward of a strided 1x1 convolution on such input
+    corrupts memory at odd batch sizes (the crash first seen on the GPU machine's 16 cores). The encoder must hand its
+    convolutions its weights' layout. In a subprocess: the failure is a crash."""
+    code = """
+import torch
+from bpp.nn.vision import ResNetGN
+torch.set_num_threads(4)
+torch.manual_seed(0)
+net = ResNetGN(16, (8, 16), (1, 1))
+for n in (5, 11, 33, 5, 11, 33):
+    frames = torch.randint(0, 255, (n, 32, 32, 3), dtype=torch.uint8).permute(0, 3, 1, 2)
+    net.zero_grad()
+    net(frames).square().sum().backward()
+print("trained")
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "trained" in done.stdout, done.stderr[-2000:]
