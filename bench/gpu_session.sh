@@ -18,7 +18,7 @@ CUDA_LAUNCH_BLOCKING=1 timeout 150 $PY -X faulthandler -m pytest -q -p no:cachep
 echo "icrt test: exit $?" | tee -a "$OUT/machine.txt"
 
 if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=300; else bench_args=(); limit=330; fi
-timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --variants --data-dir /tmp/bench-gpu \
+timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --data-dir /tmp/bench-gpu \
   --out "$OUT/gpu_throughput.json" >"$OUT/bench.log" 2>&1
 echo "bench: exit $?" | tee -a "$OUT/machine.txt"
 

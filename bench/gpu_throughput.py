@@ -11,8 +11,8 @@ first, it measures:
   needs, collate), over batches after the first;
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
   EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, and the peak memory; with
-  ``--variants``, the same with channels-first weights, with cuDNN's timed algorithm choice, and with the 5x5-stem
-  encoder of the CPU presets, for comparison;
+  variants (paper), the same with channels-first weights, with cuDNN's timed algorithm choice, with the 5x5-stem
+  encoder of the CPU presets, and with fp32 GroupNorm under autocast, for comparison;
 * end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
   rates after the first interval;
 * act: ms per inference call of :class:`bpp.policies.agent.PolicyAgent` (its prompt encoded once at reset), eager
@@ -25,6 +25,7 @@ a measurement that fails is recorded with its error and the next one runs.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -44,6 +45,7 @@ from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
 from bpp.envs.draw import dataset as draw_data
 from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.nn.norm import GroupNorm
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, build_training, train_step, uses_amp
@@ -81,6 +83,17 @@ def measure(results: Results, preset: str, name: str, fn) -> None:
     except Exception as error:  # noqa: BLE001 - a benchmark reports every failure and goes on
         traceback.print_exc()
         results.record(preset, name, {"error": f"{type(error).__name__}: {error}"})
+
+
+@contextlib.contextmanager
+def fp32_group_norm():
+    """Models built inside normalise in fp32 under autocast (torch's own GroupNorm), for comparison."""
+    saved = GroupNorm.forward
+    GroupNorm.forward = torch.nn.GroupNorm.forward
+    try:
+        yield
+    finally:
+        GroupNorm.forward = saved
 
 
 def synchronize(device: torch.device) -> None:
@@ -215,10 +228,12 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
     steps = 3 if small else 15
     # A loader process's share of the frame cache when `bpp train` runs its default workers on this machine.
     cache = 0 if small else int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // max(1, usable_cores() - 2)
-    measure(results, name, "loader", lambda: loader_rate(store, spec, batch_sizes[0], 3 if small else 20, cache))
-    for b in batch_sizes:
+    parts = set(args.parts)
+    if "loader" in parts:
+        measure(results, name, "loader", lambda: loader_rate(store, spec, batch_sizes[0], 3 if small else 20, cache))
+    for b in batch_sizes if "model" in parts else ():
         measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
-    if args.variants and (small or name == "paper"):
+    if "variants" in parts and (small or name == "paper"):
         b = batch_sizes[0]
         first = f"model_b{b}_channels_first"
         measure(results, name, first, lambda: model_rate(store, method, model_cfg, device, b, steps, False))
@@ -226,16 +241,20 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
         measure(results, name, timed, lambda: model_rate(store, method, model_cfg, device, b, steps, timed_convs=True))
         conv5 = replace(model_cfg, obs=replace(model_cfg.obs, image_stem="conv5"))
         measure(results, name, f"model_b{b}_conv5_stem", lambda: model_rate(store, method, conv5, device, b, steps))
+        with fp32_group_norm():
+            fp32 = f"model_b{b}_fp32_groupnorm"
+            measure(results, name, fp32, lambda: model_rate(store, method, model_cfg, device, b, steps))
     extra = ["--model.obs.image-size", "32"] if small else []
     e2e_steps, log_every = (6, 2) if small else (150, 25)
-    for b in e2e_sizes:
+    for b in e2e_sizes if "e2e" in parts else ():
         measure(
             results,
             name,
             f"end_to_end_b{b}",
             lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
         )
-    measure(results, name, "act", lambda: act_latency(store, method, model_cfg, device, 5 if small else 30))
+    if "act" in parts:
+        measure(results, name, "act", lambda: act_latency(store, method, model_cfg, device, 5 if small else 30))
 
 
 def main() -> None:
@@ -244,7 +263,11 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
     parser.add_argument("--batch-sizes", type=int, nargs="+", default=None, help="model-bound batch sizes")
     parser.add_argument(
-        "--variants", action="store_true", help="paper: also channels-first, timed cuDNN and the 5x5-stem encoder"
+        "--parts",
+        nargs="+",
+        default=["loader", "model", "variants", "e2e", "act"],
+        choices=["loader", "model", "variants", "e2e", "act"],
+        help="what to measure (variants, paper only: channels-first, timed cuDNN, the 5x5 stem, fp32 GroupNorm)",
     )
     parser.add_argument("--tasks", type=int, default=None, help="procedural tasks in the training store")
     parser.add_argument("--data-dir", type=Path, default=Path("data/bench-gpu"))

@@ -1,3 +1,4 @@
+import os
 import shutil
 import subprocess
 import sys
@@ -258,7 +259,12 @@ def test_ddp_two_processes_on_cpu(debug_store, tmp_path):
         capture_output=True,
         text=True,
         timeout=300,
-        env={"OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin", "HOME": str(Path.home())},
+        env={
+            "OMP_NUM_THREADS": "1",
+            "PATH": "/usr/bin:/bin",
+            "HOME": str(Path.home()),
+            **{k: os.environ[k] for k in ("PYTHONPATH",) if k in os.environ},  # bpp run from a source tree
+        },
     )
     assert done.returncode == 0, done.stderr[-3000:]
     state = (out / "checkpoints" / "step_00000004" / "state.json").read_text()

@@ -13,6 +13,8 @@ import torch
 from einops import rearrange
 from torch import nn
 
+from bpp.nn.norm import GroupNorm
+
 
 class SinusoidalEmbedding(nn.Module):
     """(B,) diffusion steps -> (B, dim) sinusoidal features."""
@@ -31,7 +33,7 @@ class SinusoidalEmbedding(nn.Module):
 
 class ConvNormAct(nn.Sequential):
     def __init__(self, c_in: int, c_out: int, kernel: int, groups: int):
-        super().__init__(nn.Conv1d(c_in, c_out, kernel, padding=kernel // 2), nn.GroupNorm(groups, c_out), nn.Mish())
+        super().__init__(nn.Conv1d(c_in, c_out, kernel, padding=kernel // 2), GroupNorm(groups, c_out), nn.Mish())
 
 
 class FiLMResBlock(nn.Module):

@@ -5,9 +5,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from bpp.nn.norm import GroupNorm
 
-def _group_norm(channels: int) -> nn.GroupNorm:
-    return nn.GroupNorm(max(1, channels // 16), channels)
+
+def _group_norm(channels: int) -> GroupNorm:
+    return GroupNorm(max(1, channels // 16), channels)
 
 
 class BasicBlock(nn.Module):

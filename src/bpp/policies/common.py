@@ -3,6 +3,7 @@ of a policy that conditions that head on observations plus a task context (:clas
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
@@ -280,7 +281,12 @@ class DiffusionHead(nn.Module):
         # denoising steps (a CUDA time step made the scheduler read it back three times per step).
         self.sample_scheduler.set_timesteps(self.cfg.num_inference_steps)
         if self.cuda_graphs and cond.is_cuda and self.cfg.sampler == "ddim":
-            return self._graphed_denoise(cond, noise)
+            try:
+                return self._graphed_denoise(cond, noise)
+            except RuntimeError as error:  # a GPU or driver that cannot record this loop: sample as before
+                warnings.warn(f"CUDA-graph sampling failed, sampling without it from now on: {error}", stacklevel=2)
+                self.cuda_graphs = False
+                self._graphs.clear()
         return self._denoise(cond, noise, generator)
 
     def _denoise(self, cond: torch.Tensor, x: torch.Tensor, generator=None) -> torch.Tensor:
