@@ -1,5 +1,5 @@
 """The GPU-speed changes must not change what trains: selective frame rendering, prompts with one observation per
-chunk, the int-timestep sampler, and the paper encoder's ResNet stem."""
+chunk and the paper encoder's ResNet stem; and the image encoder must not crash a multi-threaded CPU."""
 
 import subprocess
 import sys
@@ -89,8 +89,8 @@ def test_the_paper_encoder_has_resnet_stem_and_the_cpu_one_keeps_its_own():
 
 def test_image_encoder_trains_on_frames_of_any_batch_size_with_several_threads():
     """Frames arrive channels-last; PyTorch's multi-threaded CPU backward of a strided 1x1 convolution on such input
-    corrupts memory at odd batch sizes (the crash first seen on the GPU machine's 16 cores). The encoder must hand its
-    convolutions its weights' layout. In a subprocess: the failure is a crash."""
+    corrupts memory at some batch sizes (the crash first seen on the GPU machine's 16 cores), so the residual blocks'
+    shortcut must not be one. In a subprocess: the failure is a crash."""
     code = """
 import torch
 from bpp.nn.vision import ResNetGN

@@ -22,15 +22,20 @@ class BasicBlock(nn.Module):
             nn.Conv2d(c_out, c_out, 3, 1, 1, bias=False),
             _group_norm(c_out),
         )
+        # The projection shortcut is a 1x1 convolution with the block's stride, taken as every stride-th pixel
+        # followed by a 1x1 convolution (the same numbers): PyTorch's multi-threaded CPU backward of a *strided* 1x1
+        # convolution on channels-last input corrupts memory at some batch sizes (torch 2.11 and 2.15; the crash
+        # first seen on the GPU machine's 16 cores; BENCHMARKS.md).
+        self.stride = stride
         self.skip = (
             nn.Identity()
             if stride == 1 and c_in == c_out
-            else nn.Sequential(nn.Conv2d(c_in, c_out, 1, stride, bias=False), _group_norm(c_out))
+            else nn.Sequential(nn.Conv2d(c_in, c_out, 1, bias=False), _group_norm(c_out))
         )
         self.act = nn.ReLU(inplace=True)
 
     def forward(self, x):
-        return self.act(self.body(x) + self.skip(x))
+        return self.act(self.body(x) + self.skip(x[:, :, :: self.stride, :: self.stride]))
 
 
 class ResNetGN(nn.Module):
@@ -67,13 +72,10 @@ class ResNetGN(nn.Module):
         self.register_buffer("std", torch.tensor([0.25, 0.25, 0.25]).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        # Frames arrive channels-last (an (H, W, 3) image permuted). Convolve them in the layout the weights have:
-        # channels-first unless a GPU run made the encoder channels-last. Mixed layouts are slower, and on a CPU
-        # with several threads PyTorch's backward of the strided 1x1 skip convolution on channels-last input
-        # corrupts memory (torch 2.15; the crash once seen on the GPU machine's 16 cores; see BENCHMARKS.md).
-        weight = self.stem[0].weight
-        layout = torch.channels_last if not weight.is_contiguous() else torch.contiguous_format
-        images = images.contiguous(memory_format=layout)
+        if not self.stem[0].weight.is_contiguous():  # a channels-last encoder (GPU training): dense NHWC input
+            images = images.contiguous(memory_format=torch.channels_last)
+        # Otherwise frames stay as they come, channels-last strided (an (H, W, 3) image permuted): on a CPU that
+        # trains the encoder 1.3x faster than copying them to channels-first.
         x = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
         x = (x - self.mean) / self.std
         x = self.layers(self.stem(x))
