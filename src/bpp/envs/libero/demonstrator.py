@@ -9,10 +9,15 @@ such, never stored as a success.
 
 A bowl in the cabinet's open top drawer has the drawer's walls close around it: the gripper first turns so that
 its fingers close across the drawer's width (the roomier axis), half-closes, and then takes the rim on that axis.
+
+LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the others built so
+far, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on and
+pushing the plate. Opening the drawers is not built yet.
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -70,84 +75,180 @@ def target_position(env, obs: dict, task: PickPlace) -> np.ndarray:
     return np.asarray(env.env.sim.data.get_site_xpos(name), dtype=float).copy()
 
 
+class Arm:
+    """The robot of a LIBERO env driven through waypoints, every step recorded (the state and observation before it,
+    and the action). :meth:`start` resets and settles the env; the operators below move the arm; :meth:`result`
+    judges the whole demonstration by LIBERO's predicate."""
+
+    def __init__(self, env, cfg: DemoConfig):
+        self.env, self.cfg = env, cfg
+        self.actions: list[np.ndarray] = []
+        self.states: list[np.ndarray] = []
+        self.observed: list[dict] = []
+        self.obs: dict = {}
+
+    @classmethod
+    def start(cls, env, seed: int, cfg: DemoConfig = DemoConfig()) -> Arm:
+        arm = cls(env, cfg)
+        env.seed(seed)
+        arm.obs = env.reset()
+        for _ in range(SETTLE_STEPS):
+            arm.obs, *_ = env.step(np.zeros(7))
+        return arm
+
+    def step(self, action) -> None:
+        if len(self.actions) >= self.cfg.max_steps:
+            raise _OutOfSteps
+        self.states.append(self.env.env.sim.get_state().flatten())
+        self.observed.append(
+            {k: np.asarray(v, dtype=np.float32) for k, v in self.obs.items() if not k.endswith("_image")}
+        )
+        self.actions.append(np.asarray(action, dtype=np.float64))
+        self.obs, *_ = self.env.step(action)
+
+    def go(self, target, grip: float, tol: float = 0.005, limit: int = 80, across=None) -> None:
+        """Move the gripper to `target`; with `across` (a horizontal axis), also yaw it until its fingers close
+        along that axis, at the same time."""
+        for _ in range(limit):
+            delta = np.asarray(target) - self.obs["robot0_eef_pos"]
+            yaw = 0.0 if across is None else self.yaw_error(across)
+            if np.linalg.norm(delta) < tol and abs(yaw) < 0.03:
+                return
+            self.step(np.r_[np.clip(delta / self.cfg.max_step, -1.0, 1.0), 0.0, 0.0, np.clip(yaw / 0.5, -1, 1), grip])
+
+    def hold(self, grip: float, steps: int) -> None:
+        for _ in range(steps):
+            self.step(np.r_[np.zeros(6), grip])
+
+    def yaw_error(self, axis: np.ndarray) -> float:
+        """The yaw (rad, either way round) that makes the fingers close along the horizontal `axis`."""
+        hand = Rotation.from_quat(self.obs["robot0_eef_quat"]).as_matrix()  # robosuite's (x, y, z, w) order
+        closing = hand[:2, 1]  # the fingers close along the hand's y axis
+        error = np.arctan2(closing[0] * axis[1] - closing[1] * axis[0], closing @ axis)
+        return (error + np.pi / 2) % np.pi - np.pi / 2
+
+    def turn(self, axis: np.ndarray, grip: float, limit: int = 40) -> None:
+        """Yaw the gripper until its fingers close along the horizontal `axis` (either way round)."""
+        for _ in range(limit):
+            error = self.yaw_error(axis)
+            if abs(error) < 0.03:
+                return
+            self.step(np.r_[np.zeros(5), np.clip(error / 0.5, -1.0, 1.0), grip])
+
+    def result(self) -> Demonstration:
+        keys = self.observed[0].keys() if self.observed else ()
+        return Demonstration(
+            np.array(self.actions),
+            {k: np.stack([o[k] for o in self.observed]) for k in keys},
+            np.array(self.states),
+            bool(self.env.env._check_success()),
+        )
+
+
 def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig()) -> Demonstration:
     """Reset `env` (made from `task`'s problem) with `seed` and demonstrate the task once."""
     rng = np.random.default_rng(seed)
-    env.seed(seed)
-    obs = env.reset()
-    for _ in range(SETTLE_STEPS):
-        obs, *_ = env.step(np.zeros(7))
-    actions, states, observed = [], [], []
+    arm = Arm.start(env, seed, cfg)
     bowl = BOWLS[task.bowl - 1]
-
-    def step(action) -> None:
-        nonlocal obs
-        if len(actions) >= cfg.max_steps:
-            raise _OutOfSteps
-        states.append(env.env.sim.get_state().flatten())
-        observed.append({k: np.asarray(v, dtype=np.float32) for k, v in obs.items() if not k.endswith("_image")})
-        actions.append(np.asarray(action, dtype=np.float64))
-        obs, *_ = env.step(action)
-
-    def go(target, grip: float, tol: float = 0.005, limit: int = 80) -> None:
-        for _ in range(limit):
-            delta = np.asarray(target) - obs["robot0_eef_pos"]
-            if np.linalg.norm(delta) < tol:
-                return
-            step(np.r_[np.clip(delta / cfg.max_step, -1.0, 1.0), 0.0, 0.0, 0.0, grip])
-
-    def hold(grip: float, steps: int) -> None:
-        for _ in range(steps):
-            step(np.r_[np.zeros(6), grip])
-
-    def turn(axis: np.ndarray, grip: float, limit: int = 40) -> None:
-        """Yaw the gripper until its fingers close along the horizontal `axis` (either way round)."""
-        for _ in range(limit):
-            hand = Rotation.from_quat(obs["robot0_eef_quat"]).as_matrix()  # robosuite's (x, y, z, w) order
-            closing = hand[:2, 1]  # the fingers close along the hand's y axis
-            error = np.arctan2(closing[0] * axis[1] - closing[1] * axis[0], closing @ axis)
-            error = (error + np.pi / 2) % np.pi - np.pi / 2
-            if abs(error) < 0.03:
-                return
-            step(np.r_[np.zeros(5), np.clip(error / 0.5, -1.0, 1.0), grip])
-
-    start = np.asarray(obs[f"{bowl}_pos"], dtype=float).copy()
+    start = np.asarray(arm.obs[f"{bowl}_pos"], dtype=float).copy()
     side = rng.choice([-1.0, 1.0])  # which side of the rim the fingers take
     across = drawer_width_axis(env) if task.pick in NARROW_PICKS else np.array([0.0, 1.0])  # the fingers' axis
     rim = np.r_[side * cfg.rim_offset * across + rng.normal(0.0, cfg.jitter, 2), 0.0]
     carry = rng.uniform(*cfg.carry_height)
     try:
-        go(start + rim + [0.0, 0.0, 0.12], -1.0)
+        arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
         grip = -1.0
         if task.pick in NARROW_PICKS:  # fingers across the drawer, half-closed: the outer one clears its walls
-            turn(across, grip)
-            go(start + rim + [0.0, 0.0, 0.12], -1.0)
-            hold(1.0, cfg.narrow_close_steps)
+            arm.turn(across, grip)
+            arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
+            arm.hold(1.0, cfg.narrow_close_steps)
             grip = 0.0  # the gripper holds its opening
-        go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], grip, tol=0.003)
-        hold(1.0, 15)
-        go(start + rim + [0.0, 0.0, carry], 1.0)
+        arm.go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], grip, tol=0.003)
+        arm.hold(1.0, 15)
+        arm.go(start + rim + [0.0, 0.0, carry], 1.0)
         # Where the bowl actually sits in the hand (it may have slipped): the release point puts its centre, not
         # the gripper's, over the target (table regions are only a few centimetres wide).
+        obs = arm.obs
         held = np.r_[(obs[f"{bowl}_pos"] - obs["robot0_eef_pos"])[:2], 0.0]
         jitter = 0.0 if task.place in TIGHT_PLACES else cfg.jitter
         target = target_position(env, obs, task) - held + np.r_[rng.normal(0.0, jitter, 2), 0.0]
         middle = (start + target) / 2 + np.r_[rng.normal(0.0, 0.03, 2), carry]  # a varied path through the air
-        go(middle, 1.0, tol=0.02)
-        go(target + [0.0, 0.0, carry], 1.0)
-        go(target + [0.0, 0.0, cfg.release_height], 1.0, tol=0.003)
-        hold(-1.0, 10)
-        go(obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], -1.0)
-        hold(-1.0, 5)
+        arm.go(middle, 1.0, tol=0.02)
+        arm.go(target + [0.0, 0.0, carry], 1.0)
+        arm.go(target + [0.0, 0.0, cfg.release_height], 1.0, tol=0.003)
+        arm.hold(-1.0, 10)
+        arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], -1.0)
+        arm.hold(-1.0, 5)
     except _OutOfSteps:
         pass
-    keys = observed[0].keys() if observed else ()
-    return Demonstration(
-        np.array(actions),
-        {k: np.stack([o[k] for o in observed]) for k in keys},
-        np.array(states),
-        bool(env.env._check_success()),
-    )
+    return arm.result()
+
+
+def turn_on(arm: Arm, rng: np.random.Generator, stove: str = "flat_stove_1") -> None:
+    """Turn the stove's knob on: take its lever between the fingers and carry it round the knob's axis (a hinge
+    about world z) by about 0.9 rad, turning the hand with it; LIBERO counts 0.5 rad or more as on. The lever
+    points along the knob body's x axis at the start; the grasp point and height along it vary with the seed."""
+    sim = arm.env.env.sim
+    body = sim.model.body_name2id(f"{stove}_button")
+    axis = sim.data.body_xpos[body].copy()
+    start = Rotation.from_quat(sim.data.body_xquat[body][[1, 2, 3, 0]]).as_matrix()[:2, 0]  # MuJoCo's (w, x, y, z)
+    angle0 = np.arctan2(start[1], start[0])
+    radius, height = rng.uniform(0.017, 0.021), rng.uniform(0.028, 0.034)
+
+    def lever(turned: float) -> tuple[np.ndarray, np.ndarray]:
+        a = angle0 + turned
+        return axis + np.r_[radius * np.cos(a), radius * np.sin(a), height], np.array([-np.sin(a), np.cos(a)])
+
+    point, across = lever(0.0)
+    arm.go(point + [0.0, 0.0, rng.uniform(0.07, 0.1)], -1.0, across=across)
+    arm.go(point, -1.0, across=across)
+    arm.hold(1.0, 10)
+    for turned in np.linspace(0.0, rng.uniform(0.85, 1.0), 10):
+        point, across = lever(turned)
+        arm.go(point, 1.0, tol=0.003, limit=12, across=across)
+    arm.hold(-1.0, 5)
+    arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.08], -1.0)
+
+
+def push(arm: Arm, rng: np.random.Generator, obj: str = "plate_1", region: str = "main_table_stove_front_region"):
+    """Slide `obj` (a plate: its rim is low) over the table into `region`: the closed fingers go down inside it
+    and drag it, steered by where its centre is now. The robot cannot reach low enough behind the plate's far side
+    to push it from there.
+
+    The path is an L, first along y, then along x, ending in the region's far half (jittered): in LIBERO-Goal's
+    scene a straight path runs the plate over the cream cheese, which sits about 9 cm from the region's centre."""
+    sim = arm.env.env.sim
+    centre = sim.data.get_site_xpos(region)[:2]
+    target = centre + np.r_[rng.normal(0.0, 0.008), 0.025 + rng.uniform(-0.005, 0.005)]
+    here = np.asarray(arm.obs[f"{obj}_pos"], dtype=float)
+    # Aimed a little below where the fingertips can go: they press on the plate's floor and do not ride over its rim
+    # (pressing more lightly, or starting at the rim, tipped the plate up and lost it).
+    floor = here[2] + 0.002
+    arm.go(np.r_[here[:2], floor + rng.uniform(0.08, 0.12)], 1.0)
+    arm.go(np.r_[here[:2], floor], 1.0, tol=0.006, limit=40)
+    for waypoint in (np.r_[here[0], target[1]], target):
+        for _ in range(250):
+            plate = arm.obs[f"{obj}_pos"]
+            remaining = waypoint - plate[:2]
+            if np.linalg.norm(remaining) < 0.008 or np.linalg.norm(arm.obs["robot0_eef_pos"][:2] - plate[:2]) > 0.1:
+                break  # there, or the plate was lost: LIBERO's predicate judges which
+            down = floor - arm.obs["robot0_eef_pos"][2]
+            arm.step(np.r_[np.clip(np.r_[remaining, down] / arm.cfg.max_step, -0.4, 0.4), 0.0, 0.0, 0.0, 1.0])
+    arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], 1.0)
+
+
+OPERATORS = {"turn_on": turn_on, "push": push}
+"""Operators other than pick-and-place, by the BDDL predicate they make true (LIBERO-Goal's scene)."""
+
+
+def demonstrate_operator(env, operator: str, seed: int, cfg: DemoConfig = DemoConfig(), **kw) -> Demonstration:
+    """Reset `env` with `seed` and run one operator of :data:`OPERATORS` (keyword arguments name its object)."""
+    if operator not in OPERATORS:
+        raise ValueError(f"no operator {operator!r}; known: {', '.join(OPERATORS)}")
+    arm = Arm.start(env, seed, cfg)
+    with contextlib.suppress(_OutOfSteps):  # a demonstration that ran out of steps is judged as it stands
+        OPERATORS[operator](arm, np.random.default_rng(seed), **kw)
+    return arm.result()
 
 
 def drawer_width_axis(env) -> np.ndarray:
