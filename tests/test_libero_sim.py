@@ -85,23 +85,31 @@ def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_pla
 
 
 @pytest.mark.parametrize(
-    ("operator", "problem"),
-    [("turn_on", "turn_on_the_stove"), ("push", "push_the_plate_to_the_front_of_the_stove")],
+    ("operator", "problem", "state"),
+    [
+        ("turn_on", "turn_on_the_stove", None),
+        ("push", "push_the_plate_to_the_front_of_the_stove", None),
+        ("open", "open_the_top_drawer_and_put_the_bowl_inside", "wooden_cabinet_1_top_region"),
+    ],
 )
-def test_each_operator_passes_libero_predicate_on_its_libero_goal_task(operator, problem):
-    """LIBERO-Goal's own problems, judged by LIBERO: the stove's knob turned on, the plate pushed in front of it."""
+def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, problem, state):
+    """LIBERO-Goal's own problems, judged by LIBERO: the problem's goal (the stove's knob turned on, the plate pushed
+    in front of it), or, for the first of two steps, LIBERO's predicate on the object's state (the drawer open)."""
     from bpp.envs.libero.demonstrator import demonstrate_operator
 
     env = make_env(problems_folder() / "libero_goal" / f"{problem}.bddl")
     try:
         demo = demonstrate_operator(env, operator, seed=0)
+        if state is None:
+            assert demo.success, problem
+        else:
+            assert env.env.object_states_dict[state].is_open() and not demo.success  # its second step is not done
     finally:
         env.close()
-    assert demo.success, problem
     assert demo.actions.shape[1] == 7 and np.abs(demo.actions).max() <= 1.0
     assert len(demo.states) == len(demo.actions)
-    with pytest.raises(ValueError, match="no operator 'open'; known: turn_on, push"):
-        demonstrate_operator(None, "open", seed=0)
+    with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open"):
+        demonstrate_operator(None, "fly", seed=0)
 
 
 def test_stored_states_render_the_same_frames_every_time(tmp_path):

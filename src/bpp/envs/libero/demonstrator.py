@@ -11,8 +11,8 @@ A bowl in the cabinet's open top drawer has the drawer's walls close around it: 
 its fingers close across the drawer's width (the roomier axis), half-closes, and then takes the rim on that axis.
 
 LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the others built so
-far, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on and
-pushing the plate. Opening the drawers is not built yet.
+far, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on,
+pushing the plate, and opening the top drawer. The middle drawer is not reachable yet.
 """
 
 from __future__ import annotations
@@ -237,7 +237,30 @@ def push(arm: Arm, rng: np.random.Generator, obj: str = "plate_1", region: str =
     arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], 1.0)
 
 
-OPERATORS = {"turn_on": turn_on, "push": push}
+def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabinet_1", drawer: str = "top"):
+    """Open a drawer of LIBERO-Goal's cabinet: the open hand comes down over the drawer's handle (a horizontal bar
+    2.7 cm in front of its face), closes on it (the fingers stop on it and hold it from above) and pulls the drawer
+    out along the way it slides (world +y) by 17-19 cm. LIBERO counts 14 cm out as open.
+
+    The top drawer only: from above, the fingers stop on the top handle before they reach the middle one, and a
+    horizontal hand hits the plate (docs/liberogen/README.md)."""
+    if drawer != "top":
+        raise ValueError(f"only the top drawer can be opened by the demonstrator so far, not {drawer!r}")
+    sim = arm.env.env.sim
+    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_g18")].copy()  # the top drawer's handle bar
+    grasp = handle + np.r_[rng.uniform(-0.02, 0.02), 0.0, 0.0]
+    across = np.array([0.0, 1.0])  # the fingers close across the bar
+    arm.go(grasp + [0.0, 0.0, rng.uniform(0.07, 0.1)], -1.0, across=across)
+    arm.go(grasp, -1.0, tol=0.004)
+    arm.hold(1.0, 12)
+    pull = rng.uniform(0.17, 0.19)
+    for k in range(1, 9):
+        arm.go(grasp + [0.0, pull * k / 8, 0.0], 1.0, tol=0.004, limit=15)
+    arm.hold(-1.0, 6)
+    arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.03, 0.08], -1.0)
+
+
+OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer}
 """Operators other than pick-and-place, by the BDDL predicate they make true (LIBERO-Goal's scene)."""
 
 
