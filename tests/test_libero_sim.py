@@ -84,22 +84,27 @@ def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_pla
         assert len(demo.states) == len(demo.actions) == len(demo.observations["robot0_eef_pos"])
 
 
+CHEESE, BOWL_1 = "cream_cheese_1", "akita_black_bowl_1"
+
+
 @pytest.mark.parametrize(
-    ("operator", "problem", "state"),
+    ("operator", "problem", "objects", "state"),
     [
-        ("turn_on", "turn_on_the_stove", None),
-        ("push", "push_the_plate_to_the_front_of_the_stove", None),
-        ("open", "open_the_top_drawer_and_put_the_bowl_inside", "wooden_cabinet_1_top_region"),
+        ("turn_on", "turn_on_the_stove", {}, None),
+        ("push", "push_the_plate_to_the_front_of_the_stove", {}, None),
+        ("open", "open_the_top_drawer_and_put_the_bowl_inside", {}, "wooden_cabinet_1_top_region"),
+        ("place", "put_the_cream_cheese_in_the_bowl", {"obj": CHEESE, "target": BOWL_1}, None),
+        ("place", "put_the_bowl_on_the_stove", {"obj": BOWL_1, "target": "flat_stove_1_cook_region"}, None),
     ],
 )
-def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, problem, state):
+def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, problem, objects, state):
     """LIBERO-Goal's own problems, judged by LIBERO: the problem's goal (the stove's knob turned on, the plate pushed
     in front of it), or, for the first of two steps, LIBERO's predicate on the object's state (the drawer open)."""
     from bpp.envs.libero.demonstrator import demonstrate_operator
 
     env = make_env(problems_folder() / "libero_goal" / f"{problem}.bddl")
     try:
-        demo = demonstrate_operator(env, operator, seed=0)
+        demo = demonstrate_operator(env, operator, seed=0, **objects)
         if state is None:
             assert demo.success, problem
         else:
@@ -108,7 +113,7 @@ def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, p
         env.close()
     assert demo.actions.shape[1] == 7 and np.abs(demo.actions).max() <= 1.0
     assert len(demo.states) == len(demo.actions)
-    with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open"):
+    with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open, place"):
         demonstrate_operator(None, "fly", seed=0)
 
 

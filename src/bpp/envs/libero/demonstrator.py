@@ -12,7 +12,8 @@ its fingers close across the drawer's width (the roomier axis), half-closes, and
 
 LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the others built so
 far, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on,
-pushing the plate, and opening the top drawer. The middle drawer is not reachable yet.
+pushing the plate, opening the top drawer, and placing the bowl, the cream cheese or the wine bottle on an object
+or a region. The middle drawer is not reachable yet, and the wine rack does not take a bottle put down upright.
 """
 
 from __future__ import annotations
@@ -260,7 +261,50 @@ def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabin
     arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.03, 0.08], -1.0)
 
 
-OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer}
+def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarray, np.ndarray]:
+    """Where the fingers take `obj`, relative to its origin, and the horizontal axis they close along: a bowl by
+    its rim (as in :func:`demonstrate`), anything else by its collision box (the cream cheese lying flat, the wine
+    bottle's body standing) at the box's centre, across its narrower side."""
+    if obj.startswith("akita_black_bowl"):
+        across = np.array([0.0, 1.0])
+        rim = rng.choice([-1.0, 1.0]) * arm.cfg.rim_offset * across + rng.normal(0.0, arm.cfg.jitter, 2)
+        return np.r_[rim, rng.uniform(*arm.cfg.grasp_height)], across
+    sim = arm.env.env.sim
+    body = sim.model.body_name2id(f"{obj}_main")
+    box = next(i for i in range(sim.model.ngeom) if sim.model.geom_bodyid[i] == body and sim.model.geom_type[i] == 6)
+    axes, half = sim.data.geom_xmat[box].reshape(3, 3), sim.model.geom_size[box]
+    horizontal = [k for k in range(3) if abs(axes[2, k]) < 0.5]  # the box's axes that lie flat
+    narrow = min(horizontal, key=lambda k: half[k])
+    across = axes[:2, narrow] / np.linalg.norm(axes[:2, narrow])
+    middle = sim.data.geom_xpos[box][2] - sim.data.body_xpos[body][2]  # the box's centre above the origin
+    return np.r_[rng.normal(0.0, 0.003, 2), middle + 0.008], across  # lower, the fingertips would meet the table
+
+
+def place_on(arm: Arm, rng: np.random.Generator, obj: str, target: str) -> None:
+    """Pick `obj` up and put it on `target` (an object, or a region's or a fixture's site): grasp, lift, carry
+    through a varied mid-air point, hold the object's origin (not the hand) 5 cm above the target, open fully, and
+    leave upwards (from lower, a box caught on a bowl's rim and the opening fingers carried both away)."""
+    sim = arm.env.env.sim
+    start = np.asarray(arm.obs[f"{obj}_pos"], dtype=float).copy()
+    offset, across = grasp_offset(arm, rng, obj)
+    carry = rng.uniform(*arm.cfg.carry_height)
+    arm.go(start + offset + [0.0, 0.0, 0.12], -1.0, across=across)
+    arm.go(start + offset, -1.0, tol=0.004, limit=40)
+    arm.hold(1.0, 15)
+    arm.go(start + offset + [0.0, 0.0, carry], 1.0)
+    held = arm.obs[f"{obj}_pos"] - arm.obs["robot0_eef_pos"]  # where the object hangs in the hand now
+    goal = arm.obs[f"{target}_pos"] if f"{target}_pos" in arm.obs else sim.data.get_site_xpos(target)
+    goal = np.asarray(goal, dtype=float) + np.r_[rng.normal(0.0, 0.004, 2), 0.05] - held
+    lift = max(carry, goal[2] - start[2] + 0.05)
+    arm.go((start + goal) / 2 + np.r_[rng.normal(0.0, 0.03, 2), lift], 1.0, tol=0.02)
+    arm.go(np.r_[goal[:2], start[2] + lift], 1.0)
+    arm.go(goal, 1.0, tol=0.004, limit=40)
+    arm.hold(-1.0, 15)
+    arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], -1.0)
+    arm.hold(-1.0, 5)
+
+
+OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer, "place": place_on}
 """Operators other than pick-and-place, by the BDDL predicate they make true (LIBERO-Goal's scene)."""
 
 
