@@ -4,6 +4,8 @@ import re
 from collections import Counter
 from pathlib import Path
 
+import pytest
+
 from bpp.envs.libero.suites import BOWL, combination, instruction_counts
 
 # The appendix's held-out tasks (pick, place key) with its counts: training tasks with the same pick and a
@@ -47,3 +49,61 @@ def test_every_task_is_one_of_nine_options_and_never_where_a_bowl_is():
     for task in (*combination().train, *combination().test):
         assert task.place not in (task.pick, task.other)
         assert task.place == BOWL or task.place_phrase.startswith(("on ", "next ", "between "))
+
+
+def _chain_tasks() -> list[tuple[str, str]]:
+    lines = (Path(__file__).parent / "data" / "liberogen_chain_tasks.txt").read_text().splitlines()
+    return [tuple(line.split("|")) for line in lines if line and not line.startswith("#")]
+
+
+def test_every_published_chain_task_reads_as_steps_with_goals():
+    from bpp.envs.libero.chain import parse_instruction
+    from bpp.envs.libero.demonstrator import OPERATORS
+
+    lengths = Counter()
+    for view, label in _chain_tasks():
+        steps = parse_instruction(label)
+        lengths[view, len(steps)] += 1
+        assert all(step.operator in OPERATORS for step in steps), label
+    assert lengths == {
+        ("libero_goal_chain_firststep_view", 1): 21,
+        ("libero_goal_chain_secondstep_view", 1): 146,
+        ("libero_goal_chain_selected_inverse_view", 2): 144,
+        ("libero_goal_chain_selected_view", 2): 10,
+    }
+
+
+def test_chain_steps_map_to_libero_goals():
+    from bpp.envs.libero.chain import goal_problem, parse_instruction
+
+    first, second = parse_instruction("open the middle drawer of the cabinet and put the cream cheese inside")
+    assert (first.operator, first.kwargs, first.goal) == (
+        "open",
+        {"drawer": "middle"},
+        "(Open wooden_cabinet_1_middle_region)",
+    )
+    assert second.goal == "(In cream_cheese_1 wooden_cabinet_1_middle_region)"
+    assert [s.goal for s in parse_instruction("put the wine bottle on the bowl region 4")] == [
+        "(On wine_bottle_1 main_table_akita_black_bowl_region)"
+    ]
+    assert parse_instruction("turn on the stove and then put the bowl on the stove")[1].kwargs == {
+        "obj": "akita_black_bowl_1",
+        "target": "flat_stove_1_cook_region",
+    }
+    base = "(define (problem P) (:domain robosuite) (:language old words) (:goal (And (On a b))))"
+    written = goal_problem("push the plate to the front of the stove and then put the bowl on the plate", base)
+    assert "(:language push the plate to the front of the stove and then put the bowl on the plate)" in " ".join(
+        written.split()
+    ).replace("( ", "(")
+    assert "(On plate_1 main_table_stove_front_region) (On akita_black_bowl_1 plate_1)" in " ".join(written.split())
+
+
+def test_chain_steps_that_make_no_sense_are_refused_by_name():
+    from bpp.envs.libero.chain import parse_instruction
+
+    with pytest.raises(ValueError, match="unknown place 'under the table'"):
+        parse_instruction("put the bowl under the table")
+    with pytest.raises(ValueError, match="needs a first step that opens a drawer"):
+        parse_instruction("put the bowl inside")
+    with pytest.raises(ValueError, match="not a LIBERO-Gen Chain step: 'juggle the plate'"):
+        parse_instruction("juggle the plate")
