@@ -70,7 +70,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     when steps are few (a CPU). The contexts are (by ``spec.context``)
 
     * ``demo``: ``{"obs": {k: (G, L, ...)}, "action": (G, L, A), "valid": (G, L)}``, the demonstrations
-      themselves, padded to the longest (``valid`` False past a demonstration's end);
+      themselves, padded to the longest (``valid`` False past a demonstration's end); with
+      ``spec.context_obs_stride`` k > 1 the observations are every k-th step's, (G, ceil(L / k), ...), and the
+      context says so (``"obs_stride": (G,)``);
     * ``goal_image``: ``{"image": (G, H, W, 3)}``, their final frames;
     * ``instruction``: ``{"text": [str] * G}``, the tasks' instructions.
 
