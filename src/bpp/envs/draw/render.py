@@ -29,15 +29,18 @@ CURSOR_RADIUS = 15.0
 CURSOR_OUTLINE_WIDTH = 2.0
 
 
+def centers(resolution: int) -> np.ndarray:
+    """(R,) canvas coordinate of each pixel row's (or column's) centre in a `resolution`-sized image."""
+    return (np.arange(resolution, dtype=np.float64) + 0.5) * (CANVAS_SIZE / resolution)
+
+
 def pixel_centers(resolution: int, rows: slice = slice(None), cols: slice = slice(None)):
     """Canvas coordinates of pixel centres of a `resolution`-sized image, restricted to rows x cols.
 
     Returns (x, y) arrays of shape (H, W).
     """
-    scale = CANVAS_SIZE / resolution
-    r = np.arange(resolution, dtype=np.float64)[rows]
-    c = np.arange(resolution, dtype=np.float64)[cols]
-    return np.meshgrid((c + 0.5) * scale, (r + 0.5) * scale)
+    coordinate = centers(resolution)
+    return np.meshgrid(coordinate[cols], coordinate[rows])
 
 
 def segment_distance(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -191,7 +194,7 @@ def _ink_entries(segments: np.ndarray, layer: np.ndarray, resolution: int):
     Returns (layer, flat pixel, coverage) of every covered pixel, sorted by layer then pixel.
     """
     pixel = CANVAS_SIZE / resolution
-    centers = (np.arange(resolution, dtype=np.float64) + 0.5) * pixel  # as pixel_centers
+    coordinate = centers(resolution)
     lo, width = _window_starts(
         np.minimum(segments[:, :2], segments[:, 2:]),
         np.maximum(segments[:, :2], segments[:, 2:]),
@@ -204,7 +207,7 @@ def _ink_entries(segments: np.ndarray, layer: np.ndarray, resolution: int):
     dx, dy = x1 - x0, y1 - y0
     length2 = dx * dx + dy * dy
     # segment_distance's float64 operations for all segments at once (in place where it saves a pass).
-    px, py = centers[cols] - x0, centers[rows] - y0
+    px, py = coordinate[cols] - x0, coordinate[rows] - y0
     long = length2 > 0.0
     t = px * dx + py * dy
     t /= np.where(long, length2, 1.0)
@@ -287,10 +290,10 @@ def render_frames(
     pixel = CANVAS_SIZE / resolution
     outer = CURSOR_RADIUS + CURSOR_OUTLINE_WIDTH
     lo, width = _window_starts(cursor, cursor, outer + pixel, resolution)
-    centers = (np.arange(resolution, dtype=np.float64) + 0.5) * pixel
+    coordinate = centers(resolution)
     cols = _windows(lo[:, 0], width, resolution)[:, None, :]
     rows = _windows(lo[:, 1], width, resolution)[:, :, None]
-    dist = np.hypot(centers[cols] - cursor[:, 0, None, None], centers[rows] - cursor[:, 1, None, None])
+    dist = np.hypot(coordinate[cols] - cursor[:, 0, None, None], coordinate[rows] - cursor[:, 1, None, None])
     index = (np.arange(k)[:, None, None], rows, cols)
     patch = frames[index].astype(np.float64)
     _blend(patch, coverage(dist, outer, pixel), CURSOR_OUTLINE_RGB)

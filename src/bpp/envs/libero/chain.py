@@ -58,12 +58,10 @@ class Step:
 
 def _put(obj: str, place: str, opened: str | None) -> Step:
     name = OBJECTS[obj]
-    if place == "inside":  # into the drawer the first step opened
-        if opened is None:
+    if place in ("inside", "in the top drawer"):  # "inside": the drawer the first step opened
+        region = DRAWER_REGIONS["top"] if place == "in the top drawer" else opened
+        if region is None:
             raise ValueError(f"'put the {obj} inside' needs a first step that opens a drawer")
-        return Step("place", (("obj", name), ("target", opened)), f"(In {name} {opened})")
-    if place == "in the top drawer":
-        region = DRAWER_REGIONS["top"]
         return Step("place", (("obj", name), ("target", region)), f"(In {name} {region})")
     if place not in PLACES:
         raise ValueError(f"unknown place {place!r} in 'put the {obj} {place}'; known: {', '.join(PLACES)}")
