@@ -1,12 +1,14 @@
 """How many of LIBERO-Gen Chain's tasks the scripted demonstrator can demonstrate, judged by LIBERO's predicates.
 
-    python bench/libero_chain_demos.py --view libero_goal_chain_firststep_view --seeds 2
-    python bench/libero_chain_demos.py --view libero_goal_chain_selected_view --seeds 2     # the 10 unseen chains
+    python bench/libero_chain_demos.py --view first_step --seeds 2
+    python bench/libero_chain_demos.py --view unseen_chains --seeds 2     # the 10 held-out chains
 
-Every task of a view of the published Chain list (tests/data/liberogen_chain_tasks.txt) is written as a LIBERO-Goal
-problem (its steps' goals as the goal), loaded in LIBERO, and demonstrated once per seed by the demonstrator's
-operators, step after step in one episode. A task's line shows each seed's result (or the error that stopped it);
-the last line the total. Needs the `libero` extra. Physics only (no rendering): about 10 s per demonstration here.
+Every task of a view of the Chain suite (`bpp.envs.libero.chain`: first_step, second_step, seen_chains,
+unseen_chains) is written as its LIBERO-Goal problem (a second-step task's start state in its ``:init``), loaded in
+LIBERO, and demonstrated once per seed by the demonstrator's operators, step after step in one episode. A task's
+line shows each seed's result (or the error that stopped it); the last line the total. Needs the `libero` extra.
+Physics only (no rendering): about 10 s per demonstration here. `bpp libero generate --preset chain-cpu` is the
+same per task, stored.
 """
 
 from __future__ import annotations
@@ -16,42 +18,41 @@ import tempfile
 import time
 from pathlib import Path
 
-from bpp.envs.libero.chain import goal_problem, parse_instruction
-from bpp.envs.libero.demonstrator import DemoConfig, demonstrate_steps
-from bpp.envs.libero.sim import make_env, problems_folder
-
-TASKS = Path(__file__).resolve().parents[1] / "tests" / "data" / "liberogen_chain_tasks.txt"
+from bpp.envs.libero.chain import VIEWS, chain
+from bpp.envs.libero.dataset import problem_text
+from bpp.envs.libero.demonstrator import DemoConfig, demonstrate_task
+from bpp.envs.libero.sim import make_env
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--view", default="libero_goal_chain_firststep_view")
+    parser.add_argument("--view", default="first_step", choices=sorted(VIEWS))
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--max-steps", type=int, default=1200, help="per demonstration (two steps need more)")
     args = parser.parse_args()
-    rows = [line.strip().split("|") for line in TASKS.read_text().splitlines() if line.startswith(args.view + "|")]
-    if not rows:
-        raise SystemExit(f"no tasks in view {args.view!r} ({TASKS})")
-    base = (problems_folder() / "libero_goal" / "turn_on_the_stove.bddl").read_text()  # the scene all ten share
+    suite = chain()
+    tasks = [t for t in (*suite.train, *suite.test) if t.view == args.view]
     cfg = DemoConfig(max_steps=args.max_steps)
     successes = 0
     with tempfile.TemporaryDirectory(prefix="libero-chain-") as folder:
-        for i, (_, label) in enumerate(rows):
-            steps = [(step.operator, step.kwargs) for step in parse_instruction(label)]
+        for i, task in enumerate(tasks):
             path = Path(folder) / f"task-{i:03d}.bddl"
-            path.write_text(goal_problem(label, base))
+            path.write_text(problem_text(task))
             t0 = time.perf_counter()
             env = make_env(path)
             results = []
             for seed in range(args.seeds):
                 try:
-                    results.append(demonstrate_steps(env, steps, seed, cfg).success)
+                    results.append(demonstrate_task(env, task, seed, cfg).success)
                 except ValueError as error:  # an operator the demonstrator does not have yet
                     results.append(f"not demonstrable: {error}")
             env.close()
             successes += sum(r is True for r in results)
-            print(f"{label}: {results} ({time.perf_counter() - t0:.0f} s)", flush=True)
-    print(f"{successes} of {len(rows) * args.seeds} demonstrations succeeded ({len(rows)} tasks x {args.seeds} seeds)")
+            start = f" (from: {task.start})" if task.start else ""
+            print(f"{task.label}{start}: {results} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    print(
+        f"{successes} of {len(tasks) * args.seeds} demonstrations succeeded ({len(tasks)} tasks x {args.seeds} seeds)"
+    )
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
 from draw_ablations import per_drawing
-from draw_cpu_benchmark import NAMES, train_run
+from draw_cpu_benchmark import NAMES, _per_method, train_run
 
 PAPER = {"goal_image": (59.1, 47.9), "language": (80.0, 69.9), "bpp": (88.4, 79.1)}
 """The paper's Combination success rates (%), training tasks / unseen tasks (cameras, GPUs, 3 seeds)."""
@@ -51,12 +51,16 @@ def run_method(method: str, seed: int, args) -> None:
     store = training_store(args)
     run = args.runs / f"{method}-s{seed}"
     model_cfg = get_method(method).config("cpu", "state", BENCHMARK)
-    seconds = train_run(method, "cpu", "state", store, run, args.steps, seed, tasks_per_batch=8, threads=1,
-                        model_cfg=model_cfg)  # fmt: skip
-    write_json_atomic(run / "train.json", {"train_s": seconds, "steps": args.steps})
+    steps, batch = args.method_steps[method], args.method_batch[method]
+    seconds = train_run(method, "cpu", "state", store, run, steps, seed, batch_size=batch, tasks_per_batch=8,
+                        threads=1, model_cfg=model_cfg)  # fmt: skip
+    write_json_atomic(run / "train.json", {"train_s": seconds, "steps": steps, "batch": batch})
     checkpoint = Checkpoint.load(run, use_ema=True)
-    protocol = Protocol(rollouts=args.rollouts, seed=seed)
-    for name, tasks, count in (("held-out", "held-out", 0), ("train", "train", args.train_tasks)):
+    for name, tasks, count, rollouts in (
+        ("held-out", "held-out", 0, args.rollouts),
+        ("train", "train", args.train_tasks, args.train_rollouts),
+    ):
+        protocol = Protocol(rollouts=rollouts, seed=seed)
         _, task_set, indices = resolve_tasks(tasks, checkpoint, data_dir=args.data_dir, num_tasks=count)
         evaluate(checkpoint, task_set, indices, args.out / f"{method}-s{seed}" / name, protocol, workers=1, videos=2)
 
@@ -76,25 +80,30 @@ def report(args) -> str:
             se = tasks.std(ddof=1) / np.sqrt(len(tasks)) if len(tasks) > 1 else 0.0
             cells.append(f"{x.mean():.1f} ± {se:.1f} ({len(tasks)} tasks)")
             chart.setdefault(f"{split} tasks", {})[NAMES[method]] = (float(x.mean()), float(se))
-        minutes = [
-            json.loads((args.runs / f"{method}-s{s}" / "train.json").read_text())["train_s"] / 60
+        trained = [
+            json.loads((args.runs / f"{method}-s{s}" / "train.json").read_text())
             for s in args.seeds
             if (args.runs / f"{method}-s{s}" / "train.json").is_file()
         ]
+        minutes = [t["train_s"] / 60 for t in trained]
+        budget = f"{trained[0]['steps']} x {trained[0].get('batch', 64)}" if trained else "-"
         paper = PAPER.get(method)
         rows.append(
             (
                 NAMES[method],
                 *cells,
                 f"{paper[0]} / {paper[1]}" if paper else "-",
+                budget,
                 f"{np.mean(minutes):.0f}" if minutes else "-",
             )
         )
-    header = ["method", "training tasks (%)", "held-out tasks (%)", "paper: train / unseen (%)", "train min"]
+    header = ["method", "training tasks (%)", "held-out tasks (%)", "paper: train / unseen (%)", "steps x batch",
+              "train min"]  # fmt: skip
     text = (
-        f"LIBERO-Gen Combination, `state` observations (not the paper's cameras), `cpu` size presets, {args.steps} "
-        f"steps with one thread, seeds {args.seeds}, {args.rollouts} rollouts per task (the paper: 50 x 3 seeds); "
-        "success rate (%), mean over tasks ± s.e. over tasks.\n\n" + markdown_table(header, rows)
+        f"LIBERO-Gen Combination, `state` observations (not the paper's cameras), `cpu` size presets trained with "
+        f"one thread, seeds {args.seeds}, {args.rollouts} rollouts per held-out task and {args.train_rollouts} per "
+        f"training task (the paper: 50 x 3 seeds); success rate (%), mean over tasks ± s.e. over tasks.\n\n"
+        + markdown_table(header, rows)
     )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "libero_cpu.md").write_text(text)
@@ -107,9 +116,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "language", "icrt"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--steps", type=int, default=6000)
-    parser.add_argument("--rollouts", type=int, default=10, help="rollouts per task")
+    parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=2000")
+    parser.add_argument("--default-steps", type=int, default=6000)
+    parser.add_argument(
+        "--batch",
+        nargs="*",
+        default=["icrt=16"],
+        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations)",
+    )
+    parser.add_argument("--rollouts", type=int, default=10, help="rollouts per held-out task")
     parser.add_argument("--train-tasks", type=int, default=10, help="training tasks evaluated (spread evenly)")
+    parser.add_argument("--train-rollouts", type=int, default=4, help="rollouts per training task evaluated")
     parser.add_argument("--lane", type=int, default=0)
     parser.add_argument("--lanes", type=int, default=1)
     parser.add_argument("--workers", type=int, default=0, help="generation processes (0: one per core)")
@@ -120,6 +137,8 @@ def main() -> None:
     parser.add_argument("--prepare-only", action="store_true")
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args()
+    args.method_steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
+    args.method_batch = {m: 64 for m in args.methods} | _per_method(args.batch)
     if args.report_only:
         print(report(args))
         return

@@ -61,6 +61,14 @@ def test_a_suite_is_written_as_problems_and_an_index(tmp_path, capsys):
     with pytest.raises(SystemExit, match="exists; pass --overwrite"):
         main(["libero", "tasks", "--out", str(out)])
 
+    chain = tmp_path / "chain"  # BDDL has no order: each step's operator and goal, in order, stand in the index
+    main(["libero", "tasks", "--suite", "chain", "--out", str(chain)])
+    assert "311 training tasks, 10 held out" in capsys.readouterr().out
+    index = json.loads((chain / "tasks.json").read_text())
+    assert len(list((chain / "problems").glob("*.bddl"))) == 321
+    assert [s["operator"] for s in index["test"][2]["steps"]] == ["push", "place"]
+    assert {t["start"] for t in index["train"] if t["view"] == "second_step"} >= {"open the top drawer"}
+
 
 def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_place_and_the_drawer(tmp_path):
     from bpp.envs.libero.demonstrator import demonstrate
@@ -115,6 +123,35 @@ def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, p
     assert len(demo.states) == len(demo.actions)
     with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open, place"):
         demonstrate_operator(None, "fly", seed=0)
+
+
+def test_chain_start_states_written_into_init_hold_in_libero_once_settled(tmp_path):
+    """Second-step tasks start from a first step's end state written into the problem's ``:init``. Four such effects
+    at once (the plate pushed, the drawer open, the stove on, the bowl on the cream cheese) hold by LIBERO's own
+    predicates after the demonstrator's settling steps; a demonstration whose start state does not hold is refused."""
+    from bpp.envs.libero.chain import ChainTask, parse_step
+    from bpp.envs.libero.demonstrator import demonstrate_steps
+    from bpp.envs.libero.sim import GOAL_BASE, holds, libero_problem
+
+    starts = [
+        "push the plate to the front of the stove",
+        "open the top drawer",
+        "turn on the stove",
+        "put the bowl on the cream cheese",
+    ]
+    text = libero_problem("libero_goal", GOAL_BASE)
+    for start in starts:
+        text = ChainTask(start, "first_step", start).problem(text)
+    path = tmp_path / "starts.bddl"
+    path.write_text(text)
+    env = make_env(path)
+    try:
+        demo = demonstrate_steps(env, [("turn_on", {})], seed=0, requires="(On wine_bottle_1 plate_1)")
+        assert [holds(env, parse_step(s).goal) for s in starts] == [True] * 4
+        assert not holds(env, "(On wine_bottle_1 plate_1)")
+    finally:
+        env.close()
+    assert not demo.success and len(demo.actions) == 0  # refused before any step
 
 
 def test_stored_states_render_the_same_frames_every_time(tmp_path):

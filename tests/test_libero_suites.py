@@ -52,7 +52,9 @@ def test_every_task_is_one_of_nine_options_and_never_where_a_bowl_is():
 
 
 def _chain_tasks() -> list[tuple[str, str]]:
-    lines = (Path(__file__).parent / "data" / "liberogen_chain_tasks.txt").read_text().splitlines()
+    from bpp.envs.libero.chain import TASK_LIST
+
+    lines = TASK_LIST.read_text().splitlines()
     return [tuple(line.split("|")) for line in lines if line and not line.startswith("#")]
 
 
@@ -107,3 +109,73 @@ def test_chain_steps_that_make_no_sense_are_refused_by_name():
         parse_instruction("put the bowl inside")
     with pytest.raises(ValueError, match="not a LIBERO-Gen Chain step: 'juggle the plate'"):
         parse_instruction("juggle the plate")
+
+
+# The appendix's held-out chains with its count: training chains with the same first step whose second step moves
+# the same object to another place.
+CHAIN_APPENDIX = {
+    "open the middle drawer of the cabinet and then put the cream cheese on the stove": 3,
+    "open the top drawer and then put the wine bottle on top of the cabinet": 5,
+    "push the plate to the front of the stove and then put the bowl on the plate": 3,
+    "put the bowl on the plate and then put the cream cheese in the bowl": 4,
+    "put the bowl on top of the cabinet and then put the cream cheese on the plate": 4,
+    "put the cream cheese on the plate and then put the bowl on the cream cheese": 4,
+    "put the cream cheese on top of the cabinet and then put the wine bottle in the bowl": 5,
+    "put the wine bottle in front of the stove and then put the bowl on the stove": 3,
+    "put the wine bottle on the rack and then put the bowl on top of the cabinet": 5,
+    "turn on the stove and then put the bowl on the stove": 4,
+}
+
+
+def test_chain_has_the_papers_size_held_out_chains_and_appendix_counts():
+    from bpp.envs.libero.chain import chain, chain_no_second_step
+
+    suite = chain()
+    assert (len(suite.train), len(suite.test)) == (311, 10)  # 321 = 10 LIBERO-Goal originals + 311 generated
+    assert Counter(t.view for t in suite.train) == {"first_step": 21, "second_step": 146, "seen_chains": 144}
+    assert {t.label: suite.similar_counts(t)["same_first_step_and_object"] for t in suite.test} == CHAIN_APPENDIX
+    held = {tuple(s.goal for s in t.steps) for t in suite.test}
+    assert not [t for t in suite.train if tuple(s.goal for s in t.steps) in held]
+    ablation = chain_no_second_step()
+    assert (len(ablation.train), ablation.test) == (165, suite.test)
+    assert not [t for t in ablation.train if t.view == "second_step"]
+    assert "push the plate to the front of the stove and then put the bowl on the plate" in suite.report()
+
+
+def test_each_second_step_starts_from_a_first_steps_end_state_that_allows_it():
+    from bpp.envs.libero.chain import _allows, chain, parse_step
+
+    suite = chain()
+    firsts = {t.label for t in suite.train if t.view == "first_step"}
+    second = [t for t in suite.train if t.view == "second_step"]
+    assert all(t.start is None for t in suite.train if t.view != "second_step")
+    assert all(t.start in firsts and _allows(parse_step(t.start), t.steps[0]) for t in second)
+    # The rule behind the suffixes: an instruction's largest suffix is one more than the first steps allowing it.
+    for instruction in {t.instruction for t in second} - {"put the wine bottle in the top drawer"}:
+        largest = max(int(t.label.rsplit(" ", 1)[1]) for t in second if t.instruction == instruction)
+        allowing = [f for f in firsts - {"open the middle drawer of the cabinet", "put the wine bottle on the rack"}
+                    if _allows(parse_step(f), parse_step(instruction))]  # fmt: skip
+        assert len(allowing) == largest - 1, instruction
+    # No second step moves what the first step moved, or lifts the bowl with something in it.
+    assert not [t for t in second if parse_step(t.start).kwargs.get("obj") == t.steps[0].kwargs["obj"]]
+    assert not [t for t in second if t.start.startswith("put the cream cheese in the bowl") and "bowl" in t.label[:12]]
+
+
+def test_a_second_step_task_writes_its_start_state_into_the_problem():
+    from bpp.envs.libero.bddl import parse, section
+    from bpp.envs.libero.chain import ChainTask
+
+    base = """(define (problem P) (:domain robosuite) (:language x)
+      (:init (On wine_bottle_1 main_table_wine_bottle_region)
+        (On akita_black_bowl_1 main_table_akita_black_bowl_region) (On plate_1 main_table_plate_region))
+      (:goal (And (On a b))))"""
+    init = section(parse(ChainTask("put the bowl on the stove 2", "second_step", "open the top drawer").problem(base)),
+                   ":init")  # fmt: skip
+    assert ["Open", "wooden_cabinet_1_top_region"] in init and len(init) == 5
+    moved = ChainTask("put the bowl on the plate 4", "second_step", "put the wine bottle in the bowl").problem(base)
+    init = section(parse(moved), ":init")
+    assert ["On", "wine_bottle_1", "akita_black_bowl_1"] in init
+    assert ["On", "wine_bottle_1", "main_table_wine_bottle_region"] not in init and len(init) == 4
+    assert section(parse(moved), ":goal") == [":goal", ["And", ["On", "akita_black_bowl_1", "plate_1"]]]
+    pushed = ChainTask("put the bowl on the stove 3", "second_step", "push the plate to the front of the stove")
+    assert ["On", "plate_1", "main_table_stove_front_region"] in section(parse(pushed.problem(base)), ":init")

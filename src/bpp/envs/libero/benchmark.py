@@ -42,7 +42,10 @@ class LiberoGen:
 
     name = dataset.BENCHMARK
     command = "libero"
-    description = "LIBERO-Gen: pick-and-place tasks in LIBERO from one demonstration (success by LIBERO's predicates)"
+    description = (
+        "LIBERO-Gen: pick-and-place tasks (Combination) and two-step chains (Chain) in LIBERO from one demonstration "
+        "(success by LIBERO's predicates)"
+    )
     data_config = dataset.LiberoDataConfig
     data_presets = dataset.PRESETS
     default_data_dir = Path("data/libero")
@@ -57,6 +60,7 @@ class LiberoGen:
     """The authors' step limit (ANCHORS.md)."""
     task_sets = {
         "held-out": "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
+        "chain-held-out": "the Chain suite's 10 unseen chains x 5 demonstrations (generated on first use)",
         "libero-spatial": "LIBERO-Spatial's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
     }
 
@@ -100,7 +104,8 @@ class LiberoGen:
         if store is None:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
             store = dataset.generate(cfg, path, overwrite=True)
-        return TaskSet(store, {"held-out": "held-out Combination tasks"}.get(name, "LIBERO-Spatial's own tasks"))
+        descriptions = {"held-out": "held-out Combination tasks", "chain-held-out": "unseen Chain chains"}
+        return TaskSet(store, descriptions.get(name, "LIBERO-Spatial's own tasks"))
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
         raise ValueError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")

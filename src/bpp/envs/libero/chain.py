@@ -7,13 +7,23 @@ the plate", "open the middle drawer of the cabinet and put the cream cheese insi
 may end in a repeat number ("put the bowl on the stove 3"), which names no state (docs/liberogen/chain-analysis.md)
 and is dropped here. How the phrases map to BDDL follows LIBERO-Goal's own goals (the same document).
 
-The suite itself (which tasks, their initial states and splits) is not built yet; this is its vocabulary.
+**The suite** (:func:`chain`) is the authors' published task list (``chain_tasks.txt``: 21 first steps, 146
+second steps, 144 seen chains and 10 unseen chains, 321 tasks), since no rule we know selects exactly its chains.
+First steps and chains start from LIBERO-Goal's initial state. A second-step task starts from the end state of a
+first step, written into its BDDL's ``:init``; which one is inferred (:func:`second_step_starts`): the suffix
+counts an instruction's repeats over the 19 first steps whose end states allow it, taken in alphabetical order.
+That rule reproduces every instruction's count of published suffixes exactly, but the order is a guess that
+agrees with 9 of the appendix's 10 "present / not present" notes. The ablation view without second steps is
+:func:`chain_no_second_step`.
 """
 
 from __future__ import annotations
 
 import re
+from collections import Counter
 from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
 
 OBJECTS = {
     "bowl": "akita_black_bowl_1",
@@ -87,10 +97,14 @@ def parse_step(text: str, opened: str | None = None) -> Step:
     raise ValueError(f"not a LIBERO-Gen Chain step: {text!r}")
 
 
+def _split(text: str) -> list[str]:
+    """An instruction's words per step."""
+    return re.split(r" and (?:then )?(?=put |open |push |turn )", text, maxsplit=1)
+
+
 def parse_instruction(text: str) -> list[Step]:
     """A Chain task's label -> its one or two steps, in order (a trailing repeat number is dropped)."""
-    text = re.sub(r" \d+$", "", text.strip())
-    parts = re.split(r" and (?:then )?(?=put |open |push |turn )", text, maxsplit=1)
+    parts = _split(re.sub(r" \d+$", "", text.strip()))
     steps = [parse_step(parts[0])]
     if len(parts) == 2:
         drawer = steps[0].kwargs.get("drawer")
@@ -109,3 +123,189 @@ def goal_problem(instruction: str, base_text: str) -> str:
     set_section(problem, ":language", re.sub(r" \d+$", "", instruction).split())
     set_section(problem, ":goal", [["And", *goals]])
     return dumps(problem)
+
+
+# ----------------------------------------------------------------------------------------------- the suite
+VIEWS = {
+    "first_step": "libero_goal_chain_firststep_view",
+    "second_step": "libero_goal_chain_secondstep_view",
+    "seen_chains": "libero_goal_chain_selected_inverse_view",
+    "unseen_chains": "libero_goal_chain_selected_view",
+}
+"""The suite's views (our names -> the authors' split keys). The unseen chains are held out; the rest train."""
+TASK_LIST = Path(__file__).with_name("chain_tasks.txt")
+"""The published task list, ``<split key>|<label>`` per line, from the authors' website manifest."""
+
+
+@dataclass(frozen=True)
+class ChainTask:
+    """One Chain task: its published ``label``, its ``view`` (a key of :data:`VIEWS`) and, for a second-step task,
+    ``start``: the first step whose end state it starts from (None: LIBERO-Goal's initial state)."""
+
+    label: str
+    view: str
+    start: str | None = None
+
+    @property
+    def instruction(self) -> str:
+        return re.sub(r" \d+$", "", self.label)
+
+    @property
+    def steps(self) -> list[Step]:
+        return parse_instruction(self.label)
+
+    @property
+    def name(self) -> str:
+        """A file- and id-safe name: the label (with its repeat number) in dashes."""
+        return re.sub(r"[^a-z0-9]+", "-", self.label.lower()).strip("-")
+
+    @property
+    def code(self) -> str:
+        return self.label
+
+    @property
+    def families(self) -> tuple[str, ...]:
+        """What a generation report counts tries and successes by: the view and each step's operator + object."""
+        return (f"view {self.view}", *(f"step {_step_key(s)}" for s in self.steps))
+
+    def describe(self) -> dict:
+        return {
+            "instruction": self.instruction,
+            "label": self.label,
+            "view": self.view,
+            "start": self.start,
+            "steps": [{"operator": s.operator, **s.kwargs, "goal": s.goal} for s in self.steps],
+        }
+
+    def problem(self, base_text: str) -> str:
+        """Its BDDL problem, from a LIBERO-Goal problem (any: they share scene and initial state): the steps' goals,
+        and for a second-step task the first step's effect in ``:init``."""
+        from bpp.envs.libero.bddl import BDDLError, dumps, parse, section, set_section
+
+        problem = parse(goal_problem(self.label, base_text))
+        if self.start is None:
+            return dumps(problem)
+        first = parse_step(self.start)
+        init = section(problem, ":init")[1:]
+        if first.operator in ("turn_on", "open"):
+            init.append(first.goal.strip("()").split())
+        else:  # an object moved: its placement is the step's goal
+            moved = first.goal.strip("()").split()
+            kept = [p for p in init if not (isinstance(p, list) and len(p) == 3 and p[1] == moved[1])]
+            if len(kept) != len(init) - 1:
+                raise BDDLError(f"expected one initial placement of {moved[1]} in (:init ...)")
+            init = [moved, *kept]
+        set_section(problem, ":init", init)
+        return dumps(problem)
+
+
+def _step_key(step: Step) -> str:
+    kw = step.kwargs
+    return " ".join([step.operator, *(v for k, v in step.arguments if k in ("obj", "drawer"))]) if kw else step.operator
+
+
+@cache
+def published_tasks() -> tuple[tuple[str, str], ...]:
+    """(view, label) of the 321 published tasks, in the manifest's order."""
+    by_key = {key: view for view, key in VIEWS.items()}
+    rows = []
+    for line in TASK_LIST.read_text().splitlines():
+        if line.strip() and not line.startswith("#"):
+            key, label = line.split("|", 1)
+            rows.append((by_key[key], label))
+    return tuple(rows)
+
+
+def _allows(state: Step, goal: Step) -> bool:
+    """Whether second step `goal` can follow first step `state` (the inferred rule; chain-analysis.md): it moves
+    another object than the first step did, to a place the first step did not fill, and it neither lifts the bowl
+    with something in it nor the cream cheese with something on it."""
+    moved = state.kwargs.get("obj", "plate_1" if state.operator == "push" else None)
+    filled = state.goal.strip("()").split()[-1] if moved else None
+    obj, target = goal.kwargs["obj"], goal.kwargs["target"]
+    holding = {"akita_black_bowl_1", "cream_cheese_1"}
+    return obj != moved and target != filled and not (moved and filled in holding and obj == filled)
+
+
+@cache
+def second_step_starts() -> dict[str, str]:
+    """Second-step label -> the first step whose end state it starts from. An instruction's k-th published repeat
+    (suffix k >= 2) starts from the (k-1)-th first step, in alphabetical order, whose end state allows it;
+    "put the wine bottle in the top drawer" starts from the open top drawer. The first steps are the 21 except
+    opening the middle drawer and the wine bottle on the rack (no second step starts there in the appendix)."""
+    firsts = sorted(label for view, label in published_tasks() if view == "first_step")
+    states = [
+        f for f in firsts if f not in ("open the middle drawer of the cabinet", "put the wine bottle on the rack")
+    ]
+    starts = {}
+    for view, label in published_tasks():
+        if view != "second_step":
+            continue
+        match = re.fullmatch(r"(.+?) (\d+)", label)
+        if match is None:
+            if label != "put the wine bottle in the top drawer":
+                raise ValueError(f"second-step task {label!r} has no repeat number")
+            starts[label] = "open the top drawer"
+            continue
+        goal = parse_step(match.group(1))
+        allowed = [s for s in states if _allows(parse_step(s), goal)]
+        k = int(match.group(2))
+        if not 2 <= k <= len(allowed) + 1:
+            raise ValueError(f"{label!r}: only {len(allowed)} first steps allow it")
+        starts[label] = allowed[k - 2]
+    return starts
+
+
+@dataclass(frozen=True)
+class ChainSuite:
+    name: str
+    train: tuple[ChainTask, ...]
+    test: tuple[ChainTask, ...]
+    original: bool = False
+
+    def similar_counts(self, task: ChainTask) -> dict:
+        """The appendix's count for a held-out chain: training chains with its first step that move the same object
+        in their second step, to another place; and whether its second step is a training task from its first
+        step's end state."""
+        first, second = task.steps
+        chains = [t.steps for t in self.train if t.view == "seen_chains"]
+        same = sum(s[0] == first and s[1].kwargs["obj"] == second.kwargs["obj"] and s[1] != second for s in chains)
+        first_text = _split(task.label)[0]
+        single = any(t.view == "second_step" and t.start == first_text and t.steps == [second] for t in self.train)
+        return {"same_first_step_and_object": same, "second_step_from_that_state": single}
+
+    def report(self) -> str:
+        views = Counter(t.view for t in (*self.train, *self.test))
+        lines = [
+            f"{self.name}: {len(self.train)} training tasks, {len(self.test)} held out ("
+            + ", ".join(f"{views[v]} {v.replace('_', ' ')}" for v in VIEWS if views[v])
+            + ")"
+        ]
+        for task in self.test:
+            counts = self.similar_counts(task)
+            first, second = task.steps
+            lines.append(f"unseen: {task.label}")
+            lines.append(
+                f"  training: same first step, same second-step object ({second.kwargs['obj']}), another place "
+                f"[{counts['same_first_step_and_object']} tasks]"
+            )
+            lines.append(
+                "  training: its second step from its first step's end state "
+                f"[{'present' if counts['second_step_from_that_state'] else 'not present'}]"
+            )
+        return "\n".join(lines)
+
+
+def chain(views: tuple[str, ...] = ("first_step", "second_step", "seen_chains")) -> ChainSuite:
+    """LIBERO-Gen Chain: the 10 unseen chains held out; training on `views` (all three: 311 tasks)."""
+    starts = second_step_starts()
+    tasks = [ChainTask(label, view, starts.get(label)) for view, label in published_tasks()]
+    name = "chain" if len(views) == 3 else "chain_no_second_step"
+    return ChainSuite(
+        name, tuple(t for t in tasks if t.view in views), tuple(t for t in tasks if t.view == "unseen_chains")
+    )
+
+
+def chain_no_second_step() -> ChainSuite:
+    """The ablation view: Chain without its 146 second-step tasks (165 training tasks, the same 10 held out)."""
+    return chain(("first_step", "seen_chains"))

@@ -15,11 +15,12 @@ from bpp.utils import check_fields
 class LiberoTasks:
     """Print a LIBERO-Gen suite's split and, with --out, write its tasks as BDDL problems + tasks.json.
 
-    Each held-out task is listed with how many training tasks share its pick and its place (the paper's appendix
-    lists these counts)."""
+    Each held-out task is listed with the counts the paper's appendix lists (Combination: training tasks sharing its
+    pick, its place; Chain: training chains sharing its first step and second-step object)."""
 
     suite: str = "combination"
-    """combination (LIBERO-Gen) or libero_spatial (LIBERO-Spatial's own 10 tasks)."""
+    """combination or chain (LIBERO-Gen), chain_no_second_step (the ablation's view), or libero_spatial
+    (LIBERO-Spatial's own 10 tasks)."""
     out: Path | None = None
     """Folder to write (default: only print the report)."""
     overwrite: bool = False

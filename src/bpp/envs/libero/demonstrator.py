@@ -25,6 +25,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bpp.envs.libero.bddl import BOWLS, LOCATION_TARGETS
+from bpp.envs.libero.chain import parse_step
+from bpp.envs.libero.sim import holds
 from bpp.envs.libero.suites import BOWL, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
@@ -321,20 +323,34 @@ OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer, "place": pla
 """Operators other than pick-and-place, by the BDDL predicate they make true (LIBERO-Goal's scene)."""
 
 
+def demonstrate_task(env, task, seed: int, cfg: DemoConfig = DemoConfig()) -> Demonstration:
+    """Reset `env` (made from `task`'s problem) with `seed` and demonstrate a Combination task
+    (:class:`~bpp.envs.libero.suites.PickPlace`) or a Chain task (:class:`~bpp.envs.libero.chain.ChainTask`: its
+    steps, from the state its problem starts in)."""
+    if isinstance(task, PickPlace):
+        return demonstrate(env, task, seed, cfg)
+    requires = parse_step(task.start).goal if task.start else None
+    return demonstrate_steps(env, [(step.operator, step.kwargs) for step in task.steps], seed, cfg, requires)
+
+
 def demonstrate_operator(env, operator: str, seed: int, cfg: DemoConfig = DemoConfig(), **kw) -> Demonstration:
     """Reset `env` with `seed` and run one operator of :data:`OPERATORS` (keyword arguments name its objects)."""
     return demonstrate_steps(env, [(operator, kw)], seed, cfg)
 
 
-def demonstrate_steps(env, steps, seed: int, cfg: DemoConfig = DemoConfig()) -> Demonstration:
+def demonstrate_steps(env, steps, seed: int, cfg: DemoConfig = DemoConfig(), requires: str | None = None):
     """Reset `env` with `seed` and run `steps`, ``[(operator, {argument: value})]``, one after the other in one
-    episode (a Chain task's two steps); LIBERO's predicate judges the end."""
+    episode (a Chain task's two steps); LIBERO's predicate judges the end. With `requires`, a BDDL predicate that
+    must hold once the scene has settled (a second-step task's start state), a reset where it does not is an
+    unsuccessful demonstration with no steps."""
     for operator, _ in steps:
         if operator not in OPERATORS:
             raise ValueError(f"no operator {operator!r}; known: {', '.join(OPERATORS)}")
     # Held upright only across several steps, where the drift adds up: on single steps it helped the plate push (4 of
     # 4 seeds against 5 of 6) but knocked the wine bottle over (0 of 3 against 2 of 3).
     arm = Arm.start(env, seed, cfg, upright=len(steps) > 1)
+    if requires is not None and not holds(env, requires):
+        return Demonstration(np.zeros((0, 7)))
     rng = np.random.default_rng(seed)
     with contextlib.suppress(_OutOfSteps):  # a demonstration that ran out of steps is judged as it stands
         for operator, kw in steps:

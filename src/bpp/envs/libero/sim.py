@@ -60,12 +60,21 @@ def problems_folder() -> Path:
     return Path(_libero().get_libero_path("bddl_files"))
 
 
+def libero_problem(suite: str, name: str) -> str:
+    """The text of LIBERO's problem `name` (a file stem) of its suite `suite` (e.g. ``libero_goal``)."""
+    path = problems_folder() / suite / f"{name}.bddl"
+    if not path.is_file():
+        raise ValueError(f"no {suite} problem {name!r} in {path.parent}")
+    return path.read_text()
+
+
 def spatial_problem(name: str) -> str:
     """The text of LIBERO-Spatial problem `name` (a file stem, e.g. a Combination scene's ``base``)."""
-    path = problems_folder() / "libero_spatial" / f"{name}.bddl"
-    if not path.is_file():
-        raise ValueError(f"no LIBERO-Spatial problem {name!r} in {path.parent}")
-    return path.read_text()
+    return libero_problem("libero_spatial", name)
+
+
+GOAL_BASE = "turn_on_the_stove"
+"""The LIBERO-Goal problem Chain tasks are written from (the ten share one scene and initial state)."""
 
 
 CAMERAS = {"agentview": "agentview", "eye_in_hand": "robot0_eye_in_hand"}
@@ -118,6 +127,13 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
             ) from None
         raise
+
+
+def holds(env, predicate: str) -> bool:
+    """Whether the BDDL predicate `predicate` (e.g. ``(On plate_1 main_table_stove_front_region)``, ``(Turnon
+    flat_stove_1)``) holds in `env` now, by LIBERO's own predicate functions."""
+    name, *args = predicate.strip("()").split()
+    return bool(env.env._eval_predicate([name.lower(), *args]))
 
 
 def render_now(env, camera: str = "agentview", size: int = 128):

@@ -21,6 +21,8 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
+from bpp.envs.libero.chain import chain, chain_no_second_step
+
 PICK_PHRASES = {
     "BPR": "between the plate and the ramekin",
     "TC": "from table center",
@@ -114,6 +116,11 @@ class PickPlace:
         return f"{self.scene.name}-{self.pick}-{self.place}".lower()
 
     @property
+    def families(self) -> tuple[str, ...]:
+        """What a generation report counts tries and successes by."""
+        return f"pick {self.pick}", f"place {self.place}"
+
+    @property
     def code(self) -> tuple[str, str, str]:
         """(scene name, pick, place): unique within a suite."""
         return self.scene.name, self.pick, self.place
@@ -134,6 +141,9 @@ class Suite:
         same_pick = {t.place_key for t in self.train if t.pick == task.pick and t.place_key != task.place_key}
         same_place = {t.pick for t in self.train if t.place_key == task.place_key and t.pick != task.pick}
         return len(same_pick), len(same_place)
+
+    def similar_counts(self, task: PickPlace) -> dict:
+        return dict(zip(("same_pick", "same_place"), self.similar(task), strict=True))
 
     def report(self) -> str:
         """Each held-out task with its counts, as the appendix lists them."""
@@ -224,5 +234,10 @@ def libero_spatial() -> Suite:
     return Suite("libero_spatial", tuple(PickPlace(s, 1, "PL") for s in scenes), (), original=True)
 
 
-SUITES_BY_NAME = {"combination": combination, "libero_spatial": libero_spatial}
-"""LIBERO-Gen's suites, and LIBERO's own suites that bpp can demonstrate, by name (the Chain suite is to come)."""
+SUITES_BY_NAME = {
+    "combination": combination,
+    "chain": chain,
+    "chain_no_second_step": chain_no_second_step,
+    "libero_spatial": libero_spatial,
+}
+"""LIBERO-Gen's suites, the Chain ablation's view, and LIBERO's own suites that bpp can demonstrate, by name."""

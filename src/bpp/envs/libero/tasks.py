@@ -2,8 +2,8 @@
 
     bpp libero tasks --suite combination --out data/libero/combination
 
-It prints each held-out task with the number of training tasks that share its pick and its place: the counts the
-paper's appendix lists.
+It prints each held-out task with the counts the paper's appendix lists: for Combination, the training tasks that
+share its pick and its place; for Chain, the training chains that share its first step and second-step object.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False) -> Path:
             (tmp / "problems" / f"{name}.bddl").write_text(problem_text(task, suite.original))
             entry = {"id": name, **task.describe(), "problem": f"problems/{name}.bddl"}
             if split == "test":
-                entry["similar"] = dict(zip(("same_pick", "same_place"), suite.similar(task), strict=True))
+                entry["similar"] = suite.similar_counts(task)
             index[split].append(entry)
     (tmp / "tasks.json").write_text(json.dumps(index, indent=1))
     if out.exists():
