@@ -117,9 +117,12 @@ def test_bad_input_is_refused_with_a_clear_message(store, debug_store, tmp_path,
     with pytest.raises(SystemExit, match="not libero_gen"):
         main(["libero", "video", str(debug_store.path), "--out", str(tmp_path / "v.gif")])
     with pytest.raises(SystemExit):
-        main(["libero", "tasks", "--suite", "chains"])
+        main(["libero", "tasks", "--suite", "chainz"])
     err = " ".join(capsys.readouterr().err.replace("│", " ").split())  # tyro wraps its message in a box
-    assert "suite must be one of combination, libero_spatial, got 'chains'" in err
+    assert (
+        "suite must be one of combination, chain, chain_no_second_step, libero_spatial, libero_goal, got 'chainz'"
+        in err
+    )
     assert not (tmp_path / "x.zarr").exists()
 
 

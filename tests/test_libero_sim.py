@@ -209,3 +209,17 @@ def test_a_missing_renderer_is_named_with_its_package(monkeypatch):
     monkeypatch.setenv("MUJOCO_GL", "vulkan")
     with pytest.raises(sim.LiberoUnavailable, match="not a renderer; use one of egl, osmesa, glfw"):
         sim._check_renderer()
+
+
+def test_libero_goal_is_libero_own_ten_problems_with_their_initial_states():
+    from bpp.envs.libero.dataset import problem_text
+    from bpp.envs.libero.sim import initial_states
+    from bpp.envs.libero.suites import SUITES_BY_NAME
+
+    suite = SUITES_BY_NAME["libero_goal"]()
+    assert suite.original and len(suite.train) == 10 and not suite.test
+    for task in suite.train:
+        folder, name = task.libero_source
+        assert problem_text(task, original=True) == (problems_folder() / folder / f"{name}.bddl").read_text()
+        assert initial_states(f"{folder}/{name}.pruned_init").shape[0] == 50
+        assert task.steps  # each reads as the demonstrator's operators

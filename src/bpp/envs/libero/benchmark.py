@@ -62,6 +62,7 @@ class LiberoGen:
         "held-out": "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
         "chain-held-out": "the Chain suite's 10 unseen chains x 5 demonstrations (generated on first use)",
         "libero-spatial": "LIBERO-Spatial's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
+        "libero-goal": "LIBERO-Goal's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
     }
 
     def default_observation(self, size: str) -> str:
@@ -104,8 +105,13 @@ class LiberoGen:
         if store is None:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
             store = dataset.generate(cfg, path, overwrite=True)
-        descriptions = {"held-out": "held-out Combination tasks", "chain-held-out": "unseen Chain chains"}
-        return TaskSet(store, descriptions.get(name, "LIBERO-Spatial's own tasks"))
+        descriptions = {
+            "held-out": "held-out Combination tasks",
+            "chain-held-out": "unseen Chain chains",
+            "libero-spatial": "LIBERO-Spatial's own tasks",
+            "libero-goal": "LIBERO-Goal's own tasks",
+        }
+        return TaskSet(store, descriptions[name])
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
         raise ValueError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")

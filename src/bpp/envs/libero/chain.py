@@ -164,6 +164,11 @@ class ChainTask:
         return self.label
 
     @property
+    def libero_source(self) -> tuple[str, str]:
+        """(LIBERO suite folder, problem name) of the LIBERO-Goal problem with this instruction (its original tasks)."""
+        return "libero_goal", self.instruction.replace(" ", "_")
+
+    @property
     def families(self) -> tuple[str, ...]:
         """What a generation report counts tries and successes by: the view and each step's operator + object."""
         return (f"view {self.view}", *(f"step {_step_key(s)}" for s in self.steps))
@@ -304,6 +309,27 @@ def chain(views: tuple[str, ...] = ("first_step", "second_step", "seen_chains"))
     return ChainSuite(
         name, tuple(t for t in tasks if t.view in views), tuple(t for t in tasks if t.view == "unseen_chains")
     )
+
+
+LIBERO_GOAL = (
+    "open the middle drawer of the cabinet",
+    "open the top drawer and put the bowl inside",
+    "push the plate to the front of the stove",
+    "put the bowl on the plate",
+    "put the bowl on the stove",
+    "put the bowl on top of the cabinet",
+    "put the cream cheese in the bowl",
+    "put the wine bottle on the rack",
+    "put the wine bottle on top of the cabinet",
+    "turn on the stove",
+)
+"""LIBERO-Goal's own 10 tasks (LIBERO's file names, in words): 9 of Chain's first steps and one of its seen chains."""
+
+
+def libero_goal() -> ChainSuite:
+    """LIBERO-Goal's own 10 tasks as LIBERO ships them: its problems verbatim, rollouts from its initial states."""
+    views = {label: view for view, label in published_tasks()}
+    return ChainSuite("libero_goal", tuple(ChainTask(t, views[t]) for t in LIBERO_GOAL), (), original=True)
 
 
 def chain_no_second_step() -> ChainSuite:

@@ -49,7 +49,7 @@ class LiberoDataConfig:
 
     suite: str = "combination"
     """combination or chain (LIBERO-Gen), chain_no_second_step (Chain without its second-step tasks), or
-    libero_spatial (LIBERO-Spatial's own 10 tasks, evaluated from LIBERO's initial states)."""
+    libero_spatial / libero_goal (LIBERO's own 10 tasks of that suite, evaluated from LIBERO's initial states)."""
     split: Literal["train", "test"] = "train"
     """train: the suite's training tasks; test: its held-out tasks."""
     num_tasks: int = 0
@@ -110,6 +110,7 @@ PRESETS: dict[str, LiberoDataConfig] = {
     "cpu": LiberoDataConfig(demos_per_task=3),
     "held-out": LiberoDataConfig(split="test", demos_per_task=5),
     "libero-spatial": LiberoDataConfig(suite="libero_spatial", demos_per_task=5),
+    "libero-goal": LiberoDataConfig(suite="libero_goal", demos_per_task=5, demo=DemoConfig(max_steps=1200)),
     "paper": LiberoDataConfig(demos_per_task=50, cameras=tuple(CAMERAS)),
     "debug": LiberoDataConfig(task_indices=(0,), demos_per_task=2, goal_size=32),
     "chain-cpu": LiberoDataConfig(suite="chain", demos_per_task=3, demo=DemoConfig(max_steps=1200)),
@@ -117,10 +118,10 @@ PRESETS: dict[str, LiberoDataConfig] = {
 }
 """``cpu``: every Combination training task x 3 demonstrations, state only (about an hour on 2 cores);
 ``held-out``: the 10 held-out tasks x 5 (evaluation prompts); ``paper``: 50 per task with both cameras (LIBERO's
-own count per task; the paper does not state LIBERO-Gen's); ``libero-spatial``: LIBERO-Spatial's own 10 tasks x 5
-(prompts for evaluating on LIBERO's suite from its initial states); ``debug``: one task x 2, for tests;
-``chain-cpu`` and ``chain-held-out``: the same two for the Chain suite (up to 1200 steps per demonstration: a
-chain is two operators in one episode, and the scripted push alone takes about 550)."""
+own count per task; the paper does not state LIBERO-Gen's); ``libero-spatial`` and ``libero-goal``: that LIBERO
+suite's own 10 tasks x 5 (prompts for evaluating on it from LIBERO's initial states); ``debug``: one task x 2, for
+tests; ``chain-cpu`` and ``chain-held-out``: ``cpu`` and ``held-out`` for the Chain suite (up to 1200 steps per
+demonstration: a chain is two operators in one episode, and the scripted push alone takes about 550)."""
 
 
 def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:
@@ -132,10 +133,11 @@ def problem_text(task: PickPlace | ChainTask, original: bool = False) -> str:
     from bpp.envs.libero.bddl import combination_problem
     from bpp.envs.libero.sim import GOAL_BASE, libero_problem, spatial_problem
 
+    if original:
+        return libero_problem(*task.libero_source)
     if isinstance(task, ChainTask):
         return task.problem(libero_problem("libero_goal", GOAL_BASE))
-    base = spatial_problem(task.scene.base)
-    return base if original else combination_problem(task, base)
+    return combination_problem(task, spatial_problem(task.scene.base))
 
 
 # ----------------------------------------------------------------------------------------------- workers
@@ -288,7 +290,7 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
             info = {k: v for k, v in task.describe().items() if k != "instruction"}
             info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, original))
             if original:  # rollouts start from LIBERO's own initial states of the task
-                info["initial_states"] = f"{cfg.suite}/{task.scene.base}.pruned_init"
+                info["initial_states"] = "{}/{}.pruned_init".format(*task.libero_source)
             task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
             for episode in episodes:
                 columns = {"seed": int(episode.pop("seed"))}

@@ -21,7 +21,7 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass
 
-from bpp.envs.libero.chain import chain, chain_no_second_step
+from bpp.envs.libero.chain import chain, chain_no_second_step, libero_goal
 
 PICK_PHRASES = {
     "BPR": "between the plate and the ramekin",
@@ -114,6 +114,11 @@ class PickPlace:
     def name(self) -> str:
         """A file- and id-safe name: scene, pick and place."""
         return f"{self.scene.name}-{self.pick}-{self.place}".lower()
+
+    @property
+    def libero_source(self) -> tuple[str, str]:
+        """(LIBERO suite folder, problem name) of the LIBERO-Spatial problem of its scene (its original tasks)."""
+        return "libero_spatial", self.scene.base
 
     @property
     def families(self) -> tuple[str, ...]:
@@ -239,5 +244,6 @@ SUITES_BY_NAME = {
     "chain": chain,
     "chain_no_second_step": chain_no_second_step,
     "libero_spatial": libero_spatial,
+    "libero_goal": libero_goal,
 }
 """LIBERO-Gen's suites, the Chain ablation's view, and LIBERO's own suites that bpp can demonstrate, by name."""
