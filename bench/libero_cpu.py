@@ -65,6 +65,19 @@ def run_method(method: str, seed: int, args) -> None:
         evaluate(checkpoint, task_set, indices, args.out / f"{method}-s{seed}" / name, protocol, workers=1, videos=2)
 
 
+def _lifted(out: Path, method: str, seeds) -> str:
+    """How often held-out rollouts lifted the bowl their goal moves, and any other object (% of rollouts; evaluations
+    run before rollouts recorded it show a dash)."""
+    rows = []
+    for seed in seeds:
+        path = out / f"{method}-s{seed}" / "held-out" / "results.json"
+        if path.is_file():
+            rows += json.loads(path.read_text())["rollouts"]
+    if not rows or "lifted" not in rows[0]:
+        return "-"
+    return " / ".join(f"{100 * np.mean([r[key] for r in rows]):.0f}" for key in ("lifted", "lifted_other"))
+
+
 def report(args) -> str:
     rows, chart = [], {}
     for method in args.methods:
@@ -80,6 +93,7 @@ def report(args) -> str:
             se = tasks.std(ddof=1) / np.sqrt(len(tasks)) if len(tasks) > 1 else 0.0
             cells.append(f"{x.mean():.1f} ± {se:.1f} ({len(tasks)} tasks)")
             chart.setdefault(f"{split} tasks", {})[NAMES[method]] = (float(x.mean()), float(se))
+        cells.append(_lifted(args.out, method, args.seeds))
         trained = [
             json.loads((args.runs / f"{method}-s{s}" / "train.json").read_text())
             for s in args.seeds
@@ -97,7 +111,8 @@ def report(args) -> str:
                 f"{np.mean(minutes):.0f}" if minutes else "-",
             )
         )
-    header = ["method", "training tasks (%)", "held-out tasks (%)", "paper: train / unseen (%)", "steps x batch",
+    header = ["method", "training tasks (%)", "held-out tasks (%)", "held-out: lifted its bowl / another object (%)",
+              "paper: train / unseen (%)", "steps x batch",
               "train min"]  # fmt: skip
     text = (
         f"LIBERO-Gen Combination, `state` observations (not the paper's cameras), `cpu` size presets trained with "

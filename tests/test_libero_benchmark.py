@@ -108,6 +108,7 @@ def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_pa
     results = json.loads((out / "results.json").read_text())
     (row,) = results["rollouts"]
     assert row["score"] in (0.0, 1.0) and row["steps"] == 12  # an untrained policy does not succeed in 12 steps
+    assert row["lifted"] in (0.0, 1.0) and row["lifted_other"] in (0.0, 1.0)
     assert "init_seed" in row and (out / "grid.png").is_file() and list(out.glob("rollout_*.mp4"))
 
 

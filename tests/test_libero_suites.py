@@ -179,3 +179,19 @@ def test_a_second_step_task_writes_its_start_state_into_the_problem():
     assert section(parse(moved), ":goal") == [":goal", ["And", ["On", "akita_black_bowl_1", "plate_1"]]]
     pushed = ChainTask("put the bowl on the stove 3", "second_step", "push the plate to the front of the stove")
     assert ["On", "plate_1", "main_table_stove_front_region"] in section(parse(pushed.problem(base)), ":init")
+
+
+def test_rollouts_record_which_objects_were_lifted():
+    from bpp.envs.libero.rollouts import LIFT, _Heights, goal_objects
+
+    problem = """(define (problem P) (:domain robosuite) (:fixtures main_table - table stove_1 - flat_stove)
+      (:objects bowl_1 bowl_2 - akita_black_bowl plate_1 - plate) (:goal (And (On bowl_2 plate_1) (Turnon stove_1))))"""
+    moved, others = goal_objects(problem)
+    assert (moved, others) == (["bowl_2"], ["bowl_1", "plate_1"])
+    pose = {f"{name}_pos": [0.0, 0.0, 0.9] for name in (*moved, *others)}
+    heights = _Heights(pose, moved, others)
+    heights.update({**pose, "bowl_1_pos": [0.0, 0.0, 0.9 + LIFT + 0.01]})  # the wrong bowl, up and down again
+    heights.update(pose)
+    assert heights.extra() == {"lifted": 0.0, "lifted_other": 1.0}
+    heights.update({**pose, "bowl_2_pos": [0.0, 0.0, 0.9 + LIFT - 0.01]})  # not high enough
+    assert heights.extra()["lifted"] == 0.0

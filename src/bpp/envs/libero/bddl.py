@@ -85,10 +85,10 @@ def set_section(problem: list, name: str, body: list) -> None:
     part[1:] = body
 
 
-def objects(problem: list) -> list[str]:
-    """The names in the problem's ``(:objects a b - type ...)`` and ``(:fixtures ...)`` sections."""
+def objects(problem: list, sections: tuple[str, ...] = (":fixtures", ":objects")) -> list[str]:
+    """The names in the problem's ``(:objects a b - type ...)`` and ``(:fixtures ...)`` sections (or `sections`)."""
     names = []
-    for name in (":fixtures", ":objects"):
+    for name in sections:
         tokens = section(problem, name)[1:]
         names += [t for i, t in enumerate(tokens) if t != "-" and (i == 0 or tokens[i - 1] != "-")]
     return names

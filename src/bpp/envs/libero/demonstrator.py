@@ -167,15 +167,19 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     bowl = BOWLS[task.bowl - 1]
     start = np.asarray(arm.obs[f"{bowl}_pos"], dtype=float).copy()
     side = rng.choice([-1.0, 1.0])  # which side of the rim the fingers take
-    across = drawer_width_axis(env) if task.pick in NARROW_PICKS else np.array([0.0, 1.0])  # the fingers' axis
+    level = level_axis(arm.obs[f"{bowl}_quat"])
+    across = np.array([0.0, 1.0]) if level is None else level  # the fingers' axis
+    if task.pick in NARROW_PICKS:
+        across = drawer_width_axis(env)
     rim = np.r_[side * cfg.rim_offset * across + rng.normal(0.0, cfg.jitter, 2), 0.0]
     carry = rng.uniform(*cfg.carry_height)
     try:
         arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
         grip = -1.0
-        if task.pick in NARROW_PICKS:  # fingers across the drawer, half-closed: the outer one clears its walls
+        if task.pick in NARROW_PICKS or level is not None:
             arm.turn(across, grip)
             arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
+        if task.pick in NARROW_PICKS:  # fingers across the drawer, half-closed: the outer one clears its walls
             arm.hold(1.0, cfg.narrow_close_steps)
             grip = 0.0  # the gripper holds its opening
         arm.go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], grip, tol=0.003)
@@ -356,6 +360,18 @@ def demonstrate_steps(env, steps, seed: int, cfg: DemoConfig = DemoConfig(), req
         for operator, kw in steps:
             OPERATORS[operator](arm, rng, **kw)
     return arm.result()
+
+
+def level_axis(quat, min_tilt: float = np.radians(4.0)) -> np.ndarray | None:
+    """For a bowl tilted by more than `min_tilt` (one on the ramekin leans by about 10 degrees), the horizontal
+    direction from its centre in which its rim stays at the centre's height and its wall stands upright against
+    closing fingers: perpendicular to the way it leans. None for a bowl standing level. Taken at the rim on the
+    usual axis instead, the inner finger lands on the leaning wall, 3-4 cm above its grasp height."""
+    up = Rotation.from_quat(quat).as_matrix()[:, 2]  # robosuite's (x, y, z, w) order
+    lean = up[:2]
+    if np.linalg.norm(lean) < np.sin(min_tilt):
+        return None
+    return np.array([-lean[1], lean[0]]) / np.linalg.norm(lean)
 
 
 def drawer_width_axis(env) -> np.ndarray:

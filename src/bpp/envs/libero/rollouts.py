@@ -1,5 +1,8 @@
 """LIBERO-Gen rollouts: a policy, already given each rollout's task context, acts in LIBERO from a new initial
 state; LIBERO's own goal predicates score it (success at any step ends the rollout), as in the paper's protocol.
+Each rollout also records how far it got: whether it lifted an object its goal moves (``lifted``) and whether it
+lifted any other object (``lifted_other``), by at least :data:`LIFT` above where the object started. With two
+identical bowls (Combination), picking the right one is what the prompt has to convey.
 
 Rollouts step in lockstep through one batched agent; each has its own env (physics only unless the policy
 observes cameras or a video is recorded). Camera observations are rendered from the simulator state after each
@@ -19,6 +22,8 @@ from bpp.envs.benchmark import RolloutResult
 from bpp.envs.libero.demonstrator import SETTLE_STEPS
 from bpp.envs.libero.sim import CAMERAS, initial_states, make_env, render_now
 
+LIFT = 0.05
+"""Metres above its settled start that count an object as lifted."""
 VIDEO_SIZE = 128
 VIDEO_STRIDE = 2
 """Recorded rollouts keep every other control step's frame (and the last): real time in the 10 fps videos, and
@@ -34,6 +39,18 @@ def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, n
     for camera in cameras:
         obs[camera] = render_now(env, CAMERAS[camera], size)
     return obs
+
+
+def goal_objects(problem: str) -> tuple[list[str], list[str]]:
+    """(objects the problem's goal puts somewhere, its other movable objects), by name."""
+    from bpp.envs.libero.bddl import objects, parse, section
+
+    parsed = parse(problem)
+    movable = set(objects(parsed)) - set(objects(parsed, (":fixtures",)))
+    goal = section(parsed, ":goal")[1:]
+    terms = [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
+    moved = [t[1] for t in terms if isinstance(t, list) and len(t) == 3 and t[0] in ("On", "In") and t[1] in movable]
+    return moved, sorted(movable - set(moved))
 
 
 def task_problem(store: EpisodeStore, episode: int) -> str:
@@ -63,7 +80,7 @@ def run_rollouts(
         raise ValueError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
     n = len(rollouts)
     record = list(record_frames) if record_frames is not None else [False] * n
-    envs, obs = [], []
+    envs, obs, heights = [], [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
         starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
@@ -86,6 +103,7 @@ def run_rollouts(
                 for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
+                heights.append(_Heights(raw, *goal_objects(problems[task].read_text())))
             frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
             done = np.zeros(n, dtype=bool)
             success = np.zeros(n, dtype=bool)
@@ -95,6 +113,7 @@ def run_rollouts(
                 for i in np.flatnonzero(~done):
                     raw, *_ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
                     steps[i] += 1
+                    heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)
                     success[i] = bool(envs[i].env._check_success())
                     done[i] = success[i] or steps[i] >= max_steps
@@ -103,4 +122,24 @@ def run_rollouts(
         finally:
             for env in envs:
                 env.close()
-    return [RolloutResult(float(success[i]), int(steps[i]), {}, frames[i]) for i in range(n)]
+    return [RolloutResult(float(success[i]), int(steps[i]), heights[i].extra(), frames[i]) for i in range(n)]
+
+
+class _Heights:
+    """The highest each object got above its start in one rollout."""
+
+    def __init__(self, raw: Mapping, moved: list[str], others: list[str]):
+        self.moved, self.others = moved, others
+        self.start = {name: float(raw[f"{name}_pos"][2]) for name in (*moved, *others)}
+        self.top = dict(self.start)
+
+    def update(self, raw: Mapping) -> None:
+        for name, top in self.top.items():
+            self.top[name] = max(top, float(raw[f"{name}_pos"][2]))
+
+    def extra(self) -> dict:
+        lifted = [name for name in self.top if self.top[name] - self.start[name] >= LIFT]
+        return {
+            "lifted": float(any(name in lifted for name in self.moved)),
+            "lifted_other": float(any(name in lifted for name in self.others)),
+        }
