@@ -223,3 +223,33 @@ def test_libero_goal_is_libero_own_ten_problems_with_their_initial_states():
         assert problem_text(task, original=True) == (problems_folder() / folder / f"{name}.bddl").read_text()
         assert initial_states(f"{folder}/{name}.pruned_init").shape[0] == 50
         assert task.steps  # each reads as the demonstrator's operators
+
+
+def test_written_initial_states_are_what_libero_sampler_gives_and_load_back(tmp_path, capsys):
+    """``bpp libero tasks --init-states N`` writes, per task, the states LIBERO's placement sampler gives for seeds
+    0 .. N-1; LIBERO's ``set_init_state`` puts the scene back into each of them."""
+    import json
+
+    from bpp.cli import main
+    from bpp.envs.libero.suites import Suite
+    from bpp.envs.libero.tasks import write_suite
+
+    task = combination().test[0]
+    index = json.loads(write_suite(Suite("mini", (), (task,)), tmp_path / "mini", init_states=2).read_text())
+    entry = index["test"][0]
+    path = tmp_path / "mini" / entry["problem"]
+    states = np.load(tmp_path / "mini" / entry["init_states"])["states"]
+    assert states.shape == (2, 92) and not np.array_equal(states[0], states[1])
+    env = make_env(path)
+    try:
+        env.seed(1)
+        env.reset()
+        assert np.array_equal(env.env.sim.get_state().flatten(), states[1])
+        env.set_init_state(states[0])
+        assert np.allclose(env.env.sim.get_state().flatten(), states[0])
+    finally:
+        env.close()
+    with pytest.raises(SystemExit):
+        main(["libero", "tasks", "--init-states", "5"])
+    err = " ".join(capsys.readouterr().err.replace("│", " ").split())  # tyro wraps its message in a box
+    assert "init_states must be 0 unless --out is given" in err
