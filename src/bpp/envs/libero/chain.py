@@ -205,8 +205,8 @@ class ChainTask:
 
 
 def _step_key(step: Step) -> str:
-    kw = step.kwargs
-    return " ".join([step.operator, *(v for k, v in step.arguments if k in ("obj", "drawer"))]) if kw else step.operator
+    """ "place wine_bottle_1", "open top", "turn_on": an operator and what it moves."""
+    return " ".join([step.operator, *(v for k, v in step.arguments if k in ("obj", "drawer"))])
 
 
 @cache
@@ -288,7 +288,7 @@ class ChainSuite:
         ]
         for task in self.test:
             counts = self.similar_counts(task)
-            first, second = task.steps
+            second = task.steps[1]
             lines.append(f"unseen: {task.label}")
             lines.append(
                 f"  training: same first step, same second-step object ({second.kwargs['obj']}), another place "
@@ -301,14 +301,17 @@ class ChainSuite:
         return "\n".join(lines)
 
 
-def chain(views: tuple[str, ...] = ("first_step", "second_step", "seen_chains")) -> ChainSuite:
-    """LIBERO-Gen Chain: the 10 unseen chains held out; training on `views` (all three: 311 tasks)."""
+def _chain_suite(name: str, views: tuple[str, ...]) -> ChainSuite:
+    """The published tasks of `views` for training and the 10 unseen chains held out."""
     starts = second_step_starts()
     tasks = [ChainTask(label, view, starts.get(label)) for view, label in published_tasks()]
-    name = "chain" if len(views) == 3 else "chain_no_second_step"
-    return ChainSuite(
-        name, tuple(t for t in tasks if t.view in views), tuple(t for t in tasks if t.view == "unseen_chains")
-    )
+    train = tuple(t for t in tasks if t.view in views)
+    return ChainSuite(name, train, tuple(t for t in tasks if t.view == "unseen_chains"))
+
+
+def chain() -> ChainSuite:
+    """LIBERO-Gen Chain: 311 training tasks (first steps, second steps, seen chains) and the 10 unseen chains."""
+    return _chain_suite("chain", ("first_step", "second_step", "seen_chains"))
 
 
 LIBERO_GOAL = (
@@ -334,4 +337,4 @@ def libero_goal() -> ChainSuite:
 
 def chain_no_second_step() -> ChainSuite:
     """The ablation view: Chain without its 146 second-step tasks (165 training tasks, the same 10 held out)."""
-    return chain(("first_step", "seen_chains"))
+    return _chain_suite("chain_no_second_step", ("first_step", "seen_chains"))

@@ -363,7 +363,7 @@ def demonstrate_steps(env, steps, seed: int, cfg: DemoConfig = DemoConfig(), req
 
 
 def level_axis(quat, min_tilt: float = np.radians(4.0)) -> np.ndarray | None:
-    """For a bowl tilted by more than `min_tilt` (one on the ramekin leans by about 10 degrees), the horizontal
+    """For a bowl tilted by more than `min_tilt` (one on the ramekin leans by 12 degrees), the horizontal
     direction from its centre in which its rim stays at the centre's height and its wall stands upright against
     closing fingers: perpendicular to the way it leans. None for a bowl standing level. Taken at the rim on the
     usual axis instead, the inner finger lands on the leaning wall, 3-4 cm above its grasp height."""
