@@ -31,6 +31,12 @@ from bpp.envs.libero.suites import BOWL, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
 """Table regions: LIBERO's goal check wants the bowl's centre inside a range of a few centimetres."""
+
+
+class NotDemonstrable(ValueError):
+    """A task needs an operator (or a variant of one) the demonstrator does not have."""
+
+
 NARROW_PICKS = ("TD",)
 """Starts with walls close around the bowl: in the open top drawer the front and back panels are about 8 cm from
 the bowl's centre and the sides about 10 cm, where a fully open gripper's outer finger reaches 9.5 cm."""
@@ -264,7 +270,7 @@ def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabin
     The top drawer only: from above, the fingers stop on the top handle before they reach the middle one, and a
     horizontal hand hits the plate (docs/liberogen/README.md)."""
     if drawer != "top":
-        raise ValueError(f"only the top drawer can be opened by the demonstrator so far, not {drawer!r}")
+        raise NotDemonstrable(f"only the top drawer can be opened by the demonstrator so far, not {drawer!r}")
     sim = arm.env.env.sim
     handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_g18")].copy()  # the top drawer's handle bar
     grasp = handle + np.r_[rng.uniform(-0.02, 0.02), 0.0, 0.0]
