@@ -31,17 +31,15 @@ from bpp.envs.libero.suites import BOWL, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
 """Table regions: LIBERO's goal check wants the bowl's centre inside a range of a few centimetres."""
-
-
-class NotDemonstrable(ValueError):
-    """A task needs an operator (or a variant of one) the demonstrator does not have."""
-
-
 NARROW_PICKS = ("TD",)
 """Starts with walls close around the bowl: in the open top drawer the front and back panels are about 8 cm from
 the bowl's centre and the sides about 10 cm, where a fully open gripper's outer finger reaches 9.5 cm."""
 SETTLE_STEPS = 10
 """No-op steps after a reset: LIBERO's initial placements start objects slightly in the air."""
+
+
+class NotDemonstrable(ValueError):
+    """A task needs an operator (or a variant of one) the demonstrator does not have."""
 
 
 @dataclass(frozen=True)
