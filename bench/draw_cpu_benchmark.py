@@ -121,9 +121,11 @@ def train_run(
         resume=resume,
         save_every=500,
     )
-    train(cfg, model_cfg)
-    spent += time.perf_counter() - t0
-    write_json_atomic(timing, {"seconds": spent})
+    try:
+        train(cfg, model_cfg)
+    finally:  # an interrupted run (Ctrl-C) keeps its time too, including steps it will redo from the last checkpoint
+        spent += time.perf_counter() - t0
+        write_json_atomic(timing, {"seconds": spent})
     return spent
 
 
