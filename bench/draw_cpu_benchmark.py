@@ -168,20 +168,31 @@ def _per_method(items: list[str]) -> dict[str, int]:
     return {k: int(v) for k, v in (item.split("=", 1) for item in items)}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
-    parser.add_argument("--preset", default="cpu", help="model size preset, the same for every method")
-    parser.add_argument("--obs", default="board", help="DrawAnything observation preset, the same for every method")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+def add_budget_arguments(parser: argparse.ArgumentParser) -> None:
+    """--steps, --default-steps and --batch: each method's training steps and batch size (see :func:`budgets`)."""
     parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
     parser.add_argument("--default-steps", type=int, default=6000)
     parser.add_argument(
         "--batch",
         nargs="*",
         default=["icrt=16"],
-        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations of ~10 chunks)",
+        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations)",
     )
+
+
+def budgets(args) -> tuple[dict[str, int], dict[str, int]]:
+    """(steps, batch size) of each of ``args.methods`` from the flags :func:`add_budget_arguments` adds."""
+    steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
+    return steps, {m: 64 for m in args.methods} | _per_method(args.batch)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "icrt"])
+    parser.add_argument("--preset", default="cpu", help="model size preset, the same for every method")
+    parser.add_argument("--obs", default="board", help="DrawAnything observation preset, the same for every method")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0])
+    add_budget_arguments(parser)
     parser.add_argument("--tasks-per-batch", type=int, default=8, help="tasks (prompts) per step, all methods")
     parser.add_argument(
         "--threads", type=int, default=0, help="torch threads for training (0: TrainConfig's auto, the cores minus one)"
@@ -206,8 +217,7 @@ def main() -> None:
         help="train nothing: evaluate and tabulate the runs that have finished training, skip the others",
     )
     args = parser.parse_args()
-    steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
-    batch = {m: 64 for m in args.methods} | _per_method(args.batch)
+    steps, batch = budgets(args)
     label = preset_label(args.preset, args.obs)
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))

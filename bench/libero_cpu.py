@@ -31,7 +31,7 @@ from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
 from draw_ablations import per_drawing
-from draw_cpu_benchmark import NAMES, _per_method, train_run
+from draw_cpu_benchmark import NAMES, add_budget_arguments, budgets, train_run
 
 PAPER = {"goal_image": (59.1, 47.9), "language": (80.0, 69.9), "bpp": (88.4, 79.1)}
 """The paper's Combination success rates (%), training tasks / unseen tasks (cameras, GPUs, 3 seeds)."""
@@ -131,14 +131,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--methods", nargs="+", default=["bpp", "goal_image", "language", "icrt"])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0])
-    parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=2000")
-    parser.add_argument("--default-steps", type=int, default=6000)
-    parser.add_argument(
-        "--batch",
-        nargs="*",
-        default=["icrt=16"],
-        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations)",
-    )
+    add_budget_arguments(parser)
     parser.add_argument("--rollouts", type=int, default=10, help="rollouts per held-out task")
     parser.add_argument("--train-tasks", type=int, default=10, help="training tasks evaluated (spread evenly)")
     parser.add_argument("--train-rollouts", type=int, default=4, help="rollouts per training task evaluated")
@@ -152,8 +145,7 @@ def main() -> None:
     parser.add_argument("--prepare-only", action="store_true")
     parser.add_argument("--report-only", action="store_true")
     args = parser.parse_args()
-    args.method_steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
-    args.method_batch = {m: 64 for m in args.methods} | _per_method(args.batch)
+    args.method_steps, args.method_batch = budgets(args)
     if args.report_only:
         print(report(args))
         return

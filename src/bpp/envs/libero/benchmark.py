@@ -58,12 +58,26 @@ class LiberoGen:
     )
     max_steps = 550
     """The authors' step limit (ANCHORS.md)."""
-    task_sets = {
-        "held-out": "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
-        "chain-held-out": "the Chain suite's 10 unseen chains x 5 demonstrations (generated on first use)",
-        "libero-spatial": "LIBERO-Spatial's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
-        "libero-goal": "LIBERO-Goal's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
+    _task_sets = {
+        "held-out": (
+            "held-out Combination tasks",
+            "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
+        ),
+        "chain-held-out": (
+            "unseen Chain chains",
+            "the Chain suite's 10 unseen chains x 5 demonstrations (generated on first use)",
+        ),
+        "libero-spatial": (
+            "LIBERO-Spatial's own tasks",
+            "LIBERO-Spatial's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
+        ),
+        "libero-goal": (
+            "LIBERO-Goal's own tasks",
+            "LIBERO-Goal's own 10 tasks x 5 demonstrations, from LIBERO's initial states",
+        ),
     }
+    """Named task sets: (label in reports, description). Each is the data preset of the same name."""
+    task_sets = {name: description for name, (_, description) in _task_sets.items()}
 
     def default_observation(self, size: str) -> str:
         return "image" if size == "paper" else "state"
@@ -105,13 +119,7 @@ class LiberoGen:
         if store is None:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
             store = dataset.generate(cfg, path, overwrite=True)
-        descriptions = {
-            "held-out": "held-out Combination tasks",
-            "chain-held-out": "unseen Chain chains",
-            "libero-spatial": "LIBERO-Spatial's own tasks",
-            "libero-goal": "LIBERO-Goal's own tasks",
-        }
-        return TaskSet(store, descriptions[name])
+        return TaskSet(store, self._task_sets[name][0])
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
         raise ValueError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")

@@ -22,7 +22,7 @@ from __future__ import annotations
 import re
 from collections import Counter
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, cached_property
 from pathlib import Path
 
 OBJECTS = {
@@ -150,7 +150,7 @@ class ChainTask:
     def instruction(self) -> str:
         return re.sub(r" \d+$", "", self.label)
 
-    @property
+    @cached_property
     def steps(self) -> list[Step]:
         return parse_instruction(self.label)
 

@@ -171,19 +171,19 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     bowl = BOWLS[task.bowl - 1]
     start = np.asarray(arm.obs[f"{bowl}_pos"], dtype=float).copy()
     side = rng.choice([-1.0, 1.0])  # which side of the rim the fingers take
-    level = level_axis(arm.obs[f"{bowl}_quat"])
+    narrow, level = task.pick in NARROW_PICKS, level_axis(arm.obs[f"{bowl}_quat"])
     across = np.array([0.0, 1.0]) if level is None else level  # the fingers' axis
-    if task.pick in NARROW_PICKS:
+    if narrow:
         across = drawer_width_axis(env)
     rim = np.r_[side * cfg.rim_offset * across + rng.normal(0.0, cfg.jitter, 2), 0.0]
     carry = rng.uniform(*cfg.carry_height)
     try:
         arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
         grip = -1.0
-        if task.pick in NARROW_PICKS or level is not None:
+        if narrow or level is not None:
             arm.turn(across, grip)
             arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
-        if task.pick in NARROW_PICKS:  # fingers across the drawer, half-closed: the outer one clears its walls
+        if narrow:  # fingers across the drawer, half-closed: the outer one clears its walls
             arm.hold(1.0, cfg.narrow_close_steps)
             grip = 0.0  # the gripper holds its opening
         arm.go(start + rim + [0.0, 0.0, rng.uniform(*cfg.grasp_height)], grip, tol=0.003)
@@ -346,7 +346,9 @@ def demonstrate_operator(env, operator: str, seed: int, cfg: DemoConfig = DemoCo
     return demonstrate_steps(env, [(operator, kw)], seed, cfg)
 
 
-def demonstrate_steps(env, steps, seed: int, cfg: DemoConfig = DemoConfig(), requires: str | None = None):
+def demonstrate_steps(
+    env, steps, seed: int, cfg: DemoConfig = DemoConfig(), requires: str | None = None
+) -> Demonstration:
     """Reset `env` with `seed` and run `steps`, ``[(operator, {argument: value})]``, one after the other in one
     episode (a Chain task's two steps); LIBERO's predicate judges the end. With `requires`, a BDDL predicate that
     must hold once the scene has settled (a second-step task's start state), a reset where it does not is an

@@ -84,6 +84,7 @@ def run_rollouts(
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
         starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
+        lifts: dict[int, tuple[list[str], list[str]]] = {}  # a task's goal objects and other objects
         try:
             for row, rec in zip(rollouts, record, strict=True):
                 episode = int(row["target_episode"])
@@ -91,6 +92,7 @@ def run_rollouts(
                 if task not in problems:
                     problems[task] = Path(folder) / f"task-{task}.bddl"
                     problems[task].write_text(task_problem(store, episode))
+                    lifts[task] = goal_objects(problems[task].read_text())
                     named = store.tasks[task]["info"].get("initial_states")
                     starts[task] = initial_states(named) if named else None
                 env = make_env(problems[task], render=bool(cameras) or rec)
@@ -103,7 +105,7 @@ def run_rollouts(
                 for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
-                heights.append(_Heights(raw, *goal_objects(problems[task].read_text())))
+                heights.append(_Heights(raw, *lifts[task]))
             frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
             done = np.zeros(n, dtype=bool)
             success = np.zeros(n, dtype=bool)

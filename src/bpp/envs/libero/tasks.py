@@ -19,7 +19,7 @@ from tqdm import tqdm
 from bpp.envs.libero.suites import Suite
 
 
-def initial_states(problem: Path, count: int) -> np.ndarray:
+def sample_initial_states(problem: Path, count: int) -> np.ndarray:
     """(count, S) flattened simulator states of LIBERO's placement sampler for seeds 0 .. count-1 of the BDDL problem
     file `problem`: the states LIBERO's own evaluation loads with ``env.set_init_state`` (its ``.pruned_init``
     files hold the same kind of array). Takes an env creation (seconds) plus about 0.3 s per state."""
@@ -63,7 +63,7 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False, init_states: i
             if states:
                 np.savez(
                     tmp / "problems" / f"{name}.init.npz",
-                    states=initial_states(tmp / "problems" / f"{name}.bddl", states),
+                    states=sample_initial_states(tmp / "problems" / f"{name}.bddl", states),
                 )
                 entry["init_states"] = f"problems/{name}.init.npz"
                 bar.update()
