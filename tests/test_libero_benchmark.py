@@ -74,10 +74,6 @@ def test_failed_demonstrations_are_counted_and_never_stored(tmp_path):
     with pytest.raises(StoreError, match="no demonstration of 1 tasks succeeded"):
         dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)  # 20 steps cannot move a bowl
     assert not (tmp_path / "s.zarr").exists()
-    # A task needing an operator the demonstrator lacks is reported by name, without stopping the others.
-    cfg = dataset.LiberoDataConfig(suite="chain", split="test", task_indices=(0,), demos_per_task=1)
-    with pytest.raises(StoreError, match="not demonstrable: open the middle drawer.*only the top drawer"):
-        dataset.generate(cfg, tmp_path / "c.zarr", workers=1, progress=False)
 
 
 def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypatch):

@@ -92,7 +92,7 @@ def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_pla
         assert len(demo.states) == len(demo.actions) == len(demo.observations["robot0_eef_pos"])
 
 
-CHEESE, BOWL_1 = "cream_cheese_1", "akita_black_bowl_1"
+CHEESE, BOWL_1, WINE, CABINET_TOP = "cream_cheese_1", "akita_black_bowl_1", "wine_bottle_1", "wooden_cabinet_1_top_side"
 
 
 @pytest.mark.parametrize(
@@ -101,8 +101,10 @@ CHEESE, BOWL_1 = "cream_cheese_1", "akita_black_bowl_1"
         ("turn_on", "turn_on_the_stove", {}, None),
         ("push", "push_the_plate_to_the_front_of_the_stove", {}, None),
         ("open", "open_the_top_drawer_and_put_the_bowl_inside", {}, "wooden_cabinet_1_top_region"),
+        ("open", "open_the_middle_drawer_of_the_cabinet", {"drawer": "middle"}, None),
         ("place", "put_the_cream_cheese_in_the_bowl", {"obj": CHEESE, "target": BOWL_1}, None),
         ("place", "put_the_bowl_on_the_stove", {"obj": BOWL_1, "target": "flat_stove_1_cook_region"}, None),
+        ("place", "put_the_wine_bottle_on_top_of_the_cabinet", {"obj": WINE, "target": CABINET_TOP}, None),
     ],
 )
 def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, problem, objects, state):

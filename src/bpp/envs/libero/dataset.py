@@ -147,7 +147,7 @@ def _task_job(job) -> dict:
     index, task, cfg, journal = job
     import tempfile
 
-    from bpp.envs.libero.demonstrator import NotDemonstrable, demonstrate_task
+    from bpp.envs.libero.demonstrator import demonstrate_task
     from bpp.envs.libero.sim import make_env, render_now, render_states
 
     summary = {"index": index, "kept": 0, "tries": 0}
@@ -161,11 +161,7 @@ def _task_job(job) -> dict:
                 if len(episodes) >= cfg.demos_per_task:
                     break
                 seed = cfg.seed * 1_000_003 + index * 1009 + attempt
-                try:
-                    demo = demonstrate_task(env, task, seed, cfg.demo)
-                except NotDemonstrable as error:  # no try is made: the task is reported, the others go on
-                    summary["not_demonstrable"] = str(error)
-                    break
+                demo = demonstrate_task(env, task, seed, cfg.demo)
                 summary["tries"] += 1
                 if not demo.success:
                     continue
@@ -276,7 +272,7 @@ def _exit_on_sigterm():
 
 def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:
     """The store from the journal's tasks, in the split's order; returns the generation report."""
-    tries, successes, missing, stored, refused = Counter(), Counter(), [], 0, {}
+    tries, successes, missing, stored = Counter(), Counter(), [], 0
     stats_keys = ("action", "proprio", "object_state")
     original = cfg.original
     with EpisodeWriter(
@@ -288,8 +284,6 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
                 tries[family] += summary["tries"]
                 successes[family] += summary["kept"]
             stored += len(episodes)
-            if "not_demonstrable" in summary:
-                refused[task.instruction] = summary["not_demonstrable"]
             if not episodes:
                 missing.append(task.instruction)
                 continue
@@ -309,13 +303,11 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
             "tries": dict(tries),
             "successes": dict(successes),
             "without_demonstrations": missing,
-            "not_demonstrable": refused,
             **timing,
         }
         if not report["stored"]:
             writer.abort()
-            why = "".join(f"; not demonstrable: {task} ({reason})" for task, reason in refused.items())
-            raise StoreError(f"no demonstration of {len(tasks)} tasks succeeded; nothing to store{why}")
+            raise StoreError(f"no demonstration of {len(tasks)} tasks succeeded; nothing to store")
         writer.root.attrs["generation"] = report
     return report
 
@@ -325,8 +317,6 @@ def describe_report(report: dict) -> str:
     for family in sorted(report["tries"]):
         done, tries = report["successes"].get(family, 0), report["tries"][family]
         lines.append(f"  {family:11s} {done}/{tries} tries succeeded")
-    for instruction, why in report.get("not_demonstrable", {}).items():
-        lines.append(f"  not demonstrable: {instruction} ({why})")
     if report["without_demonstrations"]:
         lines.append(f"  tasks left without a demonstration: {len(report['without_demonstrations'])}")
     if "demos_per_hour_this_run" in report:

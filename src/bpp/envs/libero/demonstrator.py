@@ -10,10 +10,11 @@ such, never stored as a success.
 A bowl in the cabinet's open top drawer has the drawer's walls close around it: the gripper first turns so that
 its fingers close across the drawer's width (the roomier axis), half-closes, and then takes the rim on that axis.
 
-LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the others built so
-far, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on,
-pushing the plate, opening the top drawer, and placing the bowl, the cream cheese or the wine bottle on an object
-or a region. The middle drawer is not reachable yet, and the wine rack does not take a bottle put down upright.
+LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the other
+operators, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on,
+pushing the plate, opening the top or the middle drawer, and placing the bowl, the cream cheese or the wine bottle
+on an object or a region (the wine rack, which holds bottles tilted, takes a bottle put down upright about half the
+time).
 """
 
 from __future__ import annotations
@@ -34,12 +35,11 @@ TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
 NARROW_PICKS = ("TD",)
 """Starts with walls close around the bowl: in the open top drawer the front and back panels are about 8 cm from
 the bowl's centre and the sides about 10 cm, where a fully open gripper's outer finger reaches 9.5 cm."""
+DOWN = Rotation.from_matrix([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+"""The hand pointing straight down, its fingers closing along world y, as the robot starts (its frame's columns: x,
+y, z)."""
 SETTLE_STEPS = 10
 """No-op steps after a reset: LIBERO's initial placements start objects slightly in the air."""
-
-
-class NotDemonstrable(ValueError):
-    """A task needs an operator (or a variant of one) the demonstrator does not have."""
 
 
 @dataclass(frozen=True)
@@ -116,17 +116,25 @@ class Arm:
         self.actions.append(np.asarray(action, dtype=np.float64))
         self.obs, *_ = self.env.step(action)
 
-    def go(self, target, grip: float, tol: float = 0.005, limit: int = 80, across=None) -> None:
+    def go(self, target, grip: float, tol: float = 0.005, limit: int = 80, across=None, pose=None) -> None:
         """Move the gripper to `target`; with `across` (a horizontal axis), also yaw it until its fingers close
-        along that axis, at the same time."""
+        along that axis, at the same time; with `pose` (a :class:`~scipy.spatial.transform.Rotation`, the hand's
+        frame in the world's), turn it to that orientation instead."""
         for _ in range(limit):
             delta = np.asarray(target) - self.obs["robot0_eef_pos"]
-            yaw = 0.0 if across is None else self.yaw_error(across)
-            if np.linalg.norm(delta) < tol and abs(yaw) < 0.03:
+            if pose is not None:
+                rotation = (pose * self.hand().inv()).as_rotvec()  # world-frame axis times angle, as OSC_POSE takes
+                done = np.linalg.norm(rotation) < 0.05
+            else:
+                yaw = 0.0 if across is None else self.yaw_error(across)
+                rotation = (self.tilt() if self.upright else np.zeros(3)) + [0.0, 0.0, yaw]
+                done = abs(yaw) < 0.03
+            if np.linalg.norm(delta) < tol and done:
                 return
-            tilt = self.tilt() if self.upright else np.zeros(3)
-            rotation = np.clip((tilt + [0.0, 0.0, yaw]) / 0.5, -1.0, 1.0)
-            self.step(np.r_[np.clip(delta / self.cfg.max_step, -1.0, 1.0), rotation, grip])
+            self.step(np.r_[np.clip(delta / self.cfg.max_step, -1.0, 1.0), np.clip(rotation / 0.5, -1.0, 1.0), grip])
+
+    def hand(self) -> Rotation:
+        return Rotation.from_quat(self.obs["robot0_eef_quat"])  # robosuite's (x, y, z, w) order
 
     def hold(self, grip: float, steps: int) -> None:
         for _ in range(steps):
@@ -134,14 +142,13 @@ class Arm:
 
     def yaw_error(self, axis: np.ndarray) -> float:
         """The yaw (rad, either way round) that makes the fingers close along the horizontal `axis`."""
-        hand = Rotation.from_quat(self.obs["robot0_eef_quat"]).as_matrix()  # robosuite's (x, y, z, w) order
-        closing = hand[:2, 1]  # the fingers close along the hand's y axis
+        closing = self.hand().as_matrix()[:2, 1]  # the fingers close along the hand's y axis
         error = np.arctan2(closing[0] * axis[1] - closing[1] * axis[0], closing @ axis)
         return (error + np.pi / 2) % np.pi - np.pi / 2
 
     def tilt(self) -> np.ndarray:
         """The rotation (world-frame axis times angle, as OSC_POSE takes it) that points the hand straight down."""
-        pointing = Rotation.from_quat(self.obs["robot0_eef_quat"]).as_matrix()[:, 2]
+        pointing = self.hand().as_matrix()[:, 2]
         axis = np.cross(pointing, [0.0, 0.0, -1.0])
         angle = np.arctan2(np.linalg.norm(axis), -pointing[2])
         return axis / max(np.linalg.norm(axis), 1e-9) * angle
@@ -261,46 +268,71 @@ def push(arm: Arm, rng: np.random.Generator, obj: str = "plate_1", region: str =
 
 
 def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabinet_1", drawer: str = "top"):
-    """Open a drawer of LIBERO-Goal's cabinet: the open hand comes down over the drawer's handle (a horizontal bar
-    2.7 cm in front of its face), closes on it (the fingers stop on it and hold it from above) and pulls the drawer
-    out along the way it slides (world +y) by 17-19 cm. LIBERO counts 14 cm out as open.
+    """Open a drawer of LIBERO-Goal's cabinet by its handle (a horizontal bar along x, 2.7 cm in front of the
+    drawer's face) and pull it out along the way it slides (world +y) by 17-19 cm; LIBERO counts 14 cm out as open.
 
-    The top drawer only: from above, the fingers stop on the top handle before they reach the middle one, and a
-    horizontal hand hits the plate (docs/liberogen/README.md)."""
-    if drawer != "top":
-        raise NotDemonstrable(f"only the top drawer can be opened by the demonstrator so far, not {drawer!r}")
+    The top drawer's handle is taken from above: the open hand comes down over it with its fingers closing along y,
+    stops on it and closes. From above the middle handle cannot be reached (the fingers stop on the top handle,
+    7.4 cm higher), and a level hand's palm hits the plate below: the hand comes at it pitched 65-75 degrees from
+    straight down, fingers towards the cabinet, closing across the bar nearly vertically (docs/liberogen/README.md)."""
+    if drawer not in ("top", "middle"):
+        raise ValueError(f"the demonstrator opens the top and the middle drawer, not {drawer!r}")
     sim = arm.env.env.sim
-    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_g18")].copy()  # the top drawer's handle bar
+    bar = {"top": "g18", "middle": "g29"}[drawer]  # the handle's geom in the drawer's body
+    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_{bar}")].copy()
     grasp = handle + np.r_[rng.uniform(-0.02, 0.02), 0.0, 0.0]
-    across = np.array([0.0, 1.0])  # the fingers close across the bar
-    arm.go(grasp + [0.0, 0.0, rng.uniform(0.07, 0.1)], -1.0, across=across)
-    arm.go(grasp, -1.0, tol=0.004)
+    pose = None
+    if drawer == "top":
+        arm.go(grasp + [0.0, 0.0, rng.uniform(0.07, 0.1)], -1.0, across=np.array([0.0, 1.0]))  # closing across the bar
+        arm.go(grasp, -1.0, tol=0.004)
+    else:
+        pose = Rotation.from_rotvec([-np.radians(rng.uniform(65.0, 75.0)), 0.0, 0.0]) * DOWN
+        fingers = pose.as_matrix()[:, 2]  # where they point
+        arm.go(grasp - 0.1 * fingers + [0.0, 0.0, 0.03], -1.0, tol=0.01, pose=pose)
+        arm.go(grasp - 0.06 * fingers, -1.0, pose=pose)
+        arm.go(grasp, -1.0, tol=0.004, limit=60, pose=pose)
     arm.hold(1.0, 12)
     pull = rng.uniform(0.17, 0.19)
     for k in range(1, 9):
-        arm.go(grasp + [0.0, pull * k / 8, 0.0], 1.0, tol=0.004, limit=15)
+        arm.go(grasp + [0.0, pull * k / 8, 0.0], 1.0, tol=0.004, limit=15, pose=pose)
     arm.hold(-1.0, 6)
+    if pose is not None:  # back off the way the fingers came, then turn the hand down again
+        arm.go(arm.obs["robot0_eef_pos"] - 0.08 * fingers, -1.0, tol=0.01, pose=pose)
+        arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.05], -1.0, tol=0.01, pose=DOWN)
     arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.03, 0.08], -1.0)
     arm.go(arm.obs["robot0_eef_pos"] + [-0.15, 0.0, 0.0], -1.0, tol=0.02)  # back over the table, clear of the drawer
 
 
 def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarray, np.ndarray]:
     """Where the fingers take `obj`, relative to its origin, and the horizontal axis they close along: a bowl by
-    its rim (as in :func:`demonstrate`), anything else by its collision box (the cream cheese lying flat, the wine
-    bottle's body standing) at the box's centre, across its narrower side."""
+    its rim (as in :func:`demonstrate`), anything else by the collision box that reaches highest (the cream cheese
+    lying flat: its only box; the wine bottle: its neck), across the box's narrower side, 3 cm below the box's top
+    or just above its centre, whichever is higher."""
     if obj.startswith("akita_black_bowl"):
         across = np.array([0.0, 1.0])
         rim = rng.choice([-1.0, 1.0]) * arm.cfg.rim_offset * across + rng.normal(0.0, arm.cfg.jitter, 2)
         return np.r_[rim, rng.uniform(*arm.cfg.grasp_height)], across
     sim = arm.env.env.sim
     body = sim.model.body_name2id(f"{obj}_main")
-    box = next(i for i in range(sim.model.ngeom) if sim.model.geom_bodyid[i] == body and sim.model.geom_type[i] == 6)
-    axes, half = sim.data.geom_xmat[box].reshape(3, 3), sim.model.geom_size[box]
+    boxes = [i for i in range(sim.model.ngeom) if sim.model.geom_bodyid[i] == body and sim.model.geom_type[i] == 6]
+
+    def frame(i):
+        return sim.data.geom_xmat[i].reshape(3, 3), sim.model.geom_size[i]
+
+    def top(i):
+        axes, half = frame(i)
+        return sim.data.geom_xpos[i][2] + np.abs(axes[2]) @ half
+
+    box = max(boxes, key=top)
+    axes, half = frame(box)
     horizontal = [k for k in range(3) if abs(axes[2, k]) < 0.5]  # the box's axes that lie flat
     narrow = min(horizontal, key=lambda k: half[k])
     across = axes[:2, narrow] / np.linalg.norm(axes[:2, narrow])
-    middle = sim.data.geom_xpos[box][2] - sim.data.body_xpos[body][2]  # the box's centre above the origin
-    return np.r_[rng.normal(0.0, 0.003, 2), middle + 0.008], across  # lower, the fingertips would meet the table
+    origin = sim.data.body_xpos[body][2]
+    # Lower than 3 cm under the top, the palm would press on it (it tipped the bottle over); lower than just above
+    # the centre, the fingertips would meet the table (the cheese).
+    height = max(sim.data.geom_xpos[box][2] + 0.008, top(box) - 0.03) - origin
+    return np.r_[rng.normal(0.0, 0.003, 2), height], across
 
 
 def place_on(arm: Arm, rng: np.random.Generator, obj: str, target: str) -> None:
