@@ -181,13 +181,14 @@ def test_a_second_step_task_writes_its_start_state_into_the_problem():
     assert ["On", "plate_1", "main_table_stove_front_region"] in section(parse(pushed.problem(base)), ":init")
 
 
-def test_rollouts_record_which_objects_were_lifted():
-    from bpp.envs.libero.rollouts import LIFT, _Heights, goal_objects
+def test_rollouts_record_which_objects_were_lifted_and_a_chain_s_first_goal():
+    from bpp.envs.libero.rollouts import LIFT, _Heights, goal_objects, goal_terms
 
     problem = """(define (problem P) (:domain robosuite) (:fixtures main_table - table stove_1 - flat_stove)
       (:objects bowl_1 bowl_2 - akita_black_bowl plate_1 - plate) (:goal (And (On bowl_2 plate_1) (Turnon stove_1))))"""
     moved, others = goal_objects(problem)
     assert (moved, others) == (["bowl_2"], ["bowl_1", "plate_1"])
+    assert goal_terms(problem) == [["On", "bowl_2", "plate_1"], ["Turnon", "stove_1"]]  # in order: the first step
     pose = {f"{name}_pos": [0.0, 0.0, 0.9] for name in (*moved, *others)}
     heights = _Heights(pose, moved, others)
     heights.update({**pose, "bowl_1_pos": [0.0, 0.0, 0.9 + LIFT + 0.01]})  # the wrong bowl, up and down again

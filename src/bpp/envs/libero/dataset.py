@@ -113,15 +113,16 @@ PRESETS: dict[str, LiberoDataConfig] = {
     "libero-goal": LiberoDataConfig(suite="libero_goal", demos_per_task=5, demo=DemoConfig(max_steps=1200)),
     "paper": LiberoDataConfig(demos_per_task=50, cameras=tuple(CAMERAS)),
     "debug": LiberoDataConfig(task_indices=(0,), demos_per_task=2, goal_size=32),
-    "chain-cpu": LiberoDataConfig(suite="chain", demos_per_task=3, demo=DemoConfig(max_steps=1200)),
+    "chain-cpu": LiberoDataConfig(suite="chain", demos_per_task=2, demo=DemoConfig(max_steps=1200)),
     "chain-held-out": LiberoDataConfig(suite="chain", split="test", demos_per_task=5, demo=DemoConfig(max_steps=1200)),
 }
 """``cpu``: every Combination training task x 3 demonstrations, state only (about an hour on 2 cores);
 ``held-out``: the 10 held-out tasks x 5 (evaluation prompts); ``paper``: 50 per task with both cameras (LIBERO's
 own count per task; the paper does not state LIBERO-Gen's); ``libero-spatial`` and ``libero-goal``: that LIBERO
 suite's own 10 tasks x 5 (prompts for evaluating on it from LIBERO's initial states); ``debug``: one task x 2, for
-tests; ``chain-cpu`` and ``chain-held-out``: ``cpu`` and ``held-out`` for the Chain suite (up to 1200 steps per
-demonstration: a chain is two operators in one episode, and the scripted push alone takes about 550)."""
+tests; ``chain-cpu`` and ``chain-held-out``: ``cpu`` (with 2 demonstrations per task: a chain takes about twice as
+long, so the 311 tasks also generate in about an hour on 2 cores) and ``held-out`` for the Chain suite (up to 1200
+steps per demonstration: a chain is two operators in one episode, and the scripted push alone takes about 550)."""
 
 
 def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:

@@ -2,7 +2,8 @@
 state; LIBERO's own goal predicates score it (success at any step ends the rollout), as in the paper's protocol.
 Each rollout also records how far it got: whether it lifted an object its goal moves (``lifted``) and whether it
 lifted any other object (``lifted_other``), by at least :data:`LIFT` above where the object started. With two
-identical bowls (Combination), picking the right one is what the prompt has to convey.
+identical bowls (Combination), picking the right one is what the prompt has to convey. A task whose goal has
+several terms (a Chain's two steps) also records whether its first term held at some step (``first_step``).
 
 Rollouts step in lockstep through one batched agent; each has its own env (physics only unless the policy
 observes cameras or a video is recorded). Camera observations are rendered from the simulator state after each
@@ -20,7 +21,7 @@ import numpy as np
 from bpp.data.store import EpisodeStore
 from bpp.envs.benchmark import RolloutResult
 from bpp.envs.libero.demonstrator import SETTLE_STEPS
-from bpp.envs.libero.sim import CAMERAS, initial_states, make_env, render_now
+from bpp.envs.libero.sim import CAMERAS, holds, initial_states, make_env, render_now
 
 LIFT = 0.05
 """Metres above its settled start that count an object as lifted."""
@@ -41,14 +42,21 @@ def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, n
     return obs
 
 
+def goal_terms(problem: str) -> list[list]:
+    """The terms of the problem's goal, in order (a conjunction's parts), e.g. ``[["Open", "..."], ["In", ...]]``."""
+    from bpp.envs.libero.bddl import parse, section
+
+    goal = section(parse(problem), ":goal")[1:]
+    return [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
+
+
 def goal_objects(problem: str) -> tuple[list[str], list[str]]:
     """(objects the problem's goal puts somewhere, its other movable objects), by name."""
-    from bpp.envs.libero.bddl import objects, parse, section
+    from bpp.envs.libero.bddl import objects, parse
 
     parsed = parse(problem)
     movable = set(objects(parsed)) - set(objects(parsed, (":fixtures",)))
-    goal = section(parsed, ":goal")[1:]
-    terms = [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
+    terms = goal_terms(problem)
     moved = [t[1] for t in terms if isinstance(t, list) and len(t) == 3 and t[0] in ("On", "In") and t[1] in movable]
     return moved, sorted(movable - set(moved))
 
@@ -80,11 +88,12 @@ def run_rollouts(
         raise ValueError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
     n = len(rollouts)
     record = list(record_frames) if record_frames is not None else [False] * n
-    envs, obs, heights = [], [], []
+    envs, obs, heights, first_goals = [], [], [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
         starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
         lifts: dict[int, tuple[list[str], list[str]]] = {}  # a task's goal objects and other objects
+        firsts: dict[int, str | None] = {}  # the first of a task's several goal terms
         try:
             for row, rec in zip(rollouts, record, strict=True):
                 episode = int(row["target_episode"])
@@ -93,6 +102,8 @@ def run_rollouts(
                     problems[task] = Path(folder) / f"task-{task}.bddl"
                     problems[task].write_text(task_problem(store, episode))
                     lifts[task] = goal_objects(problems[task].read_text())
+                    terms = goal_terms(problems[task].read_text())
+                    firsts[task] = "({})".format(" ".join(terms[0])) if len(terms) > 1 else None
                     named = store.tasks[task]["info"].get("initial_states")
                     starts[task] = initial_states(named) if named else None
                 env = make_env(problems[task], render=bool(cameras) or rec)
@@ -106,10 +117,12 @@ def run_rollouts(
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
                 heights.append(_Heights(raw, *lifts[task]))
+                first_goals.append(firsts[task])
             frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
             done = np.zeros(n, dtype=bool)
             success = np.zeros(n, dtype=bool)
             steps = np.zeros(n, dtype=int)
+            first_step = np.zeros(n, dtype=bool)
             while not done.all():
                 actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
                 for i in np.flatnonzero(~done):
@@ -118,13 +131,16 @@ def run_rollouts(
                     heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)
                     success[i] = bool(envs[i].env._check_success())
+                    if first_goals[i] is not None and not first_step[i]:
+                        first_step[i] = success[i] or holds(envs[i], first_goals[i])
                     done[i] = success[i] or steps[i] >= max_steps
                     if record[i] and (done[i] or steps[i] % VIDEO_STRIDE == 0):
                         frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
         finally:
             for env in envs:
                 env.close()
-    return [RolloutResult(float(success[i]), int(steps[i]), heights[i].extra(), frames[i]) for i in range(n)]
+    extras = [heights[i].extra() | ({"first_step": float(first_step[i])} if first_goals[i] else {}) for i in range(n)]
+    return [RolloutResult(float(success[i]), int(steps[i]), extras[i], frames[i]) for i in range(n)]
 
 
 class _Heights:
