@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -59,10 +60,22 @@ def training_store(args):
     return store
 
 
+def long_prompts(model_cfg, suite: str):
+    """Chain's demonstrations are up to 1200 steps long (two steps in one episode), longer than the `cpu` presets'
+    prompts (800 steps); BPP takes them whole, and ICRT's context holds them and a 1100-step rollout."""
+    if suite != "chain":
+        return model_cfg
+    if hasattr(model_cfg, "prompt"):  # BPP
+        return replace(model_cfg, prompt=replace(model_cfg.prompt, max_steps=1200))
+    if hasattr(model_cfg, "max_tokens"):  # ICRT: two tokens per 10-step chunk
+        return replace(model_cfg, max_tokens=2 * (120 + 110) + 16)
+    return model_cfg
+
+
 def run_method(method: str, seed: int, args) -> None:
     store = training_store(args)
     run = args.runs / f"{method}-s{seed}"
-    model_cfg = get_method(method).config("cpu", "state", BENCHMARK)
+    model_cfg = long_prompts(get_method(method).config("cpu", "state", BENCHMARK), args.suite)
     steps, batch = args.method_steps[method], args.method_batch[method]
     seconds = train_run(method, "cpu", "state", store, run, steps, seed, batch_size=batch, tasks_per_batch=8,
                         threads=1, model_cfg=model_cfg)  # fmt: skip

@@ -145,6 +145,21 @@ def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one
     assert "state.json: the checkpoint state is not valid JSON" in out.stderr
 
 
+def test_training_warns_when_demonstrations_are_longer_than_the_model_s_prompts(debug_store, tmp_path, capsys):
+    from dataclasses import replace
+
+    cfg = TrainConfig(data=debug_store.path, out=tmp_path / "a", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    assert "warning" not in capsys.readouterr().out  # the debug store's demonstrations fit 800 steps
+    short = config("bpp")
+    short = replace(short, prompt=replace(short.prompt, max_steps=20))
+    train(replace(cfg, out=tmp_path / "b"), short, progress=False)
+    episodes = debug_store.num_episodes
+    assert f"of the store's {episodes} demonstrations are longer than this model's prompts (20 steps" in (
+        capsys.readouterr().out
+    )
+
+
 def test_eval_reuses_results_only_for_the_same_weights_and_task_content(debug_store, tmp_path, capsys):
     import shutil
 

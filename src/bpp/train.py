@@ -249,6 +249,14 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
             f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}; "
             f"{threads or torch.get_num_threads()} torch threads, {workers} loader workers"
         )
+        spec, lengths = model.data_spec(), store.episode_ends - store.episode_starts
+        if spec.context == "demo" and lengths.max() > spec.max_prompt_steps:
+            print(
+                f"[train] warning: {(lengths > spec.max_prompt_steps).sum()} of the store's {len(lengths)} "
+                f"demonstrations are longer than this model's prompts ({spec.max_prompt_steps} steps; the longest has "
+                f"{lengths.max()}): training cuts them, and evaluation refuses them as prompts. Raise the model's "
+                f"limit (BPP: --model.prompt.max-steps)."
+            )
     net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
 
     dataset = PromptBatchDataset(
