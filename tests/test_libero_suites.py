@@ -4,6 +4,7 @@ import re
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bpp.envs.libero.suites import BOWL, combination, instruction_counts
@@ -196,3 +197,27 @@ def test_rollouts_record_which_objects_were_lifted_and_a_chain_s_first_goal():
     assert heights.extra() == {"lifted": 0.0, "lifted_other": 1.0}
     heights.update({**pose, "bowl_2_pos": [0.0, 0.0, 0.9 + LIFT - 0.01]})  # not high enough
     assert heights.extra()["lifted"] == 0.0
+
+
+def test_demonstrator_noise_perturbs_the_executed_position_actions_never_the_recorded_ones():
+    """DART: the robot executes each position action plus noise; the demonstration records the clean action."""
+    from types import SimpleNamespace
+
+    from bpp.envs.libero.demonstrator import Arm, DemoConfig
+
+    sent = []
+    sim = SimpleNamespace(get_state=lambda: np.zeros(3))
+    env = SimpleNamespace(env=SimpleNamespace(sim=sim), step=lambda a: (sent.append(a.copy()), {}, 0.0, False, {})[1:])
+    action = np.array([0.5, -0.2, 0.0, 0.1, 0.0, 0.0, 1.0])
+    for noise in (0.0, 0.1):
+        sent.clear()
+        arm = Arm(env, DemoConfig(action_noise=noise), seed=3)
+        for _ in range(50):
+            arm.step(action)
+        executed, recorded = np.array(sent), np.array(arm.actions)
+        assert (recorded == action).all() and (executed[:, 3:] == action[3:]).all()  # rotation and gripper as given
+        error = executed[:, :3] - action[:3]
+        if noise:
+            assert 0.05 < error.std() < 0.15 and np.abs(executed).max() <= 1.0
+        else:
+            assert not error.any()

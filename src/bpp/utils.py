@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import typing
@@ -54,11 +55,12 @@ def _convert(tp: Any, value: Any) -> Any:
 
 def check_fields(obj: Any, *rules: tuple[str, bool, str]) -> None:
     """Range checks for a config's ``__post_init__``: each rule is (field, whether it holds, what the field must
-    be). Raises ValueError naming the first field that fails, what it must be and the value given. Write rules as
-    positive conditions (``x > 0``), so a NaN fails them."""
+    be; a dotted name reaches into a nested config). Raises ValueError naming the first field that fails, what it must
+    be and the value given. Write rules as positive conditions (``x > 0``), so a NaN fails them."""
     for name, ok, expected in rules:
         if not ok:
-            raise ValueError(f"{name} must be {expected}, got {getattr(obj, name)!r}")
+            value = functools.reduce(getattr, name.split("."), obj)
+            raise ValueError(f"{name} must be {expected}, got {value!r}")
 
 
 def usable_cores() -> int:

@@ -80,6 +80,8 @@ class LiberoDataConfig:
             ("cameras", set(self.cameras) <= set(CAMERAS), f"a subset of {', '.join(CAMERAS)}"),
             ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
             ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
+            ("demo.action_noise", 0.0 <= self.demo.action_noise <= 1.0, "in [0, 1] (action units)"),
+            ("demo.max_steps", self.demo.max_steps >= 1, ">= 1"),
         )
 
     @property

@@ -59,6 +59,9 @@ class DemoConfig:
     max_step: float = 0.05
     """Position change per step at full action (the controller's output_max)."""
     max_steps: int = 600
+    action_noise: float = 0.0
+    """Std of Gaussian noise added to the position part of each action the robot executes, not of the action
+    recorded (DART: the demonstrator is closed-loop, so the stored demonstrations show it correcting the push)."""
 
 
 @dataclass
@@ -87,8 +90,9 @@ class Arm:
     and the action). :meth:`start` resets and settles the env; the operators below move the arm; :meth:`result`
     judges the whole demonstration by LIBERO's predicate."""
 
-    def __init__(self, env, cfg: DemoConfig, upright: bool = False):
+    def __init__(self, env, cfg: DemoConfig, upright: bool = False, seed: int = 0):
         self.env, self.cfg = env, cfg
+        self.noise = np.random.default_rng([seed, 7])  # the executed actions' perturbations (cfg.action_noise)
         self.upright = upright
         """Hold the hand pointing straight down while it moves (the controller takes rotation *deltas*, so without
         this its tracking errors add up: after a drawer was pulled the hand was 9 degrees off and missed a rim)."""
@@ -99,7 +103,7 @@ class Arm:
 
     @classmethod
     def start(cls, env, seed: int, cfg: DemoConfig = DemoConfig(), upright: bool = False) -> Arm:
-        arm = cls(env, cfg, upright)
+        arm = cls(env, cfg, upright, seed)
         env.seed(seed)
         arm.obs = env.reset()
         for _ in range(SETTLE_STEPS):
@@ -114,7 +118,10 @@ class Arm:
             {k: np.asarray(v, dtype=np.float32) for k, v in self.obs.items() if not k.endswith("_image")}
         )
         self.actions.append(np.asarray(action, dtype=np.float64))
-        self.obs, *_ = self.env.step(action)
+        executed = np.array(action, dtype=np.float64)
+        if self.cfg.action_noise:
+            executed[:3] = np.clip(executed[:3] + self.noise.normal(0.0, self.cfg.action_noise, 3), -1.0, 1.0)
+        self.obs, *_ = self.env.step(executed)
 
     def go(self, target, grip: float, tol: float = 0.005, limit: int = 80, across=None, pose=None) -> None:
         """Move the gripper to `target`; with `across` (a horizontal axis), also yaw it until its fingers close
