@@ -110,3 +110,22 @@ def test_store_pickles_and_reads_from_worker_processes(tmp_path):
     with mp.get_context("spawn").Pool(2) as pool:
         sums = pool.map(_read_episode, [(s, i) for i in range(6)])
     assert sums == [float(s.episode(i)["obs"].sum()) for i in range(6)]
+
+
+def test_a_store_is_reused_for_its_config_and_for_fields_added_since_with_their_defaults(tmp_path):
+    from dataclasses import dataclass
+
+    from bpp.data.store import stored_with
+
+    @dataclass(frozen=True)
+    class Config:
+        a: int = 1
+        noise: float = 0.0  # a field added after the store was written
+
+    path = tmp_path / "s.zarr"
+    with EpisodeWriter(path, benchmark="test", config={"a": 1}) as w:
+        w.add_task("t")
+        w.add_episode({"x": np.zeros((5, 1))}, 0)
+    assert stored_with(path, Config()) is not None
+    assert stored_with(path, Config(noise=0.2)) is None and stored_with(path, Config(a=2)) is None
+    assert stored_with(tmp_path / "missing.zarr", Config()) is None

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from bpp.utils import read_json, to_dict
+from bpp.utils import from_dict, read_json, to_dict
 
 FORMAT = "bpp-episodes"
 VERSION = 1
@@ -451,10 +451,12 @@ class EpisodeStore:
 
 def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
     """The store at `path` if it loads and was generated from exactly the data config `cfg` (a dataclass), else
-    None: how scripts and named task sets reuse finished data."""
+    None: how scripts and named task sets reuse finished data. A field the config class gained after the store was
+    written counts as its default (what generation did before the field existed)."""
     try:
         store = EpisodeStore(path)
-    except StoreError:
+        stored = to_dict(from_dict(type(cfg), store.config))
+    except (StoreError, ValueError, TypeError):
         return None
-    same = json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg)))
+    same = json.loads(json.dumps(stored)) == json.loads(json.dumps(to_dict(cfg)))
     return store if same else None
