@@ -94,6 +94,11 @@ def initial_states(name: str):
         return data["states"]
 
 
+HORIZON = 100_000
+"""Steps after which robosuite ends an episode and refuses further actions (its default is 1000): our callers keep
+their own limits (a Chain demonstration: 1200 steps; a Chain rollout: 1100), so it must not cut them first."""
+
+
 def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128, render: bool = False):
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
     cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`
@@ -109,6 +114,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
         if not cameras:
             return ControlEnv(
                 bddl_file_name=str(path),
+                horizon=HORIZON,
                 has_renderer=False,
                 has_offscreen_renderer=render,
                 use_camera_obs=False,
@@ -116,6 +122,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
             )
         return OffScreenRenderEnv(
             bddl_file_name=str(path),
+            horizon=HORIZON,
             camera_names=list(cameras),
             camera_heights=image_size,
             camera_widths=image_size,
