@@ -60,22 +60,23 @@ def training_store(args):
     return store
 
 
-def long_prompts(model_cfg, suite: str):
-    """Chain's demonstrations are up to 1200 steps long (two steps in one episode), longer than the `cpu` presets'
-    prompts (800 steps); BPP takes them whole, and ICRT's context holds them and a 1100-step rollout."""
-    if suite != "chain":
-        return model_cfg
-    if hasattr(model_cfg, "prompt"):  # BPP
-        return replace(model_cfg, prompt=replace(model_cfg.prompt, max_steps=1200))
-    if hasattr(model_cfg, "max_tokens"):  # ICRT: two tokens per 10-step chunk
-        return replace(model_cfg, max_tokens=2 * (120 + 110) + 16)
+def long_prompts(model_cfg, longest: int, rollout: int):
+    """Room for prompts of `longest` steps (Chain's demonstrations are up to 1200 steps long, more than the `cpu`
+    presets' 800): BPP takes them whole, and ICRT's context (two tokens per chunk) holds one and a `rollout`-step
+    rollout."""
+    if hasattr(model_cfg, "prompt") and longest > model_cfg.prompt.max_steps:  # BPP
+        return replace(model_cfg, prompt=replace(model_cfg.prompt, max_steps=longest))
+    if hasattr(model_cfg, "max_tokens"):  # ICRT
+        chunks = -(-longest // model_cfg.chunk_len) + -(-rollout // model_cfg.chunk_len)
+        return replace(model_cfg, max_tokens=max(model_cfg.max_tokens, 2 * chunks + 16))
     return model_cfg
 
 
 def run_method(method: str, seed: int, args) -> None:
     store = training_store(args)
     run = args.runs / f"{method}-s{seed}"
-    model_cfg = long_prompts(get_method(method).config("cpu", "state", BENCHMARK), args.suite)
+    longest = PRESETS[args.data_preset].demo.max_steps
+    model_cfg = long_prompts(get_method(method).config("cpu", "state", BENCHMARK), longest, args.max_steps)
     steps, batch = args.method_steps[method], args.method_batch[method]
     seconds = train_run(method, "cpu", "state", store, run, steps, seed, batch_size=batch, tasks_per_batch=8,
                         threads=1, model_cfg=model_cfg)  # fmt: skip
@@ -122,8 +123,8 @@ def report(args) -> str:
         for split in ("train", "held-out"):
             texts = []
             for limit in limits:
-                path = args.out / f"{method}-s{{}}" / split / "results.json"
-                seeds = [x for x in (per_task(Path(str(path).format(s)), limit) for s in args.seeds) if x]
+                seeds = [per_task(args.out / f"{method}-s{s}" / split / "results.json", limit) for s in args.seeds]
+                seeds = [s for s in seeds if s]
                 if not seeds:
                     break
                 x = 100 * np.array([np.mean(list(s.values())) for s in seeds])

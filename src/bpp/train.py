@@ -240,6 +240,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         "dataset": {"path": str(cfg.data), "benchmark": store.benchmark, "tasks": store.num_tasks},
         "world_size": world,
     }
+    spec = model.data_spec()
     if main:
         run.mkdir(parents=True, exist_ok=True)
         if not cfg.resume:  # a resumed run keeps the record of how it began (check_resume made sure it matches)
@@ -249,7 +250,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
             f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}; "
             f"{threads or torch.get_num_threads()} torch threads, {workers} loader workers"
         )
-        spec, lengths = model.data_spec(), store.episode_ends - store.episode_starts
+        lengths = store.episode_ends - store.episode_starts
         if spec.context == "demo" and lengths.max() > spec.max_prompt_steps:
             print(
                 f"[train] warning: {(lengths > spec.max_prompt_steps).sum()} of the store's {len(lengths)} "
@@ -261,7 +262,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
 
     dataset = PromptBatchDataset(
         store,
-        model.data_spec(),
+        spec,
         batch_size=cfg.batch_size,
         num_batches=cfg.steps,
         seed=cfg.seed,

@@ -42,11 +42,12 @@ def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, n
     return obs
 
 
-def goal_terms(problem: str) -> list[list]:
-    """The terms of the problem's goal, in order (a conjunction's parts), e.g. ``[["Open", "..."], ["In", ...]]``."""
+def goal_terms(problem: str | list) -> list[list]:
+    """The terms of the problem's goal (its text, or parsed), in order (a conjunction's parts), e.g.
+    ``[["Open", "..."], ["In", ...]]``."""
     from bpp.envs.libero.bddl import parse, section
 
-    goal = section(parse(problem), ":goal")[1:]
+    goal = section(parse(problem) if isinstance(problem, str) else problem, ":goal")[1:]
     return [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
 
 
@@ -56,7 +57,7 @@ def goal_objects(problem: str) -> tuple[list[str], list[str]]:
 
     parsed = parse(problem)
     movable = set(objects(parsed)) - set(objects(parsed, (":fixtures",)))
-    terms = goal_terms(problem)
+    terms = goal_terms(parsed)
     moved = [t[1] for t in terms if isinstance(t, list) and len(t) == 3 and t[0] in ("On", "In") and t[1] in movable]
     return moved, sorted(movable - set(moved))
 
@@ -99,10 +100,11 @@ def run_rollouts(
                 episode = int(row["target_episode"])
                 task = int(store.column("task_index")[episode])
                 if task not in problems:
+                    text = task_problem(store, episode)
                     problems[task] = Path(folder) / f"task-{task}.bddl"
-                    problems[task].write_text(task_problem(store, episode))
-                    lifts[task] = goal_objects(problems[task].read_text())
-                    terms = goal_terms(problems[task].read_text())
+                    problems[task].write_text(text)
+                    lifts[task] = goal_objects(text)
+                    terms = goal_terms(text)
                     firsts[task] = "({})".format(" ".join(terms[0])) if len(terms) > 1 else None
                     named = store.tasks[task]["info"].get("initial_states")
                     starts[task] = initial_states(named) if named else None
