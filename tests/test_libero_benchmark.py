@@ -98,10 +98,16 @@ def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypat
         dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
 
 
-@pytest.mark.parametrize("method", ["bpp", "goal_image", "language", "icrt"])
-def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, capsys):
+@pytest.mark.parametrize(
+    ("method", "obs"),
+    [("bpp", "state"), ("goal_image", "state"), ("language", "state"), ("icrt", "state"), ("bpp", "state-eef")],
+)
+def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, obs, capsys):
     run = tmp_path / "run"
-    main(["train", "--method", method, "--data", str(store.path), "--out", str(run), "--preset", "debug", "--steps=2"])
+    flags = ["--preset", "debug", "--obs", obs, "--steps=2"]
+    main(["train", "--method", method, "--data", str(store.path), "--out", str(run), *flags])
+    proprio = {"state": ["proprio"], "state-eef": ["eef"]}[obs]  # state-eef: a key derived from the stored one
+    assert json.loads((run / "config.json").read_text())["model_config"]["obs"]["proprio_keys"] == proprio
     out = tmp_path / "eval"
     flags = ["--tasks", "train", "--rollouts", "1", "--max-steps", "12", "--workers", "1", "--videos", "1"]
     main(["eval", str(run), *flags, "--out", str(out)])

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from bpp.envs.libero.bddl import combination_problem, dumps, parse, section
+from bpp.envs.libero.rollouts import observe
 from bpp.envs.libero.sim import make_env, place_object, problems_folder, spatial_problem
 from bpp.envs.libero.suites import combination
 
@@ -41,7 +42,11 @@ def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
         assert env.env._check_success()  # "in the black bowl on the plate", as LIBERO's predicates judge it
         env.env.timestep = 1000  # robosuite's default horizon: past it, it would refuse to step (Chain needs more)
         for _ in range(2):
-            env.step(np.zeros(7))
+            obs, *_ = env.step(np.zeros(7))
+        # what the policy observes: the derived `eef` key is the gripper's pose and opening, as robosuite names them
+        seen = observe(env, obs, (), 128)
+        parts = ("robot0_eef_pos", "robot0_eef_quat", "robot0_gripper_qpos")
+        np.testing.assert_allclose(seen["eef"], np.concatenate([obs[k] for k in parts]), rtol=1e-6)
     finally:
         env.close()
 

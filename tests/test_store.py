@@ -5,7 +5,7 @@ import pickle
 import numpy as np
 import pytest
 
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.data.store import DERIVED_KEYS, EpisodeStore, EpisodeWriter, StoreError, derive_keys, with_derived
 
 
 def _write(path, episodes=3, **kw):
@@ -39,6 +39,30 @@ def test_round_trip(tmp_path):
     assert st["min"] == [0.0, 0.0] and st["max"] == [2.0, 2.0]
     assert st["mean"][0] == pytest.approx((0 * 3 + 1 * 4 + 2 * 5) / 12)
     assert s["obs"].dtype == np.float32
+
+
+def test_derived_keys_read_and_normalise_like_stored_ones(tmp_path, monkeypatch):
+    monkeypatch.setitem(DERIVED_KEYS, "test", {})
+    path = tmp_path / "s.zarr"
+    with EpisodeWriter(path, benchmark="test", chunk_steps=4) as w:
+        w.add_task("t")
+        for e in range(2):
+            w.add_episode({"state": np.arange(12.0 * (e + 1)).reshape(-1, 3) + 100 * e}, 0)
+    store = EpisodeStore(path)  # opened before the declaration: derived keys are looked up when used
+    derive_keys("test", {"ends": ("state", [2, 0])})
+    assert store.keys == ["ends", "state"]
+    np.testing.assert_array_equal(store.array("ends"), store.array("state")[:, [2, 0]])
+    np.testing.assert_array_equal(store.episode(1, ["ends"])["ends"], store.episode(1)["state"][:, [2, 0]])
+    np.testing.assert_array_equal(store["ends"][2:5], store.array("state")[2:5, [2, 0]])
+    np.testing.assert_array_equal(store["ends"].oindex[[1, 6]], store.array("state")[[1, 6]][:, [2, 0]])
+    assert store["ends"].shape == (12, 2)
+    full, ends = store.stats["state"], store.stats["ends"]
+    assert ends["min"] == [full["min"][2], full["min"][0]] and ends["std"] == [full["std"][2], full["std"][0]]
+    obs = with_derived("test", {"state": np.array([[1.0, 2.0, 3.0]])})
+    np.testing.assert_array_equal(obs["ends"], [[3.0, 1.0]])
+    assert with_derived("other", {"state": np.zeros(3)}).keys() == {"state"}
+    with pytest.raises(ValueError, match="indices"):
+        derive_keys("test", {"bad": ("state", [])})
 
 
 def test_refuses_to_clobber_and_overwrites_atomically(tmp_path):

@@ -10,6 +10,9 @@ Layout (a zarr v3 directory)::
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
       tasks/<key>        ragged per-task arrays (e.g. a task's waypoints), with tasks/<key>__ends (K,)
 
+A benchmark may also declare *derived* per-step keys (:func:`derive_keys`): chosen features of a stored key, read
+and normalised like a stored key but never written.
+
 Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
 and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
 as complete. Reading is safe from many data-loader processes: the store is read-only once written, and each
@@ -24,7 +27,7 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +41,56 @@ VERSION = 1
 
 class StoreError(RuntimeError):
     """A store is missing, incomplete, of another format/version, or used wrongly."""
+
+
+DERIVED_KEYS: dict[str, dict[str, tuple[str, tuple[int, ...]]]] = {}
+"""benchmark name -> {derived key: (stored key, feature indices)}; filled by :func:`derive_keys`."""
+
+
+def derive_keys(benchmark: str, keys: Mapping[str, tuple[str, Iterable[int]]]) -> None:
+    """Declare per-step keys that `benchmark`'s stores present without storing them: each is some features (by
+    index, in order) of a stored key, e.g. the gripper's pose out of a robot's whole proprioception. Reads and
+    normalisation statistics of a derived key are its source's, selected, so stores written before the declaration
+    have it too; :func:`with_derived` adds them to an observation dictionary the same way at evaluation."""
+    for key, (source, features) in keys.items():
+        features = tuple(int(i) for i in features)
+        if not features or min(features) < 0:
+            raise ValueError(f"derived key {key!r}: feature indices must be a non-empty list of indices >= 0")
+        DERIVED_KEYS.setdefault(benchmark, {})[key] = (source, features)
+
+
+def with_derived(benchmark: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """`obs` (per-step arrays, features last) plus every derived key of `benchmark` whose source it has."""
+    derived = {
+        key: np.asarray(obs[source])[..., list(features)]
+        for key, (source, features) in DERIVED_KEYS.get(benchmark, {}).items()
+        if source in obs and key not in obs
+    }
+    return {**obs, **derived}
+
+
+class _DerivedArray:
+    """A derived key's lazy per-step array: indexing reads its source's rows, then selects the features."""
+
+    def __init__(self, source, features: tuple[int, ...]):
+        self.source, self.features = source, list(features)
+        self.shape = (*source.shape[:-1], len(features))
+        self.dtype = source.dtype
+
+    def __getitem__(self, selection) -> np.ndarray:
+        return np.asarray(self.source[selection])[..., self.features]
+
+    @property
+    def oindex(self):
+        return _DerivedOIndex(self)
+
+
+class _DerivedOIndex:
+    def __init__(self, array: _DerivedArray):
+        self.array = array
+
+    def __getitem__(self, selection) -> np.ndarray:
+        return np.asarray(self.array.source.oindex[selection])[..., self.array.features]
 
 
 def _json_safe(value: Any) -> Any:
@@ -320,7 +373,7 @@ class EpisodeStore:
             self.benchmark: str = attrs["benchmark"]
             self.config: dict = attrs.get("config", {})
             self.tasks: list[dict] = attrs["tasks"]
-            self.stats: dict[str, dict[str, list[float]]] = attrs["stats"]
+            self._stored_stats: dict[str, dict[str, list[float]]] = attrs["stats"]
         except KeyError as err:
             raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
         self._cache: dict[str, np.ndarray] = {}
@@ -330,8 +383,7 @@ class EpisodeStore:
             raise StoreError(f"{self.path}: damaged store (no meta/episode_ends); generate it again") from None
         self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
         try:
-            self.keys: list[str] = sorted(self._root()["data"].array_keys())
-            """Per-step keys (the store is read-only, so listed once)."""
+            self._stored_keys: list[str] = sorted(self._root()["data"].array_keys())
         except Exception as err:  # noqa: BLE001
             raise StoreError(
                 f"{self.path}: damaged store, cannot list its data ({type(err).__name__}: {err})"
@@ -369,6 +421,29 @@ class EpisodeStore:
 
     # ---------------------------------------------------------------- queries
     @property
+    def derived(self) -> dict[str, tuple[str, tuple[int, ...]]]:
+        """This store's derived keys (:func:`derive_keys`): key -> (stored source key, feature indices)."""
+        return {
+            key: (source, features)
+            for key, (source, features) in DERIVED_KEYS.get(self.benchmark, {}).items()
+            if source in self._stored_keys and key not in self._stored_keys
+        }
+
+    @property
+    def keys(self) -> list[str]:
+        """Per-step keys: stored and derived."""
+        return sorted([*self._stored_keys, *self.derived])
+
+    @property
+    def stats(self) -> dict[str, dict[str, list[float]]]:
+        """Per-feature normalisation statistics of each numeric per-step key, derived keys included."""
+        stats = dict(self._stored_stats)
+        for key, (source, features) in self.derived.items():
+            if source in stats:
+                stats[key] = {name: [values[i] for i in features] for name, values in stats[source].items()}
+        return stats
+
+    @property
     def num_episodes(self) -> int:
         return len(self.episode_ends)
 
@@ -383,13 +458,20 @@ class EpisodeStore:
     def __getitem__(self, key: str):
         if key not in self.keys:
             raise KeyError(f"{self.path}: no per-step key {key!r}; available: {self.keys}")
+        derived = self.derived.get(key)
+        if derived:
+            return _DerivedArray(self._root()[f"data/{derived[0]}"], derived[1])
         return self._root()[f"data/{key}"]
 
     def array(self, key: str) -> np.ndarray:
         """A per-step key loaded fully into memory (cached)."""
         if key not in self._cache:
             self[key]  # a KeyError naming the available keys
-            self._cache[key] = self._read(f"data/{key}")
+            derived = self.derived.get(key)
+            if derived:
+                self._cache[key] = np.ascontiguousarray(self.array(derived[0])[:, list(derived[1])])
+            else:
+                self._cache[key] = self._read(f"data/{key}")
         return self._cache[key]
 
     def column(self, name: str) -> np.ndarray:
@@ -413,7 +495,10 @@ class EpisodeStore:
         keys = list(keys or self.keys)
         for k in keys:
             self[k]  # a KeyError naming the available keys
-        return {k: self._read(f"data/{k}", sl) for k in keys}
+        derived = self.derived
+        sources = {derived[k][0] if k in derived else k for k in keys}
+        stored = {k: self._read(f"data/{k}", sl) for k in sources}
+        return {k: stored[derived[k][0]][:, list(derived[k][1])] if k in derived else stored[k] for k in keys}
 
     def task_episodes(self) -> list[np.ndarray]:
         """For each task index, the indices of its episodes."""

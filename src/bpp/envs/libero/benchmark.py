@@ -28,6 +28,15 @@ STATE = ObservationPreset(
         "setting (cameras), and named as such wherever it is used"
     ),
 )
+STATE_EEF = ObservationPreset(
+    proprio_keys=("eef",),
+    lowdim_keys=("object_state",),
+    goal_camera="agentview",
+    description=(
+        "state only, with the robot's gripper pose and opening (9 features, robomimic's and LIBERO's low-dimensional "
+        "choice) instead of all 39 proprioception features (joint angles and velocities left out); otherwise as state"
+    ),
+)
 IMAGE = ObservationPreset(
     image_keys=("agentview", "eye_in_hand"),
     proprio_keys=("proprio",),
@@ -49,7 +58,7 @@ class LiberoGen:
     data_config = dataset.LiberoDataConfig
     data_presets = dataset.PRESETS
     default_data_dir = Path("data/libero")
-    observations: Mapping[str, ObservationPreset] = {"state": STATE, "image": IMAGE}
+    observations: Mapping[str, ObservationPreset] = {"state": STATE, "state-eef": STATE_EEF, "image": IMAGE}
     metric = Metric(
         "success",
         lower_is_better=False,

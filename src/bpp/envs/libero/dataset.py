@@ -30,7 +30,7 @@ from typing import Literal
 import numpy as np
 from tqdm import tqdm
 
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, derive_keys
 from bpp.envs.libero.chain import ChainTask
 from bpp.envs.libero.demonstrator import DemoConfig
 from bpp.envs.libero.sim import CAMERAS
@@ -41,6 +41,21 @@ BENCHMARK = "libero_gen"
 GOAL_KEY = "goal_agentview"
 """Per-episode column: the demonstration's final agent-view frame (upright), the Goal-Image baseline's goal."""
 STEP_KEYS = ("action", "proprio", "object_state", "sim_state")
+PROPRIO_LAYOUT = {
+    "joint_pos": range(0, 7),
+    "joint_pos_cos": range(7, 14),
+    "joint_pos_sin": range(14, 21),
+    "joint_vel": range(21, 28),
+    "eef_pos": range(28, 31),
+    "eef_quat": range(31, 35),
+    "gripper_qpos": range(35, 37),
+    "gripper_qvel": range(37, 39),
+}
+"""The parts of LIBERO's (robosuite's) 39-D ``robot0_proprio-state``, by feature index."""
+EEF = ("eef_pos", "eef_quat", "gripper_qpos")
+"""The derived key ``eef``: the gripper's pose and opening (9 of the 39 features), what LIBERO's own datasets and
+robomimic's low-dimensional policies observe of the robot; the joints' angles and velocities are left out."""
+derive_keys(BENCHMARK, {"eef": ("proprio", [i for part in EEF for i in PROPRIO_LAYOUT[part]])})
 
 
 @dataclass(frozen=True)

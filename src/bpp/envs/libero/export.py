@@ -22,11 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from bpp.data.store import EpisodeStore
+from bpp.envs.libero.dataset import PROPRIO_LAYOUT
 
-PROPRIO_SLICES = {"joint_states": slice(0, 7), "ee_pos": slice(28, 31), "ee_quat": slice(31, 35)}
-"""Parts of LIBERO's ``robot0_proprio-state``: joint positions (7), their cos, sin, velocities (7 each), the
-end-effector's position (3) and quaternion (4), the fingers' positions (2) and velocities (2)."""
-GRIPPER = slice(35, 37)
+PROPRIO_PARTS = {
+    "joint_states": "joint_pos",
+    "ee_pos": "eef_pos",
+    "ee_quat": "eef_quat",
+    "gripper_states": "gripper_qpos",
+}
+"""LIBERO's dataset observation keys -> the parts of the stored proprioception they hold
+(:data:`~bpp.envs.libero.dataset.PROPRIO_LAYOUT`)."""
 CAMERA_NAMES = {"agentview": "agentview_rgb", "eye_in_hand": "eye_in_hand_rgb"}
 
 
@@ -74,9 +79,9 @@ def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> lis
                 demo.create_dataset("rewards", data=done)
                 demo.create_dataset("dones", data=done)
                 obs = demo.create_group("obs")
-                for name, sl in PROPRIO_SLICES.items():
-                    obs.create_dataset(name, data=steps["proprio"][:, sl].astype(np.float64))
-                obs.create_dataset("gripper_states", data=steps["proprio"][:, GRIPPER].astype(np.float64))
+                for name, part in PROPRIO_PARTS.items():
+                    features = list(PROPRIO_LAYOUT[part])
+                    obs.create_dataset(name, data=steps["proprio"][:, features].astype(np.float64))
                 obs.create_dataset("object_state", data=steps["object_state"].astype(np.float64))
                 for key in cameras:
                     frames = np.ascontiguousarray(steps[key][:, ::-1, ::-1])

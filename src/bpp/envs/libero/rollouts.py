@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.data.store import EpisodeStore
+from bpp.data.store import EpisodeStore, with_derived
 from bpp.envs.benchmark import RolloutResult
+from bpp.envs.libero.dataset import BENCHMARK
 from bpp.envs.libero.demonstrator import SETTLE_STEPS
 from bpp.envs.libero.sim import CAMERAS, holds, initial_states, make_env, render_now
 
@@ -32,11 +33,15 @@ half the rendering, which costs about 90 ms a frame on a CPU (as much as the rol
 
 
 def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, np.ndarray]:
-    """The policy's observation keys (as stored by generation) from an env's observation dictionary."""
-    obs = {
-        "proprio": np.asarray(raw["robot0_proprio-state"], dtype=np.float32),
-        "object_state": np.asarray(raw["object-state"], dtype=np.float32),
-    }
+    """The policy's observation keys (as stored by generation, and the derived ones) from an env's observation
+    dictionary."""
+    obs = with_derived(
+        BENCHMARK,
+        {
+            "proprio": np.asarray(raw["robot0_proprio-state"], dtype=np.float32),
+            "object_state": np.asarray(raw["object-state"], dtype=np.float32),
+        },
+    )
     for camera in cameras:
         obs[camera] = render_now(env, CAMERAS[camera], size)
     return obs
