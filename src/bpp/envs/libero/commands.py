@@ -1,4 +1,4 @@
-"""LIBERO-Gen's own commands: ``bpp libero tasks|video|export`` (``bpp libero generate`` is generic)."""
+"""LIBERO-Gen's own commands: ``bpp libero tasks|video|export|import`` (``bpp libero generate`` is generic)."""
 
 from __future__ import annotations
 
@@ -99,6 +99,35 @@ def libero_export(args: LiberoExport) -> None:
     print(f"wrote {len(paths)} HDF5 files ({store.num_episodes} demonstrations) into {args.out}")
 
 
+@dataclass(frozen=True)
+class LiberoImport:
+    """Import LIBERO dataset files (robomimic-style HDF5, e.g. LIBERO's own demonstrations of its four suites, or
+    files `bpp libero export` wrote) into a store: one task per file.
+
+    The observations are recomputed from each stored simulator state, so they are what a rollout observes; LIBERO's
+    own problems are evaluated from LIBERO's initial states."""
+
+    files: tyro.conf.Positional[tuple[Path, ...]]
+    out: Path = Path("data/libero/imported.zarr")
+    overwrite: bool = False
+    goal_size: int = 128
+    """Size of the final agent-view frame kept per demonstration (the Goal-Image baseline's goal; 0: none)."""
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("files", len(self.files) > 0, "at least one file"),
+            ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
+        )
+
+
+def libero_import(args: LiberoImport) -> None:
+    from bpp.envs.libero.importer import import_files
+
+    store = import_files(args.files, args.out, overwrite=args.overwrite, goal_size=args.goal_size)
+    print(f"wrote {store}")
+
+
 def _libero_store(path: Path):
     from bpp.data.store import EpisodeStore
     from bpp.envs.libero.benchmark import BENCHMARK
@@ -113,5 +142,6 @@ COMMANDS = {
     "tasks": (LiberoTasks, libero_tasks),
     "video": (LiberoVideo, libero_video),
     "export": (LiberoExport, libero_export),
+    "import": (LiberoImport, libero_import),
 }
 """``bpp libero <name>``."""

@@ -94,6 +94,12 @@ def initial_states(name: str):
         return data["states"]
 
 
+def has_initial_states(suite: str, stem: str) -> bool:
+    """Whether LIBERO ships initial states for its problem `stem` of `suite` (what :func:`initial_states` reads as
+    ``<suite>/<stem>.pruned_init``)."""
+    return (Path(_libero().get_libero_path("init_states")) / suite / f"{stem}.pruned_init.npz").is_file()
+
+
 HORIZON = 100_000
 """Steps after which robosuite ends an episode and refuses further actions (its default is 1000): our callers keep
 their own limits (a Chain demonstration: 1200 steps; a Chain rollout: 1100), so it must not cut them first."""
