@@ -10,7 +10,7 @@ from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp import BPPModel
 from bpp.policies.bpp.config import BPPConfig, PromptConfig
-from bpp.policies.common import DEBUG_DIFFUSION, ObsConfig
+from bpp.policies.common import DEBUG_DIFFUSION, Normalizer, ObsConfig
 from bpp.policies.icrt import ICRTModel
 from bpp.policies.registry import METHODS, PolicyModelContract, get_method
 from helpers import KEYS, config, prompt_from_store
@@ -75,3 +75,17 @@ def test_a_rollout_acts_the_same_alone_and_in_a_batch(debug_store, sampler):
         agent.reset(prompt_from_store(debug_store, episode), seed=seed)
         alone = agent.act_batch(_first_obs(debug_store, [episode]))[0]
         np.testing.assert_allclose(alone, together[i], rtol=1e-5, atol=1e-4)  # float sums differ by batch
+
+
+def test_an_action_dimension_the_data_never_moves_stays_still_whatever_the_model_outputs():
+    stats = {
+        "obs": {"min": [0.0, 1.0], "max": [0.0, 3.0]},
+        "action": {"min": [-1.0, 0.0, 0.5], "max": [1.0, 0.0, 0.5]},
+    }
+    normalizer = Normalizer(stats, ["obs", "action"], outputs=("action",))
+    out = normalizer.unnormalize("action", torch.tensor([[0.3, -0.9, 1.0]]))[0]
+    assert out.tolist() == pytest.approx([0.3, 0.0, 0.5])  # not -0.9 and 1.5: the data never moved them
+    # an observed constant is only centred: if it moves at test time, the model still sees it move
+    assert normalizer.normalize("obs", torch.tensor([[0.2, 2.0]]))[0].tolist() == pytest.approx([0.2, 0.0])
+    # the constants come from the statistics, not the saved weights: checkpoints written before load unchanged
+    assert set(normalizer.state_dict()) == {"obs__scale", "obs__offset", "action__scale", "action__offset"}

@@ -32,10 +32,14 @@ class NormalizationError(ValueError):
 class Normalizer(nn.Module):
     """Range-normalises each key to [-1, 1] from dataset min/max; stored as buffers, so it travels in checkpoints.
 
-    Features with (almost) no range are only centred, so a constant feature maps to 0.
+    Features with (almost) no range are only centred, so a constant feature maps to 0. For the keys a model
+    predicts (`outputs`, e.g. the actions), :meth:`unnormalize` gives such a feature its constant back whatever the
+    model produced: a dimension the data never moves (LIBERO-Gen's scripted demonstrations never roll or pitch the
+    hand) is not the model's to move. Otherwise a sampler clipped to [-1, 1] could command anything in that range,
+    full-speed rotations included.
     """
 
-    def __init__(self, stats: Mapping[str, Mapping[str, list[float]]], keys: list[str]):
+    def __init__(self, stats: Mapping[str, Mapping[str, list[float]]], keys: list[str], outputs: tuple[str, ...] = ()):
         super().__init__()
         self.keys = list(keys)
         for key in self.keys:
@@ -48,6 +52,9 @@ class Normalizer(nn.Module):
             offset = -(lo + hi) / 2 * scale
             self.register_buffer(f"{key}__scale", scale)
             self.register_buffer(f"{key}__offset", offset)
+            if key in outputs:  # derived from the statistics, which checkpoints keep: not saved with the weights
+                self.register_buffer(f"{key}__constant", span <= 1e-6, persistent=False)
+                self.register_buffer(f"{key}__value", (lo + hi) / 2, persistent=False)
 
     def width(self, key: str) -> int:
         return getattr(self, f"{key}__scale").numel()
@@ -70,7 +77,9 @@ class Normalizer(nn.Module):
 
     def unnormalize(self, key: str, x: torch.Tensor) -> torch.Tensor:
         scale, offset = self._params(key, x)
-        return (x - offset) / scale
+        raw = (x - offset) / scale
+        constant = getattr(self, f"{key}__constant", None)
+        return raw if constant is None else torch.where(constant, getattr(self, f"{key}__value"), raw)
 
 
 def group_normable(channels: int) -> bool:
@@ -401,7 +410,8 @@ class PolicyModel(nn.Module):
                 f"{type(self).__name__}: the config observes nothing; combine the size preset with a benchmark's "
                 "observation preset (bpp.policies.registry.Method.config, or bpp train --obs NAME)"
             )
-        self.normalizer = Normalizer(stats, [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key])
+        keys = [*obs.lowdim_keys, *obs.proprio_keys, cfg.action_key]
+        self.normalizer = Normalizer(stats, keys, outputs=(cfg.action_key,))
         self.action_dim = self.normalizer.width(cfg.action_key)
         self.obs_encoder = ObsEncoder(obs, self.normalizer)
         origin = cfg.action_relative_to
