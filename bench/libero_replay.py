@@ -22,14 +22,15 @@ import torch
 from bpp.checkpoint import Checkpoint
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
+from bpp.envs.libero.dataset import PROPRIO_LAYOUT
 from bpp.envs.libero.demonstrator import SETTLE_STEPS
 from bpp.envs.libero.rollouts import observe, task_problem
 from bpp.envs.libero.sim import make_env
 from bpp.envs.registry import get_benchmark
 from bpp.policies.agent import PolicyAgent
 
-EEF = slice(28, 31)
-"""The gripper's position in LIBERO's proprioception (bpp.envs.libero.dataset.PROPRIO_LAYOUT)."""
+EEF = list(PROPRIO_LAYOUT["eef_pos"])
+"""The gripper's position in LIBERO's proprioception."""
 
 
 def replay(model, store: EpisodeStore, episode: int, every: int, max_steps: int) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import tempfile
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +29,9 @@ STATE = ObservationPreset(
         "setting (cameras), and named as such wherever it is used"
     ),
 )
-STATE_EEF = ObservationPreset(
+STATE_EEF = replace(
+    STATE,
     proprio_keys=("eef",),
-    lowdim_keys=("object_state",),
-    goal_camera="agentview",
     description=(
         "state only, with the robot's gripper pose and opening (9 features, robomimic's and LIBERO's low-dimensional "
         "choice) instead of all 39 proprioception features (joint angles and velocities left out); otherwise as state"

@@ -140,8 +140,10 @@ def import_files(
 
 
 def observe_states(env, states: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(proprio, object_state), float32, as the env observes them in each flattened simulator state; the env is left
-    in the last state."""
+    """(proprio, object_state), float32, as a rollout observes them (:func:`~bpp.envs.libero.rollouts.observe`) in
+    each flattened simulator state; the env is left in the last state."""
+    from bpp.envs.libero.rollouts import observe
+
     sim = env.env.sim
     size = len(sim.get_state().flatten())
     if states.shape[1] != size:
@@ -153,7 +155,7 @@ def observe_states(env, states: np.ndarray, where: str) -> tuple[np.ndarray, np.
     for state in states:
         sim.set_state_from_flattened(state)
         sim.forward()
-        raw = env.env._get_observations(force_update=True)
-        proprio.append(np.asarray(raw["robot0_proprio-state"], dtype=np.float32))
-        object_state.append(np.asarray(raw["object-state"], dtype=np.float32))
+        obs = observe(env, env.env._get_observations(force_update=True), (), 0)
+        proprio.append(obs["proprio"])
+        object_state.append(obs["object_state"])
     return np.stack(proprio), np.stack(object_state)
