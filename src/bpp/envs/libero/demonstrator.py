@@ -314,10 +314,20 @@ def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarr
     """Where the fingers take `obj`, relative to its origin, and the horizontal axis they close along: a bowl by
     its rim (as in :func:`demonstrate`), anything else by the collision box that reaches highest (the cream cheese
     lying flat: its only box; the wine bottle: its neck), across the box's narrower side, 3 cm below the box's top
-    or just above its centre, whichever is higher."""
+    or just above its centre, whichever is higher.
+
+    With a drawer of the cabinet open, a bowl is taken on the rim away from the drawer, its fingers closing across
+    the drawer's width: on the near rim the arm came down onto the pulled-out drawer's side wall and stalled 4 cm
+    above the grasp, and a bowl put into the drawer (16 cm deep, the bowl about 12 cm wide) leaves room for the
+    fingers only along its width (docs/liberogen/README.md)."""
     if obj.startswith("akita_black_bowl"):
-        across = np.array([0.0, 1.0])
-        rim = rng.choice([-1.0, 1.0]) * arm.cfg.rim_offset * across + rng.normal(0.0, arm.cfg.jitter, 2)
+        across, side = np.array([0.0, 1.0]), rng.choice([-1.0, 1.0])
+        drawer = open_drawer_body(arm.env)
+        if drawer is not None:  # the rim on the side away from it, fingers across its width (see the docstring)
+            across = drawer_width_axis(arm.env, drawer)
+            away = (arm.obs[f"{obj}_pos"] - drawer)[:2] @ across
+            side = np.sign(away) if abs(away) > 0.01 else side
+        rim = side * arm.cfg.rim_offset * across + rng.normal(0.0, arm.cfg.jitter, 2)
         return np.r_[rim, rng.uniform(*arm.cfg.grasp_height)], across
     sim = arm.env.env.sim
     body = sim.model.body_name2id(f"{obj}_main")
@@ -353,10 +363,15 @@ def place_on(arm: Arm, rng: np.random.Generator, obj: str, target: str) -> None:
     arm.go(start + offset + [0.0, 0.0, 0.12], -1.0, across=across)
     arm.go(start + offset, -1.0, tol=0.004, limit=40)
     arm.hold(1.0, 15)
-    arm.go(start + offset + [0.0, 0.0, carry], 1.0)
-    held = arm.obs[f"{obj}_pos"] - arm.obs["robot0_eef_pos"]  # where the object hangs in the hand now
+    taken = start + offset + slide_out_from_under_drawer(arm, obj)  # where the hand holds it now
     goal = arm.obs[f"{target}_pos"] if f"{target}_pos" in arm.obs else sim.data.get_site_xpos(target)
-    goal = np.asarray(goal, dtype=float) + np.r_[rng.normal(0.0, 0.004, 2), 0.05] - held
+    goal = np.asarray(goal, dtype=float) + np.r_[rng.normal(0.0, 0.004, 2), 0.05]
+    # Straight up to the carrying height, 5 cm above the release point at least, before moving across: rising
+    # on the way, a bowl swung into the open drawer's corner, dropped, and pushed the drawer 2 cm shut.
+    lift = max(carry, goal[2] - start[2] + 0.05)
+    arm.go(taken + [0.0, 0.0, lift], 1.0)
+    held = arm.obs[f"{obj}_pos"] - arm.obs["robot0_eef_pos"]  # where the object hangs in the hand now
+    goal -= held
     lift = max(carry, goal[2] - start[2] + 0.05)
     arm.go((start + goal) / 2 + np.r_[rng.normal(0.0, 0.03, 2), lift], 1.0, tol=0.02)
     arm.go(np.r_[goal[:2], start[2] + lift], 1.0)
@@ -364,6 +379,31 @@ def place_on(arm: Arm, rng: np.random.Generator, obj: str, target: str) -> None:
     arm.hold(-1.0, 15)
     arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], -1.0)
     arm.hold(-1.0, 5)
+
+
+DRAWER_HALF_SIZE = (0.105, 0.08)
+"""Half the footprint of a drawer of LIBERO-Goal's cabinet (m): across its width, along the way it slides."""
+BOWL_RADIUS = 0.06
+
+
+def slide_out_from_under_drawer(arm: Arm, obj: str, margin: float = 0.02) -> np.ndarray:
+    """A bowl just taken that sits partly under the cabinet's open drawer (it overhangs the table in LIBERO-Goal's
+    scene) is slid out across the drawer's width, 2 cm off the table, until it clears the drawer by `margin`:
+    lifted straight up, it met the drawer's floor and stalled, or pushed the drawer shut. Returns the hand's move
+    (zero when there was nothing to do)."""
+    drawer = open_drawer_body(arm.env) if obj.startswith("akita_black_bowl") else None
+    if drawer is None:
+        return np.zeros(3)
+    width = drawer_width_axis(arm.env, drawer)
+    pull = np.array([-width[1], width[0]])
+    apart = (arm.obs[f"{obj}_pos"] - drawer)[:2]
+    along, off = apart @ width, apart @ pull
+    clear = DRAWER_HALF_SIZE[0] + BOWL_RADIUS + margin
+    if abs(along) >= clear or abs(off) >= DRAWER_HALF_SIZE[1] + BOWL_RADIUS:
+        return np.zeros(3)
+    shift = np.r_[(np.sign(along) * clear - along) * width, 0.02]
+    arm.go(arm.obs["robot0_eef_pos"] + shift, 1.0, tol=0.01)
+    return shift
 
 
 OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer, "place": place_on}
@@ -419,14 +459,26 @@ def level_axis(quat, min_tilt: float = np.radians(4.0)) -> np.ndarray | None:
     return np.array([-lean[1], lean[0]]) / np.linalg.norm(lean)
 
 
-def drawer_width_axis(env) -> np.ndarray:
-    """The horizontal unit vector across the wooden cabinet's top drawer (perpendicular to the way it opens)."""
+def drawer_width_axis(env, drawer: np.ndarray | None = None) -> np.ndarray:
+    """The horizontal unit vector across a drawer of the wooden cabinet (perpendicular to the way it opens), given
+    the open drawer's body position (default: the top drawer's)."""
     sim = env.env.sim
-    cabinet, drawer = (
-        sim.data.body_xpos[sim.model.body_name2id(f"wooden_cabinet_1_{b}")] for b in ("main", "cabinet_top")
-    )
+    cabinet = sim.data.body_xpos[sim.model.body_name2id("wooden_cabinet_1_main")]
+    if drawer is None:
+        drawer = sim.data.body_xpos[sim.model.body_name2id("wooden_cabinet_1_cabinet_top")]
     pull = (drawer - cabinet)[:2] / np.linalg.norm((drawer - cabinet)[:2])
     return np.array([pull[1], -pull[0]])
+
+
+def open_drawer_body(env, cabinet: str = "wooden_cabinet_1") -> np.ndarray | None:
+    """The position of the cabinet's open drawer (top or middle, by LIBERO's own predicate), or None when none is
+    open or the scene has no such cabinet."""
+    sim = env.env.sim
+    for drawer in ("top", "middle"):
+        body = f"{cabinet}_cabinet_{drawer}"
+        if body in sim.model.body_names and holds(env, f"(Open {cabinet}_{drawer}_region)"):
+            return sim.data.body_xpos[sim.model.body_name2id(body)].copy()
+    return None
 
 
 class _OutOfSteps(Exception):
