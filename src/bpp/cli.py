@@ -91,6 +91,32 @@ def store_info(args: StoreInfo) -> None:
         print(f"  {key:16s} {str(arr.dtype):8s} {arr.shape}")
 
 
+# ----------------------------------------------------------------------------- bpp store merge
+
+
+@dataclass(frozen=True)
+class StoreMerge:
+    """Merge stores of one benchmark into one (atomically): pieces generated on several machines, or demonstrations
+    of a few tasks added later. A task in several stores keeps one entry with all its episodes.
+
+    Example:
+      bpp store merge data/libero/chain-train.zarr data/libero/chain-extra.zarr --out data/libero/chain-all.zarr
+    """
+
+    stores: tyro.conf.Positional[tuple[Path, ...]]
+    out: Path
+    """Store to write (a .zarr folder)."""
+    overwrite: bool = False
+    """Replace an existing store."""
+
+
+def store_merge(args: StoreMerge) -> None:
+    from bpp.data.store import merge_stores
+
+    store = merge_stores(args.stores, args.out, overwrite=args.overwrite)
+    print(f"wrote {store}")
+
+
 # ----------------------------------------------------------------------------- bpp train
 
 
@@ -266,6 +292,7 @@ def _default_tasks(ckpt) -> str:
 
 COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
     ("store", "info"): (StoreInfo, store_info),
+    ("store", "merge"): (StoreMerge, store_merge),
     ("train",): (Train, train_cmd),
     ("eval",): (Eval, eval_cmd),
 }

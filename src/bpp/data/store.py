@@ -545,3 +545,59 @@ def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
         return None
     same = json.loads(json.dumps(stored)) == json.loads(json.dumps(to_dict(cfg)))
     return store if same else None
+
+
+def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool = False) -> EpisodeStore:
+    """One store of every episode of the stores at `paths` (of one benchmark, with the same per-step keys), written
+    atomically to `out`: e.g. pieces generated on several machines, or demonstrations of a few tasks added later.
+    A task in several stores (the same id) becomes one task with all their episodes; its instruction, info and
+    per-task arrays must agree. The merged header keeps the first store's generation config and lists every
+    source (path, fingerprint, config) under ``merged_from``; the statistics are those of the merged episodes."""
+    stores = [EpisodeStore(p) for p in paths]
+    if len(stores) < 2:
+        raise StoreError("merging needs at least two stores")
+    first = stores[0]
+    for s in stores[1:]:
+        if s.benchmark != first.benchmark:
+            raise StoreError(
+                f"{s.path} holds {s.benchmark} data and {first.path} {first.benchmark} data; merge stores of one "
+                "benchmark"
+            )
+        if s._stored_keys != first._stored_keys:
+            raise StoreError(f"{s.path} stores keys {s._stored_keys}, {first.path} {first._stored_keys}")
+    ragged = (
+        sorted(k for k in first._root()["tasks"].array_keys() if not k.endswith("__ends"))
+        if ("tasks" in first._root())
+        else []
+    )
+    writer = EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite)
+    with writer:
+        index: dict[str, int] = {}
+        for s in stores:
+            columns = [k for k in s._root()["meta"].array_keys() if k not in ("episode_ends", "task_index")]
+            remap = []
+            for t, task in enumerate(s.tasks):
+                arrays = {k: s.task_array(k, t) for k in ragged}
+                if task["id"] not in index:
+                    index[task["id"]] = writer.add_task(
+                        task["id"], task["info"], instruction=task["instruction"], **arrays
+                    )
+                else:
+                    known = writer._tasks[index[task["id"]]]
+                    same = known["info"] == _json_safe(task["info"]) and known["instruction"] == task["instruction"]
+                    same = same and all(
+                        np.array_equal(writer._task_ragged[k][index[task["id"]]], v) for k, v in arrays.items()
+                    )
+                    if not same:
+                        raise StoreError(
+                            f"task {task['id']!r} differs between the stores (info, instruction or arrays)"
+                        )
+                remap.append(index[task["id"]])
+            task_index = s.column("task_index")
+            for e in range(s.num_episodes):
+                extra = {k: s.column(k)[e].item() for k in columns}
+                writer.add_episode(s.episode(e, s._stored_keys), remap[int(task_index[e])], **extra)
+        writer.root.attrs["merged_from"] = [
+            {"path": str(s.path), "fingerprint": s.fingerprint(), "config": s.config} for s in stores
+        ]
+    return EpisodeStore(out)
