@@ -26,6 +26,7 @@ def _write(path, episodes=3, **kw):
                 {"obs": np.full((n, 2), e, np.float32), "action": np.arange(n, dtype=np.float64)[:, None]},
                 t if e % 2 == 0 else u,
                 angle=0.1 * e,
+                goal=np.full((2, 2), e, np.uint8),
             )
     return EpisodeStore(path)
 
@@ -168,8 +169,18 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
     with EpisodeWriter(tmp_path / "b.zarr", benchmark="test", config={"a": 2}, chunk_steps=4) as w:
         c = w.add_task("task-c", points=np.zeros((2, 2)))
         b = w.add_task("task-b", instruction="pick up the bowl", points=np.ones((1, 2)))
-        w.add_episode({"obs": np.full((2, 2), 7, np.float32), "action": np.zeros((2, 1))}, c, angle=0.7)
-        w.add_episode({"obs": np.full((5, 2), 8, np.float32), "action": np.ones((5, 1))}, b, angle=0.8)
+        w.add_episode(
+            {"obs": np.full((2, 2), 7, np.float32), "action": np.zeros((2, 1))},
+            c,
+            angle=0.7,
+            goal=np.zeros((2, 2), np.uint8),
+        )
+        w.add_episode(
+            {"obs": np.full((5, 2), 8, np.float32), "action": np.ones((5, 1))},
+            b,
+            angle=0.8,
+            goal=np.zeros((2, 2), np.uint8),
+        )
     from bpp.cli import main
 
     main(["store", "merge", str(tmp_path / "a.zarr"), str(tmp_path / "b.zarr"), "--out", str(tmp_path / "m.zarr")])
@@ -179,6 +190,7 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
     assert [list(x) for x in m.task_episodes()] == [[0, 2], [1, 4], [3]]
     np.testing.assert_array_equal(m.episode(4)["obs"], np.full((5, 2), 8, np.float32))
     np.testing.assert_allclose(m.column("angle"), [0.0, 0.1, 0.2, 0.7, 0.8])
+    np.testing.assert_array_equal(m.column("goal")[:, 0, 0], [0, 1, 2, 0, 0])
     np.testing.assert_array_equal(m.task_array("points", 2), np.zeros((2, 2)))
     assert m.stats["obs"]["max"] == [8.0, 8.0] and m.config == {"a": 1}
     assert [s["fingerprint"] for s in m.attrs["merged_from"]] == [
@@ -188,12 +200,22 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
 
     with EpisodeWriter(tmp_path / "c.zarr", benchmark="test", chunk_steps=4) as w:  # task-b, other instruction
         w.add_task("task-b", instruction="pick up the plate", points=np.ones((1, 2)))
-        w.add_episode({"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))}, 0, angle=0.0)
+        w.add_episode(
+            {"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))},
+            0,
+            angle=0.0,
+            goal=np.zeros((2, 2), np.uint8),
+        )
     with pytest.raises(StoreError, match="task 'task-b' differs between the stores"):
         merge_stores([tmp_path / "a.zarr", tmp_path / "c.zarr"], tmp_path / "x.zarr")
     with EpisodeWriter(tmp_path / "d.zarr", benchmark="other", chunk_steps=4) as w:
         w.add_task("t", points=np.ones((1, 2)))
-        w.add_episode({"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))}, 0, angle=0.0)
+        w.add_episode(
+            {"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))},
+            0,
+            angle=0.0,
+            goal=np.zeros((2, 2), np.uint8),
+        )
     with pytest.raises(StoreError, match="a.zarr holds test data and .*d.zarr other data"):
         merge_stores([tmp_path / "d.zarr", tmp_path / "a.zarr"], tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()

@@ -595,7 +595,7 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
                 remap.append(index[task["id"]])
             task_index = s.column("task_index")
             for e in range(s.num_episodes):
-                extra = {k: s.column(k)[e].item() for k in columns}
+                extra = {k: s.column(k)[e] for k in columns}  # a scalar, or an array (a goal image)
                 writer.add_episode(s.episode(e, s._stored_keys), remap[int(task_index[e])], **extra)
         writer.root.attrs["merged_from"] = [
             {"path": str(s.path), "fingerprint": s.fingerprint(), "config": s.config} for s in stores
