@@ -318,7 +318,7 @@ def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarr
 
     With a drawer of the cabinet open, a bowl is taken on the rim away from the drawer, its fingers closing across
     the drawer's width: on the near rim the arm came down onto the pulled-out drawer's side wall and stalled 4 cm
-    above the grasp, and a bowl put into the drawer (16 cm deep, the bowl about 12 cm wide) leaves room for the
+    above the grasp, and a bowl put into the drawer (15 cm deep inside, the bowl about 12 cm wide) leaves room for the
     fingers only along its width (docs/liberogen/README.md)."""
     if obj.startswith("akita_black_bowl"):
         across, side = np.array([0.0, 1.0]), rng.choice([-1.0, 1.0])
