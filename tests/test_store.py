@@ -165,6 +165,7 @@ def test_a_store_is_reused_for_its_config_and_for_fields_added_since_with_their_
 
 
 def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
+    g0 = np.zeros((2, 2), np.uint8)
     a = _write(tmp_path / "a.zarr")  # task-a: episodes 0, 2; task-b: episode 1
     with EpisodeWriter(tmp_path / "b.zarr", benchmark="test", config={"a": 2}, chunk_steps=4) as w:
         c = w.add_task("task-c", points=np.zeros((2, 2)))
@@ -218,4 +219,9 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
         )
     with pytest.raises(StoreError, match="a.zarr holds test data and .*d.zarr other data"):
         merge_stores([tmp_path / "d.zarr", tmp_path / "a.zarr"], tmp_path / "x.zarr")
+    with EpisodeWriter(tmp_path / "e.zarr", benchmark="test", chunk_steps=4) as w:  # no per-task arrays
+        w.add_task("task-e")
+        w.add_episode({"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))}, 0, angle=0.0, goal=g0)
+    with pytest.raises(StoreError, match=r"e.zarr has per-task arrays \[\], .*a.zarr \['points'\]"):
+        merge_stores([tmp_path / "a.zarr", tmp_path / "e.zarr"], tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()

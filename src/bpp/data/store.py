@@ -565,11 +565,15 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
             )
         if s._stored_keys != first._stored_keys:
             raise StoreError(f"{s.path} stores keys {s._stored_keys}, {first.path} {first._stored_keys}")
-    ragged = (
-        sorted(k for k in first._root()["tasks"].array_keys() if not k.endswith("__ends"))
-        if ("tasks" in first._root())
-        else []
-    )
+
+    def ragged_keys(store: EpisodeStore) -> list[str]:
+        root = store._root()
+        return sorted(k for k in root["tasks"].array_keys() if not k.endswith("__ends")) if "tasks" in root else []
+
+    ragged = ragged_keys(first)
+    for s in stores[1:]:
+        if ragged_keys(s) != ragged:
+            raise StoreError(f"{s.path} has per-task arrays {ragged_keys(s)}, {first.path} {ragged}")
     writer = EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite)
     with writer:
         index: dict[str, int] = {}
