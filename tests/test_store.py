@@ -164,8 +164,15 @@ def test_a_store_is_reused_for_its_config_and_for_fields_added_since_with_their_
     assert stored_with(tmp_path / "missing.zarr", Config()) is None
 
 
+def _one_episode(path, benchmark, task_id, instruction="", **task_arrays):
+    """A store of one two-step episode of one task, with `_write`'s keys and columns."""
+    with EpisodeWriter(path, benchmark=benchmark, chunk_steps=4) as w:
+        w.add_task(task_id, instruction=instruction, **task_arrays)
+        steps = {"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))}
+        w.add_episode(steps, 0, angle=0.0, goal=np.zeros((2, 2), np.uint8))
+
+
 def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
-    g0 = np.zeros((2, 2), np.uint8)
     a = _write(tmp_path / "a.zarr")  # task-a: episodes 0, 2; task-b: episode 1
     with EpisodeWriter(tmp_path / "b.zarr", benchmark="test", config={"a": 2}, chunk_steps=4) as w:
         c = w.add_task("task-c", points=np.zeros((2, 2)))
@@ -199,29 +206,13 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
         EpisodeStore(tmp_path / "b.zarr").fingerprint(),
     ]
 
-    with EpisodeWriter(tmp_path / "c.zarr", benchmark="test", chunk_steps=4) as w:  # task-b, other instruction
-        w.add_task("task-b", instruction="pick up the plate", points=np.ones((1, 2)))
-        w.add_episode(
-            {"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))},
-            0,
-            angle=0.0,
-            goal=np.zeros((2, 2), np.uint8),
-        )
+    _one_episode(tmp_path / "c.zarr", "test", "task-b", instruction="pick up the plate", points=np.ones((1, 2)))
     with pytest.raises(StoreError, match="task 'task-b' differs between the stores"):
         merge_stores([tmp_path / "a.zarr", tmp_path / "c.zarr"], tmp_path / "x.zarr")
-    with EpisodeWriter(tmp_path / "d.zarr", benchmark="other", chunk_steps=4) as w:
-        w.add_task("t", points=np.ones((1, 2)))
-        w.add_episode(
-            {"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))},
-            0,
-            angle=0.0,
-            goal=np.zeros((2, 2), np.uint8),
-        )
+    _one_episode(tmp_path / "d.zarr", "other", "t", points=np.ones((1, 2)))
     with pytest.raises(StoreError, match="a.zarr holds test data and .*d.zarr other data"):
         merge_stores([tmp_path / "d.zarr", tmp_path / "a.zarr"], tmp_path / "x.zarr")
-    with EpisodeWriter(tmp_path / "e.zarr", benchmark="test", chunk_steps=4) as w:  # no per-task arrays
-        w.add_task("task-e")
-        w.add_episode({"obs": np.zeros((2, 2), np.float32), "action": np.zeros((2, 1))}, 0, angle=0.0, goal=g0)
+    _one_episode(tmp_path / "e.zarr", "test", "task-e")  # no per-task arrays
     with pytest.raises(StoreError, match=r"e.zarr has per-task arrays \[\], .*a.zarr \['points'\]"):
         merge_stores([tmp_path / "a.zarr", tmp_path / "e.zarr"], tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()

@@ -505,6 +505,12 @@ class EpisodeStore:
         task_index = self.column("task_index")
         return [np.flatnonzero(task_index == t) for t in range(self.num_tasks)]
 
+    @property
+    def task_keys(self) -> list[str]:
+        """The ragged per-task arrays' keys (e.g. a drawing's strokes)."""
+        root = self._root()
+        return sorted(k for k in root["tasks"].array_keys() if not k.endswith("__ends")) if "tasks" in root else []
+
     def task_array(self, key: str, task_index: int) -> np.ndarray:
         """The ragged per-task array `key` of one task."""
         ends = self._read(f"tasks/{key}__ends")
@@ -565,38 +571,22 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
             )
         if s._stored_keys != first._stored_keys:
             raise StoreError(f"{s.path} stores keys {s._stored_keys}, {first.path} {first._stored_keys}")
-
-    def ragged_keys(store: EpisodeStore) -> list[str]:
-        root = store._root()
-        return sorted(k for k in root["tasks"].array_keys() if not k.endswith("__ends")) if "tasks" in root else []
-
-    ragged = ragged_keys(first)
-    for s in stores[1:]:
-        if ragged_keys(s) != ragged:
-            raise StoreError(f"{s.path} has per-task arrays {ragged_keys(s)}, {first.path} {ragged}")
-    writer = EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite)
-    with writer:
-        index: dict[str, int] = {}
+        if s.task_keys != first.task_keys:
+            raise StoreError(f"{s.path} has per-task arrays {s.task_keys}, {first.path} {first.task_keys}")
+    with EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite) as writer:
+        merged: dict[str, tuple[int, dict, dict]] = {}  # task id -> (merged index, task entry, per-task arrays)
         for s in stores:
             columns = [k for k in s._root()["meta"].array_keys() if k not in ("episode_ends", "task_index")]
             remap = []
             for t, task in enumerate(s.tasks):
-                arrays = {k: s.task_array(k, t) for k in ragged}
-                if task["id"] not in index:
-                    index[task["id"]] = writer.add_task(
-                        task["id"], task["info"], instruction=task["instruction"], **arrays
-                    )
-                else:
-                    known = writer._tasks[index[task["id"]]]
-                    same = known["info"] == _json_safe(task["info"]) and known["instruction"] == task["instruction"]
-                    same = same and all(
-                        np.array_equal(writer._task_ragged[k][index[task["id"]]], v) for k, v in arrays.items()
-                    )
-                    if not same:
-                        raise StoreError(
-                            f"task {task['id']!r} differs between the stores (info, instruction or arrays)"
-                        )
-                remap.append(index[task["id"]])
+                arrays = {k: s.task_array(k, t) for k in s.task_keys}
+                if task["id"] not in merged:
+                    index = writer.add_task(task["id"], task["info"], instruction=task["instruction"], **arrays)
+                    merged[task["id"]] = (index, task, arrays)
+                index, known, known_arrays = merged[task["id"]]
+                if known != task or any(not np.array_equal(known_arrays[k], v) for k, v in arrays.items()):
+                    raise StoreError(f"task {task['id']!r} differs between the stores (info, instruction or arrays)")
+                remap.append(index)
             task_index = s.column("task_index")
             for e in range(s.num_episodes):
                 extra = {k: s.column(k)[e] for k in columns}  # a scalar, or an array (a goal image)
