@@ -131,8 +131,35 @@ def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, p
         env.close()
     assert demo.actions.shape[1] == 7 and np.abs(demo.actions).max() <= 1.0
     assert len(demo.states) == len(demo.actions)
-    with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open, place"):
+    with pytest.raises(ValueError, match="no operator 'fly'; known: turn_on, push, open, close, place"):
         demonstrate_operator(None, "fly", seed=0)
+
+
+def test_the_close_operator_shuts_both_drawers_by_libero_goal_check(tmp_path):
+    """Closing, judged by LIBERO's ``Close`` (which holds only at the drawer's stop): a LIBERO-Goal problem whose
+    ``:init`` opens the top drawer and whose goal is both drawers closed. The demonstrator closes the top drawer,
+    then opens the middle one and closes it again, with the fingers leading (a hand pointing down met the top
+    drawer's handle 6 mm short of the stop). LIBERO's scene cannot start with the middle drawer open: it opens
+    around the bowl, which then keeps it from closing."""
+    from bpp.envs.libero.bddl import set_section
+    from bpp.envs.libero.chain import parse_step
+    from bpp.envs.libero.demonstrator import demonstrate_steps
+    from bpp.envs.libero.sim import GOAL_BASE, libero_problem
+
+    top, middle = parse_step("close the top drawer"), parse_step("close the middle drawer of the cabinet")
+    assert (top.operator, top.goal) == ("close", "(Close wooden_cabinet_1_top_region)")
+    problem = parse(libero_problem("libero_goal", GOAL_BASE))
+    set_section(problem, ":init", [*section(problem, ":init")[1:], ["Open", "wooden_cabinet_1_top_region"]])
+    set_section(problem, ":goal", [["And", *(s.goal.strip("()").split() for s in (top, middle))]])
+    path = tmp_path / "close.bddl"
+    path.write_text(dumps(problem))
+    env = make_env(path)
+    try:
+        steps = [("close", top.kwargs), ("open", middle.kwargs), ("close", middle.kwargs)]
+        demo = demonstrate_steps(env, steps, seed=0)
+    finally:
+        env.close()
+    assert demo.success and len(demo.actions) > 300
 
 
 def test_libero_goal_own_two_step_task_the_bowl_into_the_opened_drawer():

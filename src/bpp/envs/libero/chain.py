@@ -79,7 +79,7 @@ def _put(obj: str, place: str, opened: str | None) -> Step:
 
 
 _PUT = re.compile(r"put the (bowl|cream cheese|wine bottle) (.+)")
-_OPEN = re.compile(r"open the (top drawer|middle drawer of the cabinet)")
+_DRAWER = re.compile(r"(open|close) the (top drawer|middle drawer of the cabinet)")
 
 
 def parse_step(text: str, opened: str | None = None) -> Step:
@@ -89,9 +89,9 @@ def parse_step(text: str, opened: str | None = None) -> Step:
         return Step("turn_on", (), "(Turnon flat_stove_1)")
     if text == "push the plate to the front of the stove":
         return Step("push", (), f"(On plate_1 {PLACES['in front of the stove']})")
-    if match := _OPEN.fullmatch(text):
-        drawer = DRAWERS[match.group(1)]
-        return Step("open", (("drawer", drawer),), f"(Open {DRAWER_REGIONS[drawer]})")
+    if match := _DRAWER.fullmatch(text):
+        operator, drawer = match.group(1), DRAWERS[match.group(2)]
+        return Step(operator, (("drawer", drawer),), f"({operator.title()} {DRAWER_REGIONS[drawer]})")
     if match := _PUT.fullmatch(text):
         return _put(match.group(1), match.group(2), opened)
     raise ValueError(f"not a LIBERO-Gen Chain step: {text!r}")
@@ -99,7 +99,7 @@ def parse_step(text: str, opened: str | None = None) -> Step:
 
 def _split(text: str) -> list[str]:
     """An instruction's words per step."""
-    return re.split(r" and (?:then )?(?=put |open |push |turn )", text, maxsplit=1)
+    return re.split(r" and (?:then )?(?=put |open |close |push |turn )", text, maxsplit=1)
 
 
 def parse_instruction(text: str) -> list[Step]:
@@ -107,7 +107,7 @@ def parse_instruction(text: str) -> list[Step]:
     parts = _split(re.sub(r" \d+$", "", text.strip()))
     steps = [parse_step(parts[0])]
     if len(parts) == 2:
-        drawer = steps[0].kwargs.get("drawer")
+        drawer = steps[0].kwargs.get("drawer") if steps[0].operator == "open" else None
         steps.append(parse_step(parts[1], None if drawer is None else DRAWER_REGIONS[drawer]))
     return steps
 
@@ -192,7 +192,7 @@ class ChainTask:
             return dumps(problem)
         first = parse_step(self.start)
         init = section(problem, ":init")[1:]
-        if first.operator in ("turn_on", "open"):
+        if first.operator in ("turn_on", "open", "close"):
             init.append(first.goal.strip("()").split())
         else:  # an object moved: its placement is the step's goal
             moved = first.goal.strip("()").split()

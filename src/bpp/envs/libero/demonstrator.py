@@ -12,9 +12,10 @@ its fingers close across the drawer's width (the roomier axis), half-closes, and
 
 LIBERO-Goal's scene (the Chain suite) needs more than pick-and-place: :data:`OPERATORS` holds the other
 operators, each a function of an :class:`Arm` (the recorded robot) and a seeded generator: turning the stove on,
-pushing the plate, opening the top or the middle drawer, and placing the bowl, the cream cheese or the wine bottle
-on an object or a region (the wine rack, which holds bottles tilted, takes a bottle put down upright about half the
-time).
+pushing the plate, opening or closing the top or the middle drawer, and placing the bowl, the cream cheese or the
+wine bottle on an object or a region (the wine rack, which holds bottles tilted, takes a bottle put down upright
+about half the time). Closing is in no LIBERO-Gen suite (LIBERO-Goal has no closing task); LIBERO-10's tasks close
+a drawer and a microwave.
 """
 
 from __future__ import annotations
@@ -310,6 +311,40 @@ def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabin
     arm.go(arm.obs["robot0_eef_pos"] + [-0.15, 0.0, 0.0], -1.0, tol=0.02)  # back over the table, clear of the drawer
 
 
+def close_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabinet_1", drawer: str = "top"):
+    """Close an open drawer of LIBERO-Goal's cabinet by pushing its handle back in: the closed fingers come down
+    just in front of the bar, pads across it, and push along the way the drawer slides (towards the cabinet) until it
+    is in, a little past where it stops. LIBERO counts a drawer as closed only at its stop (joint position > 0)."""
+    if drawer not in ("top", "middle"):
+        raise ValueError(f"the demonstrator closes the top and the middle drawer, not {drawer!r}")
+    sim = arm.env.env.sim
+    bar = {"top": "g18", "middle": "g29"}[drawer]
+    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_{bar}")].copy()
+    body = sim.model.body_name2id(f"{cabinet}_cabinet_{drawer}")
+    out = np.r_[drawer_pull_axis(arm.env, sim.data.body_xpos[body]), 0.0]
+    across = np.array([out[1], -out[0]])
+    joint = sim.model.jnt_qposadr[sim.model.body_jntadr[body]]
+    opened = abs(float(sim.data.qpos[joint]))  # how far it is out
+    start = handle + out * rng.uniform(0.035, 0.045) + np.r_[across * rng.uniform(-0.02, 0.02), 0.0]
+    end = start - out * ((start - handle) @ out + opened + rng.uniform(0.01, 0.02))  # a little past its stop
+    pose = None
+    if drawer == "top":
+        arm.go(start + [0.0, 0.0, rng.uniform(0.07, 0.1)], 1.0, across=across)
+        arm.go(start, 1.0, tol=0.004)
+    else:  # a hand pointing down would meet the top drawer's handle above: the fingers lead, pitched towards it
+        pose = Rotation.from_rotvec(-np.radians(rng.uniform(65.0, 75.0)) * np.r_[across, 0.0]) * DOWN
+        arm.go(start + out * 0.06 + [0.0, 0.0, 0.03], 1.0, tol=0.01, pose=pose)
+        arm.go(start, 1.0, tol=0.004, limit=60, pose=pose)
+    for k in range(1, 9):
+        arm.go(start + (end - start) * k / 8, 1.0, tol=0.004, limit=15, pose=pose)
+    for _ in range(4):  # pressed against its stop until it is in (the hand can stop a few millimetres short)
+        if sim.data.qpos[joint] > 0.0005:
+            break
+        arm.go(arm.obs["robot0_eef_pos"] - out * 0.015, 1.0, tol=0.004, limit=12, pose=pose)
+    arm.go(arm.obs["robot0_eef_pos"] + out * 0.06, 1.0, tol=0.01, pose=pose)
+    arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.08], 1.0, tol=0.01, pose=None if pose is None else DOWN)
+
+
 def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarray, np.ndarray]:
     """Where the fingers take `obj`, relative to its origin, and the horizontal axis they close along: a bowl by
     its rim (as in :func:`demonstrate`), anything else by the collision box that reaches highest (the cream cheese
@@ -406,7 +441,7 @@ def slide_out_from_under_drawer(arm: Arm, obj: str, margin: float = 0.02) -> np.
     return shift
 
 
-OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer, "place": place_on}
+OPERATORS = {"turn_on": turn_on, "push": push, "open": open_drawer, "close": close_drawer, "place": place_on}
 """Operators other than pick-and-place, by the BDDL predicate they make true (LIBERO-Goal's scene)."""
 
 
@@ -462,12 +497,18 @@ def level_axis(quat, min_tilt: float = np.radians(4.0)) -> np.ndarray | None:
 def drawer_width_axis(env, drawer: np.ndarray | None = None) -> np.ndarray:
     """The horizontal unit vector across a drawer of the wooden cabinet (perpendicular to the way it opens), given
     the open drawer's body position (default: the top drawer's)."""
+    pull = drawer_pull_axis(env, drawer)
+    return np.array([pull[1], -pull[0]])
+
+
+def drawer_pull_axis(env, drawer: np.ndarray | None = None) -> np.ndarray:
+    """The horizontal unit vector along which a drawer of the wooden cabinet opens (out of the cabinet), given the
+    open drawer's body position (default: the top drawer's)."""
     sim = env.env.sim
     cabinet = sim.data.body_xpos[sim.model.body_name2id("wooden_cabinet_1_main")]
     if drawer is None:
         drawer = sim.data.body_xpos[sim.model.body_name2id("wooden_cabinet_1_cabinet_top")]
-    pull = (drawer - cabinet)[:2] / np.linalg.norm((drawer - cabinet)[:2])
-    return np.array([pull[1], -pull[0]])
+    return (drawer - cabinet)[:2] / np.linalg.norm((drawer - cabinet)[:2])
 
 
 def open_drawer_body(env, cabinet: str = "wooden_cabinet_1") -> np.ndarray | None:
