@@ -5,6 +5,7 @@ predicates. Needs the `libero` extra, which `make test` installs."""
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from bpp.envs.libero import dataset
 from bpp.envs.libero.benchmark import BENCHMARK, _render
 from bpp.envs.libero.demonstrator import DemoConfig
 from bpp.envs.libero.suites import combination
+from bpp.evaluation.evaluate import resolve_tasks
 
 
 @pytest.fixture(scope="module")
@@ -180,8 +182,17 @@ def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_pa
 def test_bad_input_is_refused_with_a_clear_message(store, debug_store, tmp_path, capsys):
     with pytest.raises(SystemExit, match="task_indices \\[500\\] out of range"):
         main(["libero", "generate", "--out", str(tmp_path / "x.zarr"), "--task-indices", "500"])
-    with pytest.raises(SystemExit, match="not libero_gen"):
-        main(["libero", "video", str(debug_store.path), "--out", str(tmp_path / "v.gif")])
+    for command in (["video", str(debug_store.path), "--out", str(tmp_path / "v.gif")],
+                    ["export", str(debug_store.path), "--out", str(tmp_path / "hdf5")]):  # fmt: skip
+        with pytest.raises(SystemExit, match="is a drawanything store, not libero_gen"):
+            main(["libero", *command])
+    libero_checkpoint = SimpleNamespace(benchmark="libero_gen")  # all that choosing its tasks reads
+    with pytest.raises(ValueError, match="holds drawanything tasks; the checkpoint was trained on libero_gen"):
+        resolve_tasks(str(debug_store.path), libero_checkpoint)
+    with pytest.raises(ValueError, match="'held_out': not a task set of libero_gen \\(train, held-out, "):
+        resolve_tasks("held_out", libero_checkpoint)
+    with pytest.raises(ValueError, match="LIBERO-Gen has no task set 'nope'; named sets: held-out, "):
+        BENCHMARK.task_set("nope", tmp_path)
     with pytest.raises(SystemExit):
         main(["libero", "tasks", "--suite", "chainz"])
     err = " ".join(capsys.readouterr().err.replace("│", " ").split())  # tyro wraps its message in a box
