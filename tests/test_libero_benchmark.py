@@ -161,14 +161,24 @@ def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypat
 
 @pytest.mark.parametrize(
     ("method", "obs"),
-    [("bpp", "state"), ("goal_image", "state"), ("language", "state"), ("icrt", "state"), ("bpp", "state-eef")],
+    [
+        ("bpp", "state"),
+        ("goal_image", "state"),
+        ("language", "state"),
+        ("icrt", "state"),
+        ("bpp", "state-eef"),
+        ("bpp", "image"),
+    ],
 )
 def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, obs, capsys):
     run = tmp_path / "run"
     flags = ["--preset", "debug", "--obs", obs, "--steps=2"]
+    if obs == "image":  # the stored camera only, at its stored size: a wrist camera would be rendered from the
+        flags += ["--model.obs.image-keys", "agentview", "--model.obs.image-size", "32"]  # states, 0.15 s a frame
     main(["train", "--method", method, "--data", str(store.path), "--out", str(run), *flags])
-    proprio = {"state": ["proprio"], "state-eef": ["eef"]}[obs]  # state-eef: a key derived from the stored one
-    assert json.loads((run / "config.json").read_text())["model_config"]["obs"]["proprio_keys"] == proprio
+    seen = json.loads((run / "config.json").read_text())["model_config"]["obs"]
+    assert seen["proprio_keys"] == (["eef"] if obs == "state-eef" else ["proprio"])  # eef: derived from the stored
+    assert seen["image_keys"] == (["agentview"] if obs == "image" else [])
     out = tmp_path / "eval"
     flags = ["--tasks", "train", "--rollouts", "1", "--max-steps", "12", "--workers", "1", "--videos", "1"]
     main(["eval", str(run), *flags, "--out", str(out)])
