@@ -112,6 +112,20 @@ def test_chain_steps_that_make_no_sense_are_refused_by_name():
         parse_instruction("juggle the plate")
 
 
+def test_what_may_follow_what_is_read_from_the_declared_effects():
+    from bpp.envs.libero.chain import may_follow, parse_step
+
+    cheese_in_bowl = parse_step("put the cream cheese in the bowl")
+    assert (cheese_in_bowl.moves, cheese_in_bowl.leaves_at) == ("cream_cheese_1", "akita_black_bowl_1")
+    bowl_on_plate = parse_step("put the bowl on the plate")
+    assert not may_follow(cheese_in_bowl, parse_step("put the bowl on the stove"))  # the bowl holds the cheese
+    assert not may_follow(bowl_on_plate, parse_step("put the bowl on the stove"))  # the same object again
+    assert not may_follow(bowl_on_plate, parse_step("put the wine bottle on the plate"))  # the plate is taken
+    assert may_follow(bowl_on_plate, parse_step("put the wine bottle on the stove"))
+    assert may_follow(parse_step("push the plate to the front of the stove"), bowl_on_plate)  # the plate moved
+    assert may_follow(parse_step("turn on the stove"), parse_step("put the bowl on the stove"))  # nothing moved
+
+
 # The appendix's held-out chains with its count: training chains with the same first step whose second step moves
 # the same object to another place.
 CHAIN_APPENDIX = {
@@ -144,18 +158,18 @@ def test_chain_has_the_papers_size_held_out_chains_and_appendix_counts():
 
 
 def test_each_second_step_starts_from_a_first_steps_end_state_that_allows_it():
-    from bpp.envs.libero.chain import _allows, chain, parse_step
+    from bpp.envs.libero.chain import chain, may_follow, parse_step
 
     suite = chain()
     firsts = {t.label for t in suite.train if t.view == "first_step"}
     second = [t for t in suite.train if t.view == "second_step"]
     assert all(t.start is None for t in suite.train if t.view != "second_step")
-    assert all(t.start in firsts and _allows(parse_step(t.start), t.steps[0]) for t in second)
+    assert all(t.start in firsts and may_follow(parse_step(t.start), t.steps[0]) for t in second)
     # The rule behind the suffixes: an instruction's largest suffix is one more than the first steps allowing it.
     for instruction in {t.instruction for t in second} - {"put the wine bottle in the top drawer"}:
         largest = max(int(t.label.rsplit(" ", 1)[1]) for t in second if t.instruction == instruction)
         allowing = [f for f in firsts - {"open the middle drawer of the cabinet", "put the wine bottle on the rack"}
-                    if _allows(parse_step(f), parse_step(instruction))]  # fmt: skip
+                    if may_follow(parse_step(f), parse_step(instruction))]  # fmt: skip
         assert len(allowing) == largest - 1, instruction
     # No second step moves what the first step moved, or lifts the bowl with something in it.
     assert not [t for t in second if parse_step(t.start).kwargs.get("obj") == t.steps[0].kwargs["obj"]]

@@ -55,45 +55,107 @@ DRAWER_REGIONS = {"top": "wooden_cabinet_1_top_region", "middle": "wooden_cabine
 @dataclass(frozen=True)
 class Step:
     """One step: ``operator`` (a key of :data:`bpp.envs.libero.demonstrator.OPERATORS`) with its ``arguments``,
-    and the BDDL predicate that holds once it is done (``goal``)."""
+    the BDDL predicate that holds once it is done (``goal``), and its effect: the object it ``moves`` and where it
+    leaves it (``leaves_at``), both BDDL names or None."""
 
     operator: str
     arguments: tuple[tuple[str, str], ...]
     goal: str
+    moves: str | None = None
+    leaves_at: str | None = None
 
     @property
     def kwargs(self) -> dict[str, str]:
         return dict(self.arguments)
 
 
-def _put(obj: str, place: str, opened: str | None) -> Step:
-    name = OBJECTS[obj]
-    if place in ("inside", "in the top drawer"):  # "inside": the drawer the first step opened
-        region = DRAWER_REGIONS["top"] if place == "in the top drawer" else opened
-        if region is None:
-            raise ValueError(f"'put the {obj} inside' needs a first step that opens a drawer")
-        return Step("place", (("obj", name), ("target", region)), f"(In {name} {region})")
-    if place not in PLACES:
-        raise ValueError(f"unknown place {place!r} in 'put the {obj} {place}'; known: {', '.join(PLACES)}")
-    return Step("place", (("obj", name), ("target", PLACES[place])), f"(On {name} {PLACES[place]})")
+@dataclass(frozen=True)
+class OperatorSpec:
+    """An operator of LIBERO-Goal's scene, declared: the words that ask for it (a regular expression whose named
+    groups are its arguments in words, each looked up in :data:`VOCABULARY`), the arguments the demonstrator's
+    operator takes (its keyword <- a group), the BDDL predicate that holds once it is done (formatted with the
+    groups' BDDL names), and its effect: the object it moves and where it leaves it (a group or a BDDL name), from
+    which :func:`may_follow` decides what may come after it."""
+
+    operator: str
+    words: str
+    goal: str
+    arguments: tuple[tuple[str, str], ...] = ()
+    moves: str | None = None
+    leaves_at: str | None = None
 
 
-_PUT = re.compile(r"put the (bowl|cream cheese|wine bottle) (.+)")
-_DRAWER = re.compile(r"(open|close) the (top drawer|middle drawer of the cabinet)")
+_OBJ = "(?P<obj>bowl|cream cheese|wine bottle)"
+_DRAWER = "(?P<drawer>top drawer|middle drawer of the cabinet)"
+_PLACE = (("obj", "obj"), ("target", "place"))
+SPECS = (
+    OperatorSpec("turn_on", "turn on the stove", "(Turnon flat_stove_1)"),
+    OperatorSpec(
+        "push",
+        "push the plate to the front of the stove",
+        "(On plate_1 main_table_stove_front_region)",
+        moves="plate_1",
+        leaves_at="main_table_stove_front_region",
+    ),
+    OperatorSpec("open", f"open the {_DRAWER}", "(Open {region})", (("drawer", "drawer"),)),
+    OperatorSpec("close", f"close the {_DRAWER}", "(Close {region})", (("drawer", "drawer"),)),
+    OperatorSpec(
+        "place",
+        f"put the {_OBJ} (?P<into>in the top drawer|inside)",
+        "(In {obj} {into})",
+        (("obj", "obj"), ("target", "into")),
+        "obj",
+        "into",
+    ),  # fmt: skip
+    OperatorSpec("place", f"put the {_OBJ} (?P<place>.+)", "(On {obj} {place})", _PLACE, "obj", "place"),
+)
+"""Every step an instruction of the Chain suite can ask for (the first that matches is the one)."""
+VOCABULARY = {
+    "obj": OBJECTS,
+    "place": PLACES,
+    "drawer": DRAWERS,
+    "into": {"in the top drawer": DRAWER_REGIONS["top"], "inside": None},  # None: the drawer a first step opened
+}
+"""A group's words -> the name the demonstrator and BDDL use."""
+HOLDERS = ("akita_black_bowl_1", "cream_cheese_1")
+"""Objects that carry what was put in or on them (LIBERO-Goal's bowl and cream cheese box)."""
+
+
+def may_follow(first: Step, second: Step) -> bool:
+    """What may follow what (the rule inferred from the published suite; chain-analysis.md): a second step moves
+    another object than the first step did, to a place the first step did not fill, and does not lift one of the
+    :data:`HOLDERS` with something the first step put in or on it."""
+    if first.moves is None:  # the stove, a drawer: nothing moved
+        return True
+    lifts_a_holder = first.leaves_at in HOLDERS and second.moves == first.leaves_at
+    return second.moves != first.moves and second.leaves_at != first.leaves_at and not lifts_a_holder
 
 
 def parse_step(text: str, opened: str | None = None) -> Step:
-    """One step's words -> :class:`Step`; `opened` is the drawer a previous step opened (for "... inside")."""
+    """One step's words -> :class:`Step` by :data:`SPECS`; `opened` is the region of the drawer a previous step
+    opened (for "put the X inside")."""
     text = text.strip()
-    if text == "turn on the stove":
-        return Step("turn_on", (), "(Turnon flat_stove_1)")
-    if text == "push the plate to the front of the stove":
-        return Step("push", (), f"(On plate_1 {PLACES['in front of the stove']})")
-    if match := _DRAWER.fullmatch(text):
-        operator, drawer = match.group(1), DRAWERS[match.group(2)]
-        return Step(operator, (("drawer", drawer),), f"({operator.title()} {DRAWER_REGIONS[drawer]})")
-    if match := _PUT.fullmatch(text):
-        return _put(match.group(1), match.group(2), opened)
+    for spec in SPECS:
+        if (match := re.fullmatch(spec.words, text)) is None:
+            continue
+        names = {}
+        for group, words in match.groupdict().items():
+            if words not in VOCABULARY[group]:
+                raise ValueError(f"unknown {group} {words!r} in {text!r}; known: {', '.join(VOCABULARY[group])}")
+            names[group] = VOCABULARY[group][words]
+        if "into" in names and names["into"] is None:
+            if opened is None:
+                raise ValueError(f"{text!r} needs a first step that opens a drawer")
+            names["into"] = opened
+        if "drawer" in names:
+            names["region"] = DRAWER_REGIONS[names["drawer"]]
+        return Step(
+            spec.operator,
+            tuple((keyword, names[group]) for keyword, group in spec.arguments),
+            spec.goal.format(**names),
+            names.get(spec.moves, spec.moves),
+            names.get(spec.leaves_at, spec.leaves_at),
+        )
     raise ValueError(f"not a LIBERO-Gen Chain step: {text!r}")
 
 
@@ -221,17 +283,6 @@ def published_tasks() -> tuple[tuple[str, str], ...]:
     return tuple(rows)
 
 
-def _allows(state: Step, goal: Step) -> bool:
-    """Whether second step `goal` can follow first step `state` (the inferred rule; chain-analysis.md): it moves
-    another object than the first step did, to a place the first step did not fill, and it neither lifts the bowl
-    with something in it nor the cream cheese with something on it."""
-    moved = state.kwargs.get("obj", "plate_1" if state.operator == "push" else None)
-    filled = state.goal.strip("()").split()[-1] if moved else None
-    obj, target = goal.kwargs["obj"], goal.kwargs["target"]
-    holding = {"akita_black_bowl_1", "cream_cheese_1"}
-    return obj != moved and target != filled and not (moved and filled in holding and obj == filled)
-
-
 @cache
 def second_step_starts() -> dict[str, str]:
     """Second-step label -> the first step whose end state it starts from. An instruction's k-th published repeat
@@ -253,7 +304,7 @@ def second_step_starts() -> dict[str, str]:
             starts[label] = "open the top drawer"
             continue
         goal = parse_step(match.group(1))
-        allowed = [s for s in states if _allows(parse_step(s), goal)]
+        allowed = [s for s in states if may_follow(parse_step(s), goal)]
         k = int(match.group(2))
         if not 2 <= k <= len(allowed) + 1:
             raise ValueError(f"{label!r}: only {len(allowed)} first steps allow it")
