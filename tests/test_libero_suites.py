@@ -126,6 +126,28 @@ def test_what_may_follow_what_is_read_from_the_declared_effects():
     assert may_follow(parse_step("turn on the stove"), parse_step("put the bowl on the stove"))  # nothing moved
 
 
+def test_a_view_selects_tasks_by_their_fields_and_is_the_ablations_view():
+    from bpp.envs.libero.chain import chain, chain_no_second_step
+    from bpp.envs.libero.dataset import LiberoDataConfig
+    from bpp.envs.libero.suites import combination, view
+
+    ablation = view(chain(), "view!=second_step")
+    assert (ablation.train, ablation.test) == (chain_no_second_step().train, chain_no_second_step().test)
+    drawer = view(combination(), "pick=TD")
+    assert len(drawer.train) == 7 and [t.code for t in drawer.test] == [("S3", "TD", "PL")]
+    assert "same pick (TD), different place [7 tasks]" in drawer.report()  # counted within the view
+    assert {t.place for t in view(combination(), "place=ST,RK;bowl=2").train} == {"ST", "RK"}
+    chosen = LiberoDataConfig(where="pick=TD").tasks()  # generation keeps each task's index in the split (its seeds)
+    assert [t for _, t in chosen] == list(drawer.train)
+    assert [i for i, _ in chosen] == [combination().train.index(t) for t in drawer.train]
+    with pytest.raises(ValueError, match="'pik=TD' is not field=value\\[,value...\\] over instruction, scene"):
+        view(combination(), "pik=TD")
+    with pytest.raises(ValueError, match="no task of combination is in the view 'pick=QQ'"):
+        view(combination(), "pick=QQ")
+    with pytest.raises(ValueError, match="task_indices \\[0\\] are not in the view 'pick=TD'"):
+        LiberoDataConfig(where="pick=TD", task_indices=(0,)).tasks()
+
+
 # The appendix's held-out chains with its count: training chains with the same first step whose second step moves
 # the same object to another place.
 CHAIN_APPENDIX = {

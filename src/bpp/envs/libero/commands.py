@@ -7,7 +7,7 @@ from pathlib import Path
 
 import tyro
 
-from bpp.envs.libero.suites import SUITES_BY_NAME
+from bpp.envs.libero.suites import SUITES_BY_NAME, view
 from bpp.utils import check_fields
 
 
@@ -21,6 +21,9 @@ class LiberoTasks:
     suite: str = "combination"
     """combination or chain (LIBERO-Gen), chain_no_second_step (the ablation's view), or libero_spatial
     (LIBERO-Spatial's own 10 tasks)."""
+    where: str = ""
+    """Only the tasks in this view, e.g. ``pick=TD``, ``place!=ST;bowl=1``, ``view!=second_step`` (fields of each
+    task's entry in tasks.json; the report then counts similar tasks within the view)."""
     out: Path | None = None
     """Folder to write (default: only print the report)."""
     overwrite: bool = False
@@ -40,7 +43,7 @@ class LiberoTasks:
 def libero_tasks(args: LiberoTasks) -> None:
     from bpp.envs.libero.tasks import write_suite
 
-    suite = SUITES_BY_NAME[args.suite]()
+    suite = view(SUITES_BY_NAME[args.suite](), args.where)
     print(suite.report())
     if args.out is not None:
         print(f"wrote {write_suite(suite, args.out, args.overwrite, args.init_states)}")

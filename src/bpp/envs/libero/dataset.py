@@ -34,7 +34,7 @@ from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, derive_keys
 from bpp.envs.libero.chain import ChainTask
 from bpp.envs.libero.demonstrator import DemoConfig
 from bpp.envs.libero.sim import CAMERAS
-from bpp.envs.libero.suites import SUITES_BY_NAME, PickPlace
+from bpp.envs.libero.suites import SUITES_BY_NAME, PickPlace, matches
 from bpp.utils import check_fields, to_dict
 
 BENCHMARK = "libero_gen"
@@ -71,6 +71,9 @@ class LiberoDataConfig:
     """Tasks of the split to demonstrate, spread evenly over it (0: all)."""
     task_indices: tuple[int, ...] = ()
     """Exactly these tasks of the split (indices, as ``bpp libero tasks`` lists them) instead of num_tasks."""
+    where: str = ""
+    """A view: only the split's tasks whose fields match, e.g. ``pick=TD`` or ``view!=second_step`` (see
+    :func:`bpp.envs.libero.suites.matches`). Tasks keep their index in the split, so their seeds too."""
     demos_per_task: int = 5
     max_tries: int = 0
     """Demonstration attempts per task at most (0: twice the demonstrations plus two)."""
@@ -117,10 +120,15 @@ class LiberoDataConfig:
             bad = [i for i in self.task_indices if i >= len(split)]
             if bad:
                 raise ValueError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
+            outside = [i for i in self.task_indices if self.where and not matches(split[i], self.where)]
+            if outside:
+                raise ValueError(f"task_indices {outside} are not in the view {self.where!r}")
             return [(i, split[i]) for i in sorted(set(self.task_indices))]
-        n = len(split) if not self.num_tasks else min(self.num_tasks, len(split))
-        picks = np.unique(np.linspace(0, len(split) - 1, n).round().astype(int))
-        return [(int(i), split[i]) for i in picks]
+        chosen = [(i, t) for i, t in enumerate(split) if not self.where or matches(t, self.where)]
+        if not chosen:
+            raise ValueError(f"no {self.split} task of {self.suite} is in the view {self.where!r}")
+        n = len(chosen) if not self.num_tasks else min(self.num_tasks, len(chosen))
+        return [chosen[i] for i in np.unique(np.linspace(0, len(chosen) - 1, n).round().astype(int))]
 
 
 PRESETS: dict[str, LiberoDataConfig] = {

@@ -18,8 +18,9 @@ identity, not its location (see ``docs/liberogen/``).
 
 from __future__ import annotations
 
+import re
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from bpp.envs.libero.chain import chain, chain_no_second_step, libero_goal
 
@@ -247,3 +248,31 @@ SUITES_BY_NAME = {
     "libero_goal": libero_goal,
 }
 """LIBERO-Gen's suites, the Chain ablation's view, and LIBERO's own suites that bpp can demonstrate, by name."""
+
+
+def matches(task, where: str) -> bool:
+    """Whether `task` is in the view `where`: clauses ``field=value[,value...]`` (or ``field!=...``) joined by ``;``,
+    all of which must hold, over the task's scalar :meth:`describe` fields (Combination: scene, bowl, pick, place,
+    place_key, base, instruction; Chain: view, start, instruction, label). E.g. ``pick=TD``, ``place!=ST;bowl=1``,
+    ``view=first_step,seen_chains``."""
+    fields = {k: "" if v is None else str(v) for k, v in task.describe().items() if not isinstance(v, (list, dict))}
+    for clause in filter(None, (c.strip() for c in where.split(";"))):
+        match = re.fullmatch(r"(\w+)\s*(!?)=(.*)", clause)
+        if match is None or match.group(1) not in fields:
+            raise ValueError(f"view {where!r}: {clause!r} is not field=value[,value...] over {', '.join(fields)}")
+        key, negated, values = match.groups()
+        if (fields[key] in {v.strip() for v in values.split(",")}) == bool(negated):
+            return False
+    return True
+
+
+def view(suite, where: str):
+    """`suite` with only the training and held-out tasks that match `where` (see :func:`matches`); its report then
+    counts similar tasks within the view. An empty `where` is the whole suite."""
+    if not where.strip():
+        return suite
+    train = tuple(t for t in suite.train if matches(t, where))
+    test = tuple(t for t in suite.test if matches(t, where))
+    if not train and not test:
+        raise ValueError(f"no task of {suite.name} is in the view {where!r}")
+    return replace(suite, name=f"{suite.name} where {where}", train=train, test=test)
