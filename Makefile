@@ -38,4 +38,4 @@ format: install
 	$(BIN)/ruff check --fix src tests bench
 
 test: lint $(LIBERO_STAMP)
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q --durations=15

@@ -207,8 +207,8 @@ def test_bad_input_is_refused_with_a_clear_message(store, debug_store, tmp_path,
         main(["libero", "tasks", "--suite", "chainz"])
     err = " ".join(capsys.readouterr().err.replace("│", " ").split())  # tyro wraps its message in a box
     assert (
-        "suite must be one of combination, chain, chain_no_second_step, libero_spatial, libero_goal, got 'chainz'"
-        in err
+        "suite must be one of combination, chain, chain_no_second_step, chain_candidates, libero_spatial, libero_goal, "
+        "got 'chainz'" in err
     )
     assert not (tmp_path / "x.zarr").exists()
 

@@ -148,6 +148,18 @@ def test_a_view_selects_tasks_by_their_fields_and_is_the_ablations_view():
         LiberoDataConfig(where="pick=TD", task_indices=(0,)).tasks()
 
 
+def test_generated_chain_candidates_hold_every_published_chain():
+    from bpp.envs.libero.chain import chain, chain_candidates, chain_candidates_suite, parse_instruction
+
+    candidates = chain_candidates()
+    assert len(candidates) == len(set(candidates)) == 228  # chain-analysis.md's count
+    published = {t.label for t in (*chain().train, *chain().test) if t.view in ("seen_chains", "unseen_chains")}
+    assert len(published) == 154 and published <= set(candidates)
+    assert all(len(parse_instruction(label)) == 2 for label in candidates)
+    suite = chain_candidates_suite()
+    assert (len(suite.train), [t.label for t in suite.test]) == (218, [t.label for t in chain().test])
+
+
 # The appendix's held-out chains with its count: training chains with the same first step whose second step moves
 # the same object to another place.
 CHAIN_APPENDIX = {

@@ -19,8 +19,8 @@ class LiberoTasks:
     pick, its place; Chain: training chains sharing its first step and second-step object)."""
 
     suite: str = "combination"
-    """combination or chain (LIBERO-Gen), chain_no_second_step (the ablation's view), or libero_spatial
-    (LIBERO-Spatial's own 10 tasks)."""
+    """combination or chain (LIBERO-Gen), chain_no_second_step (the ablation's view), chain_candidates (every chain
+    the candidate rule generates, 218 + the 10 held out), or libero_spatial / libero_goal (LIBERO's own 10 tasks)."""
     where: str = ""
     """Only the tasks in this view, e.g. ``pick=TD``, ``place!=ST;bowl=1``, ``view!=second_step`` (fields of each
     task's entry in tasks.json; the report then counts similar tasks within the view)."""

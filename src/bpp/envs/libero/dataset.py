@@ -63,7 +63,8 @@ class LiberoDataConfig:
     """Which tasks to demonstrate, how many times, and which frames to render into the store."""
 
     suite: str = "combination"
-    """combination or chain (LIBERO-Gen), chain_no_second_step (Chain without its second-step tasks), or
+    """combination or chain (LIBERO-Gen), chain_no_second_step (Chain without its second-step tasks),
+    chain_candidates (every chain the candidate rule generates, 218 training + the 10 held out), or
     libero_spatial / libero_goal (LIBERO's own 10 tasks of that suite, evaluated from LIBERO's initial states)."""
     split: Literal["train", "test"] = "train"
     """train: the suite's training tasks; test: its held-out tasks."""

@@ -22,7 +22,7 @@ import re
 from collections import Counter
 from dataclasses import dataclass, replace
 
-from bpp.envs.libero.chain import chain, chain_no_second_step, libero_goal
+from bpp.envs.libero.chain import chain, chain_candidates_suite, chain_no_second_step, libero_goal
 
 PICK_PHRASES = {
     "BPR": "between the plate and the ramekin",
@@ -244,6 +244,7 @@ SUITES_BY_NAME = {
     "combination": combination,
     "chain": chain,
     "chain_no_second_step": chain_no_second_step,
+    "chain_candidates": chain_candidates_suite,
     "libero_spatial": libero_spatial,
     "libero_goal": libero_goal,
 }
