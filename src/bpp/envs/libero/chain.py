@@ -87,7 +87,6 @@ class OperatorSpec:
 
 _OBJ = "(?P<obj>bowl|cream cheese|wine bottle)"
 _DRAWER = "(?P<drawer>top drawer|middle drawer of the cabinet)"
-_PLACE = (("obj", "obj"), ("target", "place"))
 SPECS = (
     OperatorSpec("turn_on", "turn on the stove", "(Turnon flat_stove_1)"),
     OperatorSpec(
@@ -106,8 +105,15 @@ SPECS = (
         (("obj", "obj"), ("target", "into")),
         "obj",
         "into",
-    ),  # fmt: skip
-    OperatorSpec("place", f"put the {_OBJ} (?P<place>.+)", "(On {obj} {place})", _PLACE, "obj", "place"),
+    ),
+    OperatorSpec(
+        "place",
+        f"put the {_OBJ} (?P<place>.+)",
+        "(On {obj} {place})",
+        (("obj", "obj"), ("target", "place")),
+        "obj",
+        "place",
+    ),
 )
 """Every step an instruction of the Chain suite can ask for (the first that matches is the one)."""
 VOCABULARY = {
@@ -400,29 +406,23 @@ first step vacated, and inside the drawer it opened."""
 
 def chain_candidates() -> list[str]:
     """Every two-step chain the candidate rule of chain-analysis.md allows from the 21 first steps, generated: the
-    second step moves another object than the first (:func:`may_follow`'s objects) to one of its
-    :data:`SECOND_STEP_PLACES`, the region the first step vacated, or inside the drawer it opened, never where the
-    first step left its object, nor onto an object the first step put in the bowl. 228 chains, a superset of the
-    authors' 154 (no rule we know picks those)."""
+    second step puts an object at one of its :data:`SECOND_STEP_PLACES`, at the home region the first step vacated,
+    or inside the drawer it opened, where :func:`may_follow` allows it, and not onto what the first step put in the
+    bowl. 228 chains, a superset of the authors' 154 (no rule we know picks those)."""
     firsts = [label for view, label in published_tasks() if view == "first_step"]
     words = {name: w for w, name in OBJECTS.items()}
     chains = []
     for first in firsts:
         step = parse_step(first)
+        extra = [f"on the {words[step.moves]} region"] if step.operator == "place" else []  # the vacated home
+        extra += ["inside"] if step.operator == "open" else []
         for obj, places in SECOND_STEP_PLACES.items():
-            if OBJECTS[obj] == step.moves or (step.leaves_at in HOLDERS and OBJECTS[obj] == step.leaves_at):
-                continue
-            extra = [f"on the {words[step.moves]} region"] if step.operator == "place" else []
-            extra += ["inside"] if step.operator == "open" else []
             for place in (*places, *extra):
-                label = (
-                    f"{first} and put the {obj} inside"
-                    if place == "inside"
-                    else f"{first} and then put the {obj} {place}"
-                )
+                inside = place == "inside"
+                label = f"{first} and put the {obj} inside" if inside else f"{first} and then put the {obj} {place}"
                 second = parse_instruction(label)[1]
-                into_bowl = step.leaves_at == OBJECTS["bowl"] and second.leaves_at == step.moves
-                if second.leaves_at != step.leaves_at and not into_bowl:
+                onto_the_bowls_load = step.leaves_at == OBJECTS["bowl"] and second.leaves_at == step.moves
+                if may_follow(step, second) and not onto_the_bowls_load:
                     chains.append(label)
     return chains
 
