@@ -59,6 +59,9 @@ class DemoConfig:
     """Steps of closing before going down in a narrow start (the gripper moves a quarter of its range per step)."""
     max_step: float = 0.05
     """Position change per step at full action (the controller's output_max)."""
+    far_reach: float = 0.76
+    """A bowl farther than this from the robot's shoulder, horizontally (m), is taken on its near rim: taken on the
+    side, the lifted arm was stretched to its elbow's limit, and the controller could not bring it back."""
     max_steps: int = 600
     action_noise: float = 0.0
     """Std of Gaussian noise added to the position part of each action the robot executes, not of the action
@@ -190,12 +193,17 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     across = np.array([0.0, 1.0]) if level is None else level  # the fingers' axis
     if narrow:
         across = drawer_width_axis(env)
+    sim = env.env.sim
+    inward = (sim.data.body_xpos[sim.model.body_name2id("robot0_link1")] - start)[:2]
+    far = not narrow and level is None and np.linalg.norm(inward) > cfg.far_reach
+    if far:  # the near rim: fingers along the line to the robot
+        across, side = inward / np.linalg.norm(inward), 1.0
     rim = np.r_[side * cfg.rim_offset * across + rng.normal(0.0, cfg.jitter, 2), 0.0]
     carry = rng.uniform(*cfg.carry_height)
     try:
         arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
         grip = -1.0
-        if narrow or level is not None:
+        if narrow or level is not None or far:
             arm.turn(across, grip)
             arm.go(start + rim + [0.0, 0.0, 0.12], -1.0)
         if narrow:  # fingers across the drawer, half-closed: the outer one clears its walls
