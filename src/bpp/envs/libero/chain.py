@@ -328,13 +328,17 @@ class ChainSuite:
     def similar_counts(self, task: ChainTask) -> dict:
         """The appendix's count for a held-out chain: training chains with its first step that move the same object
         in their second step, to another place; and whether its second step is a training task from its first
-        step's end state."""
+        step's end state, and from another start (the appendix's "diff background object config")."""
         first, second = task.steps
         chains = [t.steps for t in self.train if t.view in ("seen_chains", "candidate_chains")]
         same = sum(s[0] == first and s[1].kwargs["obj"] == second.kwargs["obj"] and s[1] != second for s in chains)
         first_text = _split(task.label)[0]
-        single = any(t.view == "second_step" and t.start == first_text and t.steps == [second] for t in self.train)
-        return {"same_first_step_and_object": same, "second_step_from_that_state": single}
+        singles = [t.start for t in self.train if t.view == "second_step" and t.steps == [second]]
+        return {
+            "same_first_step_and_object": same,
+            "second_step_from_that_state": first_text in singles,
+            "second_step_from_another_state": any(start != first_text for start in singles),
+        }
 
     def report(self) -> str:
         views = Counter(t.view for t in (*self.train, *self.test))
@@ -351,10 +355,9 @@ class ChainSuite:
                 f"  training: same first step, same second-step object ({second.kwargs['obj']}), another place "
                 f"[{counts['same_first_step_and_object']} tasks]"
             )
-            lines.append(
-                "  training: its second step from its first step's end state "
-                f"[{'present' if counts['second_step_from_that_state'] else 'not present'}]"
-            )
+            for key, where in (("that_state", "its first step's end state"), ("another_state", "another start")):
+                found = counts[f"second_step_from_{key}"]
+                lines.append(f"  training: its second step from {where} [{'present' if found else 'not present'}]")
         return "\n".join(lines)
 
 
