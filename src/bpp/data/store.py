@@ -563,6 +563,7 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
     if len(stores) < 2:
         raise StoreError("merging needs at least two stores")
     first = stores[0]
+    task_keys = first.task_keys
     for s in stores[1:]:
         if s.benchmark != first.benchmark:
             raise StoreError(
@@ -571,15 +572,15 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
             )
         if s._stored_keys != first._stored_keys:
             raise StoreError(f"{s.path} stores keys {s._stored_keys}, {first.path} {first._stored_keys}")
-        if s.task_keys != first.task_keys:
-            raise StoreError(f"{s.path} has per-task arrays {s.task_keys}, {first.path} {first.task_keys}")
+        if s.task_keys != task_keys:
+            raise StoreError(f"{s.path} has per-task arrays {s.task_keys}, {first.path} {task_keys}")
     with EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite) as writer:
         merged: dict[str, tuple[int, dict, dict]] = {}  # task id -> (merged index, task entry, per-task arrays)
         for s in stores:
             columns = [k for k in s._root()["meta"].array_keys() if k not in ("episode_ends", "task_index")]
             remap = []
             for t, task in enumerate(s.tasks):
-                arrays = {k: s.task_array(k, t) for k in s.task_keys}
+                arrays = {k: s.task_array(k, t) for k in task_keys}  # the same in every store (checked above)
                 if task["id"] not in merged:
                     index = writer.add_task(task["id"], task["info"], instruction=task["instruction"], **arrays)
                     merged[task["id"]] = (index, task, arrays)

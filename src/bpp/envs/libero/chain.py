@@ -201,6 +201,8 @@ VIEWS = {
     "unseen_chains": "libero_goal_chain_selected_view",
 }
 """The suite's views (our names -> the authors' split keys). The unseen chains are held out; the rest train."""
+CANDIDATES = "candidate_chains"
+"""The view of the chains :func:`chain_candidates` generates (not one of the authors')."""
 TASK_LIST = Path(__file__).with_name("chain_tasks.txt")
 """The published task list, ``<split key>|<label>`` per line, from the authors' website manifest."""
 
@@ -330,7 +332,7 @@ class ChainSuite:
         in their second step, to another place; and whether its second step is a training task from its first
         step's end state, and from another start (the appendix's "diff background object config")."""
         first, second = task.steps
-        chains = [t.steps for t in self.train if t.view in ("seen_chains", "candidate_chains")]
+        chains = [t.steps for t in self.train if t.view in ("seen_chains", CANDIDATES)]
         same = sum(s[0] == first and s[1].kwargs["obj"] == second.kwargs["obj"] and s[1] != second for s in chains)
         first_text = _split(task.label)[0]
         singles = [t.start for t in self.train if t.view == "second_step" and t.steps == [second]]
@@ -344,7 +346,7 @@ class ChainSuite:
         views = Counter(t.view for t in (*self.train, *self.test))
         lines = [
             f"{self.name}: {len(self.train)} training tasks, {len(self.test)} held out ("
-            + ", ".join(f"{views[v]} {v.replace('_', ' ')}" for v in (*VIEWS, "candidate_chains") if views[v])
+            + ", ".join(f"{views[v]} {v.replace('_', ' ')}" for v in (*VIEWS, CANDIDATES) if views[v])
             + ")"
         ]
         for task in self.test:
@@ -435,7 +437,7 @@ def chain_candidates_suite() -> ChainSuite:
     held out as in the paper (218 + 10)."""
     test = tuple(ChainTask(label, view) for view, label in published_tasks() if view == "unseen_chains")
     held = {t.label for t in test}
-    train = tuple(ChainTask(label, "candidate_chains") for label in chain_candidates() if label not in held)
+    train = tuple(ChainTask(label, CANDIDATES) for label in chain_candidates() if label not in held)
     return ChainSuite("chain_candidates", train, test)
 
 

@@ -283,6 +283,22 @@ def push(arm: Arm, rng: np.random.Generator, obj: str = "plate_1", region: str =
     arm.go(arm.obs["robot0_eef_pos"] + [0.0, 0.0, 0.1], 1.0)
 
 
+def drawer_handle(env, cabinet: str, drawer: str) -> np.ndarray:
+    """Where the handle of LIBERO-Goal's cabinet drawer `drawer` (top or middle) is now: a horizontal bar 2.7 cm in
+    front of the drawer's face."""
+    if drawer not in ("top", "middle"):
+        raise ValueError(f"the demonstrator opens and closes the top and the middle drawer, not {drawer!r}")
+    sim = env.env.sim
+    bar = {"top": "g18", "middle": "g29"}[drawer]  # the handle's geom in the drawer's body
+    return sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_{bar}")].copy()
+
+
+def fingers_leading(rng: np.random.Generator, across: np.ndarray) -> Rotation:
+    """A hand pitched 65-75 degrees from straight down about the horizontal axis `across` (a drawer's width), its
+    fingers towards the cabinet: how the middle drawer's handle is reached under the top one's."""
+    return Rotation.from_rotvec(-np.radians(rng.uniform(65.0, 75.0)) * np.r_[across, 0.0]) * DOWN
+
+
 def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabinet_1", drawer: str = "top"):
     """Open a drawer of LIBERO-Goal's cabinet by its handle (a horizontal bar along x, 2.7 cm in front of the
     drawer's face) and pull it out along the way it slides (world +y) by 17-19 cm; LIBERO counts 14 cm out as open.
@@ -291,18 +307,14 @@ def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabin
     stops on it and closes. From above the middle handle cannot be reached (the fingers stop on the top handle,
     7.4 cm higher), and a level hand's palm hits the plate below: the hand comes at it pitched 65-75 degrees from
     straight down, fingers towards the cabinet, closing across the bar nearly vertically (docs/liberogen/README.md)."""
-    if drawer not in ("top", "middle"):
-        raise ValueError(f"the demonstrator opens the top and the middle drawer, not {drawer!r}")
-    sim = arm.env.env.sim
-    bar = {"top": "g18", "middle": "g29"}[drawer]  # the handle's geom in the drawer's body
-    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_{bar}")].copy()
+    handle = drawer_handle(arm.env, cabinet, drawer)
     grasp = handle + np.r_[rng.uniform(-0.02, 0.02), 0.0, 0.0]
     pose = None
     if drawer == "top":
         arm.go(grasp + [0.0, 0.0, rng.uniform(0.07, 0.1)], -1.0, across=np.array([0.0, 1.0]))  # closing across the bar
         arm.go(grasp, -1.0, tol=0.004)
     else:
-        pose = Rotation.from_rotvec([-np.radians(rng.uniform(65.0, 75.0)), 0.0, 0.0]) * DOWN
+        pose = fingers_leading(rng, np.array([1.0, 0.0]))
         fingers = pose.as_matrix()[:, 2]  # where they point
         arm.go(grasp - 0.1 * fingers + [0.0, 0.0, 0.03], -1.0, tol=0.01, pose=pose)
         arm.go(grasp - 0.06 * fingers, -1.0, pose=pose)
@@ -323,11 +335,8 @@ def close_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabi
     """Close an open drawer of LIBERO-Goal's cabinet by pushing its handle back in: the closed fingers come down
     just in front of the bar, pads across it, and push along the way the drawer slides (towards the cabinet) until it
     is in, a little past where it stops. LIBERO counts a drawer as closed only at its stop (joint position > 0)."""
-    if drawer not in ("top", "middle"):
-        raise ValueError(f"the demonstrator closes the top and the middle drawer, not {drawer!r}")
+    handle = drawer_handle(arm.env, cabinet, drawer)
     sim = arm.env.env.sim
-    bar = {"top": "g18", "middle": "g29"}[drawer]
-    handle = sim.data.geom_xpos[sim.model.geom_name2id(f"{cabinet}_{bar}")].copy()
     body = sim.model.body_name2id(f"{cabinet}_cabinet_{drawer}")
     out = np.r_[drawer_pull_axis(arm.env, sim.data.body_xpos[body]), 0.0]
     across = np.array([out[1], -out[0]])
@@ -340,7 +349,7 @@ def close_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabi
         arm.go(start + [0.0, 0.0, rng.uniform(0.07, 0.1)], 1.0, across=across)
         arm.go(start, 1.0, tol=0.004)
     else:  # a hand pointing down would meet the top drawer's handle above: the fingers lead, pitched towards it
-        pose = Rotation.from_rotvec(-np.radians(rng.uniform(65.0, 75.0)) * np.r_[across, 0.0]) * DOWN
+        pose = fingers_leading(rng, across)
         arm.go(start + out * 0.06 + [0.0, 0.0, 0.03], 1.0, tol=0.01, pose=pose)
         arm.go(start, 1.0, tol=0.004, limit=60, pose=pose)
     for k in range(1, 9):
