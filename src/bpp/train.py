@@ -10,8 +10,9 @@ import copy
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Literal, get_args
 
 import torch
 import torch.distributed as dist
@@ -19,10 +20,15 @@ from tqdm import tqdm
 
 from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpoint
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
 from bpp.policies.common import count_parameters
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
+
+CompileMode = Literal["off", "default", "reduce-overhead", "max-autotune-no-cudagraphs"]
+"""``torch.compile``'s modes that suit training, and off."""
+COMPILE_MODES: tuple[str, ...] = get_args(CompileMode)
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,17 @@ class TrainConfig:
     channels_last: bool = True
     """On a GPU, keep the image encoders' weights and activations channels-last (NHWC), the layout the GPU's
     convolutions run fastest in; camera frames arrive in that layout already."""
+    compile: CompileMode = "off"
+    """Compile the training loss and its backward with ``torch.compile`` in this mode (off: run eagerly).
+    ``reduce-overhead`` also records them as CUDA graphs on a GPU and replays them, so the host no longer issues
+    each kernel (a GPU step of a small model is otherwise bound by launching its ~2,700 kernels). Compiling takes
+    a minute or more at the start, and again for each new batch shape (see `pad_to_multiple`); on a CPU it needs a
+    C++ compiler."""
+    pad_to_multiple: int = -1
+    """Pad the batches' variable time axes (demonstration prompts, ICRT's whole episodes) to a multiple of this many
+    steps, at most the model's limit: each batch then has one of a few shapes, as a compiled step needs. Padding
+    changes no result (padded steps are masked). -1: auto, none (the longest in the batch) without `compile`, and an
+    eighth of the model's prompt limit with it (at most 8 prompt shapes)."""
 
     def __post_init__(self):
         check_fields(
@@ -93,7 +110,18 @@ class TrainConfig:
             ("keep_checkpoints", self.keep_checkpoints >= 0, ">= 0 (0: keep all)"),
             ("threads", self.threads >= 0, ">= 0 (0: auto)"),
             ("frame_cache_gb", self.frame_cache_gb >= 0, ">= 0"),
+            ("pad_to_multiple", self.pad_to_multiple >= -1, ">= -1 (-1: auto, 0: no extra padding)"),
+            ("compile", self.compile in COMPILE_MODES, f"one of {COMPILE_MODES}"),
         )
+
+    def padding(self, spec: DataSpec) -> int:
+        """Steps the loader pads prompts and whole episodes to a multiple of, for a model with data spec `spec`."""
+        if self.pad_to_multiple >= 0:
+            return self.pad_to_multiple
+        if self.compile == "off":
+            return 0
+        stride = spec.context_obs_stride  # a whole number of prompt chunks
+        return -(-spec.max_prompt_steps // (8 * stride)) * stride
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -160,9 +188,17 @@ def build_training(cfg: TrainConfig, model: torch.nn.Module, device: torch.devic
     return model, ema, optimizer
 
 
+def compiled(cfg: TrainConfig, net: torch.nn.Module) -> torch.nn.Module:
+    """`net` (the model or its DDP wrapper) compiled as `cfg.compile` says, or itself when that is off. The model's
+    weights stay `net`'s: checkpoints and the EMA are unaffected."""
+    if cfg.compile == "off":
+        return net
+    return torch.compile(net, mode=None if cfg.compile == "default" else cfg.compile)
+
+
 def train_step(cfg: TrainConfig, net, model, ema, optimizer, batch, step: int, amp: bool, world: int = 1, rank=0):
     """One optimisation step on a batch already on the device: (loss, gradient norm), both tensors (reading them
-    waits for the device). `net` is `model` or its DDP wrapper."""
+    waits for the device). `net` is `model`, its DDP wrapper, or either compiled (:func:`compiled`)."""
     for group in optimizer.param_groups:
         group["lr"] = lr_at(step, cfg)
     # Every random draw of a step (diffusion noise and time steps, dropout) depends only on
@@ -171,8 +207,9 @@ def train_step(cfg: TrainConfig, net, model, ema, optimizer, batch, step: int, a
     torch.manual_seed(step_seed)
     device = next(model.parameters()).device
     generator = torch.Generator(device).manual_seed(step_seed)
+    noise = model.draw_noise(batch, generator)  # outside the loss, which is then one graph when compiled
     with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-        loss = net(batch, generator)
+        loss = net(batch, noise=noise)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -189,6 +226,8 @@ def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
         raise ValueError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
     differences = []
+    # A run recorded before a setting existed ran as its default does.
+    defaults = {f"train_config.{f.name}": to_dict(f.default) for f in fields(TrainConfig)}
 
     def compare(path: str, old, new) -> None:
         if isinstance(old, dict) and isinstance(new, dict):
@@ -196,6 +235,8 @@ def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
                 compare(f"{path}.{key}" if path else key, old.get(key), new.get(key))
         elif path in ("train_config.out", "train_config.resume"):
             return  # where the run is now (it may have been moved), and whether this call resumes
+        elif old is None and path in defaults and new == defaults[path]:
+            return
         elif path == "train_config.data" and old and new:
             if Path(old).resolve() != Path(new).resolve():
                 differences.append(f"{path}: {old!r} in the run, {new!r} now")
@@ -258,7 +299,13 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
                 f"{lengths.max()}): training cuts them, and evaluation refuses them as prompts. Raise the model's "
                 f"limit (BPP: --model.prompt.max-steps)."
             )
-    net = torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model
+    net = compiled(cfg, torch.nn.parallel.DistributedDataParallel(model) if world > 1 else model)
+    padding = cfg.padding(spec)
+    if main and cfg.compile != "off":
+        print(
+            f"[train] compiling the loss and its backward (torch.compile, mode {cfg.compile}): the first step, and "
+            f"each new batch shape, take a while; prompts padded to a multiple of {padding} steps"
+        )
 
     dataset = PromptBatchDataset(
         store,
@@ -269,6 +316,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         rank=rank,
         tasks_per_batch=cfg.tasks_per_batch,
         frame_cache_bytes=int(cfg.frame_cache_gb * 2**30) // max(1, workers),
+        pad_to_multiple=padding,
     )
     loader = torch.utils.data.DataLoader(
         dataset,

@@ -98,6 +98,32 @@ def collate_contexts(items: list) -> object:
     return np.concatenate(arrays, axis=0)
 
 
+def padded_length(steps: int, multiple: int, limit: int) -> int:
+    """`steps` rounded up to a multiple of `multiple` (0: unchanged), but not past `limit` (nor below `steps`)."""
+    if multiple <= 0:
+        return steps
+    return max(steps, min(-(-steps // multiple) * multiple, limit))
+
+
+def pad_demo_context(context: Mapping, steps: int) -> dict:
+    """A batched demonstration context (see :func:`collate_contexts`) padded to `steps` steps: its actions and
+    ``valid`` (False past the end) to `steps`, its observations to ``ceil(steps / obs_stride)`` entries, zeros.
+
+    Padding changes no result (what lies past ``valid`` is masked); it gives a batch one of a few fixed shapes,
+    which a compiled training step needs (each new shape is compiled again)."""
+    stride = int(np.asarray(context["obs_stride"])[0]) if "obs_stride" in context else 1
+
+    def pad(array: np.ndarray, length: int) -> np.ndarray:
+        extra = length - array.shape[1]
+        assert extra >= 0, f"cannot pad {array.shape[1]} steps to {length}"
+        return np.pad(array, [(0, 0), (0, extra)] + [(0, 0)] * (array.ndim - 2)) if extra else array
+
+    padded = dict(context)
+    padded["action"], padded["valid"] = pad(context["action"], steps), pad(context["valid"], steps)
+    padded["obs"] = {k: pad(v, -(-steps // stride)) for k, v in context["obs"].items()}
+    return padded
+
+
 def index_contexts(context, index):
     """Rows `index` (B,) of a batched context (nested dicts of arrays or tensors along axis 0; lists of strings)."""
     if isinstance(context, Mapping):

@@ -18,7 +18,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.data.contexts import FrameSource, batch_context, collate_contexts, index_contexts, task_context
+from bpp.data.contexts import (
+    FrameSource,
+    batch_context,
+    collate_contexts,
+    index_contexts,
+    pad_demo_context,
+    padded_length,
+    task_context,
+)
 from bpp.data.spec import ContextKind, DataSpec
 from bpp.data.store import EpisodeStore
 
@@ -78,6 +86,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
 
     With ``spec.samples == "episodes"`` the samples are whole demonstrations instead of windows:
     ``obs`` (B, L, ...), ``action`` (B, L, A) and ``valid`` (B, L), padded to the longest.
+
+    With `pad_to_multiple` k > 0, these padded time axes (a demonstration context's L, whole-episode samples' L)
+    are padded further, to a multiple of k steps (at most the spec's limit), so that batches come in a few shapes.
     """
 
     def __init__(
@@ -94,6 +105,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         frames: FrameSource | None = None,
         frame_cache_bytes: int = 4 << 30,
         goal_cache_bytes: int = 128 << 20,
+        pad_to_multiple: int = 0,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
         self.spec = spec
@@ -113,6 +125,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
             )
         self.batch_size, self.num_batches, self.tasks_per_batch = batch_size, num_batches, tasks_per_batch
         self.seed, self.rank = seed, rank
+        if pad_to_multiple < 0:
+            raise ValueError(f"pad_to_multiple must be >= 0 (0: pad to the longest only), got {pad_to_multiple}")
+        self.pad_to_multiple = pad_to_multiple
         by_task = self.store.task_episodes()
         chosen = range(len(by_task)) if tasks is None else tasks
         self.tasks = [t for t in chosen if len(by_task[t]) >= 2]
@@ -207,6 +222,10 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         chosen = np.concatenate(chosen)
         batch = self._episodes(chosen) if self.spec.samples == "episodes" else self._windows(chosen, rng)
         batch["context"] = collate_contexts(contexts)
+        if self.spec.context == "demo" and self.pad_to_multiple:
+            longest = batch["context"]["valid"].shape[1]
+            steps = padded_length(longest, self.pad_to_multiple, self.spec.max_prompt_steps)
+            batch["context"] = pad_demo_context(batch["context"], steps)
         batch["context_index"] = np.repeat(np.arange(groups), per_group)
         batch["task"] = np.asarray(tasks, dtype=np.int64)
         return batch
@@ -223,7 +242,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
 
     def _episodes(self, chosen: np.ndarray) -> dict:
         lengths = np.minimum(self.ends[chosen] - self.starts[chosen], self.spec.max_episode_steps)
-        longest = int(lengths.max())
+        longest = padded_length(int(lengths.max()), self.pad_to_multiple, self.spec.max_episode_steps)
         index = np.minimum(np.arange(longest)[None], lengths[:, None] - 1)  # pad by repeating the last step
         actions = self._data()[self.spec.action_key][self.starts[chosen][:, None] + index]
         return {

@@ -252,14 +252,29 @@ class DiffusionHead(nn.Module):
         """Replay DDIM sampling on a GPU from a CUDA graph (see :meth:`sample`); the agent turns it on for CUDA."""
         self._graphs: dict = {}
 
-    def loss(self, actions: torch.Tensor, cond: torch.Tensor, generator: torch.Generator | None = None):
-        """Mean squared noise-prediction error for normalised actions (B, T, A)."""
-        noise = torch.randn(actions.shape, device=actions.device, generator=generator)
-        steps = torch.randint(
-            0, self.cfg.num_train_steps, (actions.shape[0],), device=actions.device, generator=generator
-        )
-        noisy = self.train_scheduler.add_noise(actions, noise, steps)
-        return nn.functional.mse_loss(self.net(noisy, steps, cond), noise)
+    def draw_noise(
+        self, shape: tuple[int, ...], device: torch.device, generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
+        """The random draws of one loss evaluation for action chunks of `shape` (B, T, A): ``{"noise": (B, T, A),
+        "timesteps": (B,)}``."""
+        noise = torch.randn(shape, device=device, generator=generator)
+        steps = torch.randint(0, self.cfg.num_train_steps, (shape[0],), device=device, generator=generator)
+        return {"noise": noise, "timesteps": steps}
+
+    def loss(
+        self,
+        actions: torch.Tensor,
+        cond: torch.Tensor,
+        generator: torch.Generator | None = None,
+        noise: Mapping[str, torch.Tensor] | None = None,
+    ):
+        """Mean squared noise-prediction error for normalised actions (B, T, A), with the draws `noise` (see
+        :meth:`draw_noise`; made here from `generator` if None)."""
+        if noise is None:
+            noise = self.draw_noise(actions.shape, actions.device, generator)
+        eps, steps = noise["noise"], noise["timesteps"]
+        noisy = self.train_scheduler.add_noise(actions, eps, steps)
+        return nn.functional.mse_loss(self.net(noisy, steps, cond), eps)
 
     def set_inference_steps(self, steps: int) -> None:
         """Denoise in `steps` DDIM/DDPM steps at inference from now on (training is unaffected)."""
@@ -475,12 +490,26 @@ class PolicyModel(nn.Module):
         """Where relative actions start for observations ``{key: (B, To, ...)}``: (B, 1, P) at the current step."""
         return obs[self.cfg.action_relative_to][:, -1:].float() if self.relative_dims else None
 
-    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+    def forward(
+        self, batch: Mapping, generator: torch.Generator | None = None, noise: Mapping | None = None
+    ) -> torch.Tensor:
         """The training loss (``forward`` so that DDP's gradient hooks see it)."""
-        return self.compute_loss(batch, generator)
+        return self.compute_loss(batch, generator, noise)
 
-    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+    def compute_loss(
+        self, batch: Mapping, generator: torch.Generator | None = None, noise: Mapping | None = None
+    ) -> torch.Tensor:
+        """The training loss of `batch`: its random draws are `noise` (:meth:`draw_noise`), or made from
+        `generator` if None."""
         raise NotImplementedError
+
+    def draw_noise(self, batch: Mapping, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """The random tensors one loss evaluation of `batch` uses, drawn from `generator` (none here).
+
+        The training loop draws them before the loss rather than inside it: the loss is then a pure function of its
+        inputs, which ``torch.compile`` captures as one graph (a generator inside it splits the graph) and a GPU can
+        replay. Dropout is the exception: it draws from torch's global generator, which the loop seeds per step."""
+        return {}
 
     def set_inference_steps(self, steps: int) -> None:
         """Denoise in `steps` steps per inference from now on; models without a diffusion decoder refuse."""
@@ -557,7 +586,9 @@ class ContextDiffusionPolicy(PolicyModel):
         assert ctx.shape[0] == batch, f"context batch {ctx.shape[0]} vs observation batch {batch}"
         return torch.cat([ctx, features], dim=-1), []
 
-    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+    def compute_loss(
+        self, batch: Mapping, generator: torch.Generator | None = None, noise: Mapping | None = None
+    ) -> torch.Tensor:
         """Noise-prediction loss of a batch ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": ...,
         "context_index": (B,)}``: G contexts, each encoded once, sample i conditioned on context_index[i]."""
         ctx = self.encode_context(batch["context"])
@@ -565,7 +596,11 @@ class ContextDiffusionPolicy(PolicyModel):
             ctx = self.select_context(ctx, batch["context_index"])
         cond, _ = self.condition(batch["obs"], ctx)
         actions = self.normalize_actions(batch["action"], self.action_origin(batch["obs"]))
-        return self.head.loss(actions, cond, generator)
+        return self.head.loss(actions, cond, generator, noise)
+
+    def draw_noise(self, batch: Mapping, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """The diffusion noise and time steps of `batch`'s samples (:meth:`DiffusionHead.draw_noise`)."""
+        return self.head.draw_noise(tuple(batch["action"].shape), batch["action"].device, generator)
 
     def encode_context(self, context: Mapping):
         """A batched, validated context (tensors) -> whatever :meth:`condition` takes; once per rollout."""

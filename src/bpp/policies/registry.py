@@ -52,8 +52,15 @@ class PolicyModelContract(Protocol):
         """Per-step observation keys read at every step."""
         ...
 
-    def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-        """The training loss of a batch from :class:`bpp.data.prompt_dataset.PromptBatchDataset` (a scalar)."""
+    def forward(
+        self, batch: Mapping, generator: torch.Generator | None = None, noise: Mapping | None = None
+    ) -> torch.Tensor:
+        """The training loss of a batch from :class:`bpp.data.prompt_dataset.PromptBatchDataset` (a scalar), with
+        the random draws `noise` (from :meth:`draw_noise`; made from `generator` if None)."""
+        ...
+
+    def draw_noise(self, batch: Mapping, generator: torch.Generator | None = None) -> dict[str, torch.Tensor]:
+        """The random tensors one loss evaluation of `batch` uses (``{}`` for a loss that draws none)."""
         ...
 
     def validate_context(self, context: Mapping) -> dict:

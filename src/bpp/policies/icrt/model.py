@@ -144,12 +144,14 @@ class ICRTModel(PolicyModel):
         return self.transformer(tokens + self.pos_embed[positions], valid, cache)
 
     # ------------------------------------------------------------------ train
-    def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
+    def compute_loss(
+        self, batch: Mapping, generator: torch.Generator | None = None, noise: Mapping | None = None
+    ) -> torch.Tensor:
         """Mean L1 error of the normalised actions over the valid rollout steps (teacher forcing).
 
         batch: ``{"context": prompts (G, Lp), "context_index": (B,), "obs": {key: (B, L, ...)}, "action": (B, L, A),
         "valid": (B, L)}``, B whole demonstrations padded to the longest, rollout i of the task of prompt
-        ``context_index[i]``. `generator` is unused: the loss draws no noise (dropout draws
+        ``context_index[i]``. `generator` and `noise` are unused: the loss draws no noise (dropout draws
         from the global generator, which the training loop seeds per step).
         """
         prompt = batch["context"]
