@@ -1,8 +1,7 @@
 #!/usr/bin/env bash
 # One lent-GPU session's work (../shared/DEVICE.md), every log under $OUT (at most 8 files come back):
-#   1. the test that once crashed on the H100, alone, with CUDA errors reported where they happen;
-#   2. bench/gpu_throughput.py (both presets, with variants);
-#   3. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
+#   1. bench/gpu_throughput.py: `bpp train --compile reduce-overhead` against eager, both presets;
+#   2. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
 # Each part has its own time limit, so one that hangs cannot take the others' time.
 #
 #   OUT=outputs/gpu-session SMALL=1 bash bench/gpu_session.sh    # here, on a CPU: the same steps at toy sizes
@@ -19,17 +18,16 @@ PY=${PY:-python3}
 SMALL=${SMALL:-}
 { date -u; nvidia-smi || true; nproc; df -h /dev/shm || true; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } >"$OUT/machine.txt" 2>&1
 
-CUDA_LAUNCH_BLOCKING=1 timeout 150 $PY -X faulthandler -m pytest -q -p no:cacheprovider \
-  tests/test_icrt.py::test_image_observations_train_and_act >"$OUT/icrt-test.log" 2>&1
-echo "icrt test: exit $?" | tee -a "$OUT/machine.txt"
-
-if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=300; else bench_args=(); limit=330; fi
-timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --data-dir /tmp/bench-gpu \
+# 1. The compiled training step against the eager one, same run: model-bound and end to end, both presets.
+if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=600; else bench_args=(--presets cpu-image paper); limit=${BENCH_LIMIT:-420}; fi
+timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --parts compile e2e --data-dir /tmp/bench-gpu \
   --out "$OUT/gpu_throughput.json" >"$OUT/bench.log" 2>&1
 echo "bench: exit $?" | tee -a "$OUT/machine.txt"
 
-if [ -n "$SMALL" ]; then tests=(tests/test_icrt.py); else tests=(tests); fi
-timeout ${TEST_LIMIT:-190} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
+# 2. The test suite on the GPU machine, less what its image lacks (LIBERO's simulator, a browser), the new compile
+#    tests first.
+if [ -n "$SMALL" ]; then tests=(tests/test_compile.py); else tests=(tests/test_compile.py tests); fi
+timeout ${TEST_LIMIT:-120} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
   --ignore=tests/test_libero_sim.py --ignore=tests/test_libero_benchmark.py --ignore=tests/test_studio.py >"$OUT/tests.log" 2>&1
 echo "tests: exit $?" | tee -a "$OUT/machine.txt"
 tail -3 "$OUT/tests.log"

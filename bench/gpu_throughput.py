@@ -15,6 +15,8 @@ first, it measures:
   encoder of the CPU presets, and with fp32 GroupNorm under autocast, for comparison;
 * end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
   rates after the first interval;
+* compiled: the model-bound and end-to-end numbers again with `bpp train --compile MODE` (``--compile-modes``;
+  reduce-overhead on a GPU: inductor's kernels replayed as CUDA graphs), with the warm-up's time (compiling);
 * act: ms per inference call of :class:`bpp.policies.agent.PolicyAgent` (its prompt encoded once at reset), eager
   and, on a GPU, replayed from a CUDA graph, with the largest difference between the two.
 
@@ -48,7 +50,7 @@ from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.nn.norm import GroupNorm
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
-from bpp.train import TrainConfig, build_training, train_step, uses_amp
+from bpp.train import COMPILE_MODES, TrainConfig, build_training, compiled, train_step, uses_amp
 from bpp.utils import to_torch, usable_cores
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
@@ -117,31 +119,48 @@ def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_
 
 
 def model_rate(
-    store, method, model_cfg, device, batch_size: int, steps: int, channels_last: bool = True, timed_convs=False
+    store,
+    method,
+    model_cfg,
+    device,
+    batch_size: int,
+    steps: int,
+    channels_last: bool = True,
+    timed_convs=False,
+    compile: str = "off",
 ) -> dict:
     """Samples/s of bpp.train's training step on one batch already on `device`, and the peak memory;
-    `timed_convs`: let cuDNN time its convolution algorithms (fixed shapes here; `bpp train` does not)."""
+    `timed_convs`: let cuDNN time its convolution algorithms (fixed shapes here; `bpp train` does not); `compile`:
+    `bpp train --compile`'s mode (the warm-up steps, timed apart, then compile and record)."""
     torch.backends.cudnn.benchmark = timed_convs
-    cfg = TrainConfig(data=store.path, method=method.name, batch_size=batch_size, channels_last=channels_last)
+    cfg = TrainConfig(
+        data=store.path, method=method.name, batch_size=batch_size, channels_last=channels_last, compile=compile
+    )
     torch.manual_seed(0)
+    torch._dynamo.reset()
     model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)
     model.train()
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=batch_size, seed=2)[0], device)
+    spec = model.data_spec()
+    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=2, pad_to_multiple=cfg.padding(spec))
+    batch = to_torch(data[0], device)
     amp = uses_amp(cfg, device)
+    net = compiled(cfg, model)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     warmup = 3
+    t_start = time.perf_counter()
     for step in range(warmup + steps):
         if step == warmup:
             synchronize(device)
             t0 = time.perf_counter()
-        loss, _ = train_step(cfg, model, model, ema, optimizer, batch, step, amp)
+        loss, _ = train_step(cfg, net, model, ema, optimizer, batch, step, amp)
     loss = float(loss.detach())  # waits for the device
     seconds = time.perf_counter() - t0
     out = {
         "batch_size": batch_size,
         "samples_per_s": round(steps * batch_size / seconds, 1),
         "ms_per_step": round(1000 * seconds / steps, 1),
+        "warmup_s": round(t0 - t_start, 1),
         "loss": round(loss, 4),
         "parameters_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
     }
@@ -253,6 +272,26 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
             f"end_to_end_b{b}",
             lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
         )
+    for mode in args.compile_modes if "compile" in parts else ():
+        # At the largest batch sizes only (each compiles anew), next to the eager step in this same run.
+        b = batch_sizes[-1]
+        if "model" not in parts:
+            measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
+        for b in batch_sizes[-1:]:
+            measure(
+                results,
+                name,
+                f"model_b{b}_compile_{mode}",
+                lambda b=b, mode=mode: model_rate(store, method, model_cfg, device, b, steps, compile=mode),
+            )
+        for b in e2e_sizes[-1:]:
+            compiled_extra = [*extra, "--compile", mode]
+            measure(
+                results,
+                name,
+                f"end_to_end_b{b}_compile_{mode}",
+                lambda b=b, e=compiled_extra: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, e),
+            )
     if "act" in parts:
         measure(results, name, "act", lambda: act_latency(store, method, model_cfg, device, 5 if small else 30))
 
@@ -265,9 +304,17 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="+",
-        default=["loader", "model", "variants", "e2e", "act"],
-        choices=["loader", "model", "variants", "e2e", "act"],
-        help="what to measure (variants, paper only: channels-first, timed cuDNN, the 5x5 stem, fp32 GroupNorm)",
+        default=["loader", "model", "variants", "e2e", "act", "compile"],
+        choices=["loader", "model", "variants", "e2e", "act", "compile"],
+        help="what to measure (variants, paper only: channels-first, timed cuDNN, the 5x5 stem, fp32 GroupNorm; "
+        "compile: model-bound and end to end with `bpp train --compile` in each of --compile-modes)",
+    )
+    parser.add_argument(
+        "--compile-modes",
+        nargs="+",
+        default=None,
+        choices=[m for m in COMPILE_MODES if m != "off"],
+        help="`bpp train --compile` modes to measure (default: reduce-overhead on a GPU, default on a CPU)",
     )
     parser.add_argument("--tasks", type=int, default=None, help="procedural tasks in the training store")
     parser.add_argument("--data-dir", type=Path, default=Path("data/bench-gpu"))
@@ -275,6 +322,7 @@ def main() -> None:
     args = parser.parse_args()
 
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    args.compile_modes = args.compile_modes or (["reduce-overhead"] if device.type == "cuda" else ["default"])
     small = args.small
     results = Results(
         args.out,

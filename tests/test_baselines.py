@@ -7,8 +7,7 @@ import pytest
 import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig, generate, render_episode
+from bpp.envs.draw.dataset import DrawDataConfig, render_episode
 from bpp.envs.draw.procedural import describe_parts
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
@@ -21,13 +20,6 @@ from bpp.utils import from_dict, to_dict, to_torch
 from helpers import config, context_for, obs_config, rollout, rollout_batch
 
 METHODS = ["goal_image", "language"]
-
-
-@pytest.fixture(scope="session")
-def described_store(tmp_path_factory):
-    """A tiny procedural store whose tasks carry instructions (6 tasks x 2 demos)."""
-    cfg = replace(DATA_PRESETS["debug"], num_tasks=6, demos_per_task=2, describe=True)
-    return generate(cfg, tmp_path_factory.mktemp("data") / "described.zarr", workers=1, progress=False)
 
 
 @pytest.fixture

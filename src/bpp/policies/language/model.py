@@ -60,8 +60,14 @@ class LanguageModel(ContextDiffusionPolicy):
             )
         return {"text": [text]}
 
+    @torch.compiler.disable
+    def tokenize(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Instructions -> token ids and valid mask (Bt, max_tokens). Never compiled: a compiled loss would hold the
+        strings as constants, and be compiled anew for every new instruction."""
+        return self.tokenizer(texts, self.text_encoder.max_tokens)
+
     def encode_context(self, context: Mapping) -> torch.Tensor:
         """Instructions ``{"text": [str] * Bt}`` -> instruction embeddings (Bt, D), once per rollout."""
-        ids, valid = self.tokenizer(context["text"], self.text_encoder.max_tokens)
+        ids, valid = self.tokenize(context["text"])
         device = next(self.text_encoder.parameters()).device
         return self.text_encoder(ids.to(device), valid.to(device))

@@ -1,0 +1,105 @@
+"""How many operators one training step dispatches, part by part: on a GPU each is at least one kernel launch, and
+the host's time to issue them bounds a step of the small models (BENCHMARKS.md, "Feeding a GPU").
+
+    python bench/step_ops.py                           # the paper and cpu-image architectures, on this CPU
+    python bench/step_ops.py --presets paper --top 30  # and the 30 most frequent operators
+
+The count does not depend on the batch or image size, so the real architectures run here at batch 4 on 32x32
+frames. Counted below autograd (``TorchDispatchMode``): forward, backward, clipping + AdamW (as on a GPU: fused, one
+operator for all tensors), EMA; views (which launch nothing) are left out. With ``--amp`` the step runs under CPU
+bf16 autocast, which adds the casts a GPU step makes under autocast (CPU and CUDA autocast differ in details).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.store import EpisodeStore
+from bpp.envs.draw import dataset as draw_data
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, _ema_update, build_training
+from bpp.utils import to_torch
+
+PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64"), "cpu-state": ("cpu", "board")}
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts the operators dispatched inside it (views left out), by name."""
+
+    def __init__(self):
+        super().__init__()
+        self.counts = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        if not func.is_view and func.__name__ not in ("detach.default",):
+            self.counts[func.__name__] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def count(name: str, store: EpisodeStore, method_name: str, amp: bool, top: int) -> dict:
+    size, obs = PRESETS[name]
+    method = get_method(method_name)
+    model_cfg = method.config(size, obs, BENCHMARK)
+    if model_cfg.obs.image_keys:
+        model_cfg = replace(model_cfg, obs=replace(model_cfg.obs, image_size=32))
+    cfg = TrainConfig(data=store.path, batch_size=4)
+    torch.manual_seed(0)
+    model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), torch.device("cpu"))
+    # A GPU's AdamW is fused (one operator for all tensors); the CPU's default is per tensor, so fuse it here too.
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4, fused=True)
+    model.train()
+    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=4, seed=2)[0], "cpu")
+    generator = torch.Generator().manual_seed(0)
+    parts, totals = {}, Counter()
+
+    def run(part: str, fn):
+        with OpCounter() as counter:
+            out = fn()
+        parts[part] = sum(counter.counts.values())
+        totals.update(counter.counts)
+        return out
+
+    for step in range(2):  # the first step also creates AdamW's state: count the second
+        if step == 1:
+            parts.clear()
+            totals.clear()
+        noise = model.draw_noise(batch, generator)
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=amp):
+            loss = run("forward", lambda: model(batch, noise=noise))  # noqa: B023 - called at once
+        optimizer.zero_grad(set_to_none=True)
+        run("backward", loss.backward)
+        run("clip+adamw", lambda: (torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0), optimizer.step()))
+        run("ema", lambda: _ema_update(ema, model, 0.999))
+    print(f"\n== {name} ({method_name}, {sum(p.numel() for p in model.parameters()) / 1e6:.1f}M parameters)")
+    print("  ".join(f"{k} {v}" for k, v in parts.items()), f" whole step {sum(parts.values())}")
+    for op, n in totals.most_common(top):
+        print(f"  {n:6d}  {op}")
+    return parts
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--presets", nargs="+", default=["paper", "cpu-image"], choices=list(PRESETS))
+    parser.add_argument("--method", default="bpp")
+    parser.add_argument("--amp", action="store_true", help="under CPU bf16 autocast (the casts a GPU step makes)")
+    parser.add_argument("--top", type=int, default=15, help="most frequent operators listed")
+    parser.add_argument("--data-dir", type=Path, default=Path("data/bench-gpu"))
+    args = parser.parse_args()
+    path = args.data_dir / "profile-6.zarr"
+    if not (path / "zarr.json").exists():
+        draw_data.generate(replace(draw_data.PRESETS["cpu"], num_tasks=6, demos_per_task=5), path, progress=False)
+    store = EpisodeStore(path)
+    for name in args.presets:
+        count(name, store, args.method, args.amp, args.top)
+
+
+if __name__ == "__main__":
+    main()

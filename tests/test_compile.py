@@ -1,0 +1,134 @@
+"""A compiled training step (`bpp train --compile`): batches padded to a few shapes give the same loss, the loss of a
+diffusion method is one graph (what a GPU can record and replay), and a compiled run learns as the eager one."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from bpp.data.contexts import padded_length
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, train
+from bpp.utils import to_torch
+from helpers import config
+
+
+def _model(store, method: str, **overrides):
+    torch.manual_seed(0)
+    m = get_method(method)
+    return m.model_cls(replace(config(m.name), **overrides), store.stats)
+
+
+def test_padded_length_rounds_up_within_the_limit():
+    assert padded_length(37, 0, 800) == 37  # 0: no extra padding
+    assert padded_length(37, 50, 800) == 50
+    assert padded_length(100, 50, 800) == 100
+    assert padded_length(790, 100, 800) == 800  # the last bucket stops at the limit
+    assert padded_length(800, 100, 800) == 800
+
+
+@pytest.mark.parametrize("method", ["bpp", "icrt"])
+def test_padding_changes_no_loss(debug_store, method):
+    """The same draws, padded to a multiple of 64 steps: prompts (and ICRT's whole episodes) grow, the loss does not."""
+    model = _model(debug_store, method).eval()
+    spec = model.data_spec()
+
+    def batch(pad: int) -> dict:
+        data = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, tasks_per_batch=2, pad_to_multiple=pad)
+        return data[0]
+
+    plain, padded = batch(0), batch(64)
+    steps = padded["context"]["valid"].shape[1]
+    assert steps > plain["context"]["valid"].shape[1]
+    assert steps % 64 == 0 or steps == spec.max_prompt_steps
+    assert padded["context"]["valid"].sum() == plain["context"]["valid"].sum()  # padding is not valid
+    stride = spec.context_obs_stride
+    for key, obs in padded["context"]["obs"].items():
+        assert obs.shape[1] == -(-steps // stride), key
+    if spec.samples == "episodes":
+        length = padded["action"].shape[1]
+        assert length > plain["action"].shape[1] and (length % 64 == 0 or length == spec.max_episode_steps)
+    losses = [model(to_torch(b, "cpu"), torch.Generator().manual_seed(0)) for b in (plain, padded)]
+    torch.testing.assert_close(losses[0], losses[1], rtol=1e-5, atol=1e-6)
+
+
+def test_pad_to_multiple_must_not_be_negative(debug_store):
+    with pytest.raises(ValueError, match="pad_to_multiple"):
+        PromptBatchDataset(debug_store, _model(debug_store, "bpp").data_spec(), pad_to_multiple=-1)
+
+
+def test_auto_padding_is_off_eager_and_an_eighth_of_the_prompt_limit_compiled(debug_store, tmp_path):
+    spec = _model(debug_store, "bpp").data_spec()
+    assert TrainConfig(data=tmp_path).padding(spec) == 0
+    steps = TrainConfig(data=tmp_path, compile="default").padding(spec)
+    assert steps % spec.context_obs_stride == 0 and steps * 8 >= spec.max_prompt_steps > steps * 7
+    assert TrainConfig(data=tmp_path, compile="default", pad_to_multiple=20).padding(spec) == 20
+    with pytest.raises(ValueError, match="compile"):
+        TrainConfig(data=tmp_path, compile="fast")
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image"])
+def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, method):
+    """`torch.compile(fullgraph=True)` fails on any graph break: the whole loss and its backward are captured, so a
+    GPU can replay them as CUDA graphs. The draws made before the loss are those the loss would make itself."""
+    model = _model(debug_store, method).train()
+    spec = model.data_spec()
+    batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=2, pad_to_multiple=100)[0], "cpu")
+    noise = model.draw_noise(batch, torch.Generator().manual_seed(5))
+    eager = model(batch, noise=noise)
+    torch.testing.assert_close(eager, model(batch, torch.Generator().manual_seed(5)), rtol=0, atol=0)
+    eager.backward()
+    expected = [p.grad.clone() for p in model.parameters()]
+    model.zero_grad(set_to_none=True)
+    torch._dynamo.reset()
+    loss = torch.compile(model, backend="aot_eager", fullgraph=True)(batch, noise=noise)
+    loss.backward()
+    torch.testing.assert_close(loss, eager, rtol=1e-5, atol=1e-6)
+    for p, g in zip(model.parameters(), expected, strict=True):
+        torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6)
+
+
+def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(described_store):
+    """Instructions are tokenized outside the compiled graph: were the strings traced, each new instruction would be
+    a constant of a new graph. Four batches of different instructions: one graph, and one more for a new token
+    length (after which the length is a dynamic dimension)."""
+    model = _model(described_store, "language").train()
+    data = PromptBatchDataset(described_store, model.data_spec(), batch_size=4, seed=2, tasks_per_batch=2)
+    torch._dynamo.reset()
+    torch._dynamo.utils.counters.clear()
+    loss = torch.compile(model, backend="aot_eager")
+    texts = set()
+    for i in range(4):
+        batch = to_torch(data[i], "cpu")
+        texts.update(batch["context"]["text"])
+        noise = model.draw_noise(batch, torch.Generator().manual_seed(i))
+        torch.testing.assert_close(loss(batch, noise=noise), model(batch, noise=noise), rtol=1e-5, atol=1e-6)
+    assert len(texts) >= 3
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] <= 3
+
+
+def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
+    """`bpp train --compile default` on this CPU (inductor's C++ kernels): the same losses as eager, to float
+    rounding (the debug preset has no dropout, whose random numbers inductor draws its own way). One prompt shape
+    (padded to the model's limit), so it is compiled once."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = config("bpp", obs="board")
+    cfg = replace(cfg, diffusion=replace(cfg.diffusion, down_dims=(32,)))  # one U-Net level: fewer kernels to build
+    spec = get_method("bpp").model_cls(cfg, debug_store.stats).data_spec()
+    losses = {}
+    for mode in ("off", "default"):
+        run = tmp_path / mode
+        tc = TrainConfig(
+            data=debug_store.path, out=run, steps=4, batch_size=8, log_every=1, warmup_steps=2, threads=1,
+            compile=mode, pad_to_multiple=spec.max_prompt_steps,
+        )  # fmt: skip
+        torch._dynamo.reset()
+        assert train(tc, cfg, progress=False).name == "step_00000004"
+        events = EventAccumulator(str(run / "tb"))
+        events.Reload()
+        losses[mode] = np.array([e.value for e in events.Scalars("train/loss")])
+    assert len(losses["off"]) == 4
+    np.testing.assert_allclose(losses["default"], losses["off"], rtol=1e-4)
