@@ -9,6 +9,7 @@ import torch
 
 from bpp.data.contexts import padded_length
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.policies.common import DEBUG_DIFFUSION, DiffusionHead
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
@@ -88,6 +89,51 @@ def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, met
     torch.testing.assert_close(loss, eager, rtol=1e-5, atol=1e-6)
     for p, g in zip(model.parameters(), expected, strict=True):
         torch.testing.assert_close(p.grad, g, rtol=1e-4, atol=1e-6)
+
+
+FACTORIES = {torch.arange, torch.full, torch.zeros, torch.ones, torch.empty, torch.tensor, torch.randn, torch.rand}
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "language"])
+def test_the_compiled_loss_reads_only_the_model_and_the_batch(debug_store, described_store, method):
+    """What keeps a compiled loss on a GPU from being replayed as a CUDA graph: a CPU tensor read from outside the
+    model's parameters and buffers (once, the noise scheduler's schedule) or made without a device inside it. The
+    graph captured here, on a CPU, shows both: graph inputs other than the module's tensors and the call's, tensor
+    factories without a device, and moves to a device."""
+    store = described_store if method == "language" else debug_store
+    model = _model(store, method).train()
+    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=4, seed=2, pad_to_multiple=100)[0], "cpu")
+    found = []
+
+    def inspect(graph_module, example_inputs):
+        for node in graph_module.graph.nodes:
+            where = node.meta.get("stack_trace", "")[-200:]
+            # Inputs: the module's tensors, the call's, symbolic sizes (s0, ...), and what an uncompiled function
+            # between two graphs returned (stack...; the instructions' token ids, which must come on the device).
+            known = ("_parameters_", "_buffers_", "l_batch_", "l_noise_", "l_stack")
+            if node.op == "placeholder" and not any(k in node.name for k in known) and not node.name.startswith("s"):
+                found.append(f"graph input {node.name}")
+            if node.op == "call_function" and node.target in FACTORIES and "device" not in node.kwargs:
+                found.append(f"{node.target.__name__} without a device: {where}")
+            targets = [*node.args[1:], *node.kwargs.values()]
+            if node.op == "call_method" and node.target == "to" and any(isinstance(t, torch.device) for t in targets):
+                found.append(f"a tensor moved to a device (from the CPU, on a GPU): {where}")
+        return graph_module.forward
+
+    torch._dynamo.reset()
+    torch.compile(model, backend=inspect)(batch, noise=model.draw_noise(batch))
+    assert not found, found
+
+
+def test_training_noise_is_the_ddpm_schedulers():
+    """The loss noises samples with its own copy of the schedule (a buffer), as diffusers' DDPM scheduler does."""
+    torch.manual_seed(0)
+    head = DiffusionHead(DEBUG_DIFFUSION, action_dim=2, cond_dim=5)
+    actions, cond = torch.randn(6, 16, 2), torch.randn(6, 5)
+    noise = head.draw_noise(actions.shape, actions.device, torch.Generator().manual_seed(0))
+    noisy = head.train_scheduler.add_noise(actions, noise["noise"], noise["timesteps"])
+    expected = torch.nn.functional.mse_loss(head.net(noisy, noise["timesteps"], cond), noise["noise"])
+    torch.testing.assert_close(head.loss(actions, cond, noise=noise), expected, rtol=0, atol=0)
 
 
 def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(described_store):

@@ -247,6 +247,9 @@ class DiffusionHead(nn.Module):
             prediction_type="epsilon",
         )
         self.train_scheduler = DDPMScheduler(**common)
+        # ᾱ_t for noising training samples, as a buffer: it moves with the model, so a compiled loss on a GPU reads
+        # no CPU tensor (one would keep it from being replayed as a CUDA graph). Not saved: the schedule defines it.
+        self.register_buffer("alphas_cumprod", self.train_scheduler.alphas_cumprod.clone(), persistent=False)
         self.sample_scheduler = (DDIMScheduler if cfg.sampler == "ddim" else DDPMScheduler)(**common)
         self.cuda_graphs = False
         """Replay DDIM sampling on a GPU from a CUDA graph (see :meth:`sample`); the agent turns it on for CUDA."""
@@ -273,7 +276,8 @@ class DiffusionHead(nn.Module):
         if noise is None:
             noise = self.draw_noise(actions.shape, actions.device, generator)
         eps, steps = noise["noise"], noise["timesteps"]
-        noisy = self.train_scheduler.add_noise(actions, eps, steps)
+        alpha = self.alphas_cumprod.to(actions.dtype)[steps][:, None, None]  # the DDPM scheduler's add_noise
+        noisy = alpha**0.5 * actions + (1 - alpha) ** 0.5 * eps
         return nn.functional.mse_loss(self.net(noisy, steps, cond), eps)
 
     def set_inference_steps(self, steps: int) -> None:

@@ -123,8 +123,12 @@ class BPPModel(ContextDiffusionPolicy):
         tokens = rearrange(tokens, "b n k d -> b (n k) d")
         token_valid = repeat(chunk_valid, "b n -> b (n k)", k=per_chunk)
         sinks = self.sinks.expand(bp, -1, -1)
-        token_chunk = torch.cat([torch.full((len(self.sinks),), -1), torch.arange(n).repeat_interleave(per_chunk)]).to(
-            tokens.device
+        device = tokens.device  # made there: a compiled loss on a GPU must read no CPU tensor (see DiffusionHead)
+        token_chunk = torch.cat(
+            [
+                torch.full((len(self.sinks),), -1, device=device),
+                torch.arange(n, device=device).repeat_interleave(per_chunk),
+            ]
         )
         return PromptContext(
             torch.cat([sinks, tokens], dim=1),

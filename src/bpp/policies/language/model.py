@@ -62,12 +62,12 @@ class LanguageModel(ContextDiffusionPolicy):
 
     @torch.compiler.disable
     def tokenize(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Instructions -> token ids and valid mask (Bt, max_tokens). Never compiled: a compiled loss would hold the
-        strings as constants, and be compiled anew for every new instruction."""
-        return self.tokenizer(texts, self.text_encoder.max_tokens)
+        """Instructions -> token ids and valid mask (Bt, longest), on the model's device. Never compiled: a compiled
+        loss would hold the strings as constants, and be compiled anew for every new instruction."""
+        ids, valid = self.tokenizer(texts, self.text_encoder.max_tokens)
+        device = next(self.text_encoder.parameters()).device
+        return ids.to(device), valid.to(device)
 
     def encode_context(self, context: Mapping) -> torch.Tensor:
         """Instructions ``{"text": [str] * Bt}`` -> instruction embeddings (Bt, D), once per rollout."""
-        ids, valid = self.tokenize(context["text"])
-        device = next(self.text_encoder.parameters()).device
-        return self.text_encoder(ids.to(device), valid.to(device))
+        return self.text_encoder(*self.tokenize(context["text"]))
