@@ -71,12 +71,20 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
         (replace(resume, seed=1), config("bpp"), "train_config.seed: 0 in the run, 1 now"),
         (replace(resume, steps=4), config("bpp"), "train_config.steps: 2 in the run, 4 now"),
         (resume, config("bpp", dim=64, heads=2), "model_config.dim: 32 in the run, 64 now"),
+        (replace(resume, compile="default"), config("bpp"), "train_config.compile: 'off' in the run, 'default' now"),
     ):
         with pytest.raises(ValueError, match=field):
             train(changed, model, progress=False)
     before = (tmp_path / "run" / "config.json").read_text()
     train(resume, config("bpp"), progress=False)  # the same settings: resumes (nothing left to do)
     assert (tmp_path / "run" / "config.json").read_text() == before
+    # A run recorded before a setting existed ran as its default does, and resumes with it.
+    recorded = json.loads(before)
+    del recorded["train_config"]["pad_to_multiple"], recorded["train_config"]["compile"]
+    (tmp_path / "run" / "config.json").write_text(json.dumps(recorded))
+    train(resume, config("bpp"), progress=False)
+    with pytest.raises(ValueError, match="train_config.pad_to_multiple: None in the run, 100 now"):
+        train(replace(resume, pad_to_multiple=100), config("bpp"), progress=False)
 
 
 def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
