@@ -22,7 +22,7 @@ from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpo
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
-from bpp.policies.common import count_parameters
+from bpp.policies.common import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
 
@@ -193,6 +193,7 @@ def compiled(cfg: TrainConfig, net: torch.nn.Module) -> torch.nn.Module:
     weights stay `net`'s: checkpoints and the EMA are unaffected."""
     if cfg.compile == "off":
         return net
+    keep_eager(net)
     return torch.compile(net, mode=None if cfg.compile == "default" else cfg.compile)
 
 

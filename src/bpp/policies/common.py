@@ -405,6 +405,20 @@ def with_observation(cfg, preset):
     return replace(cfg, **fields)
 
 
+def keep_eager(model: nn.Module) -> nn.Module:
+    """`model` with the methods its modules name in ``never_compiled`` left to Python by ``torch.compile`` (each
+    call a break between two graphs); call it before compiling. Not done when a model is built, because it imports
+    ``torch._dynamo``, which takes seconds, in every process that loads a policy."""
+    for module in model.modules():
+        for name in getattr(module, "never_compiled", ()):
+            method = getattr(module, name)
+            if not getattr(method, "_kept_eager", False):
+                method = torch.compiler.disable(method)
+                method._kept_eager = True
+                setattr(module, name, method)
+    return model
+
+
 def count_parameters(module: nn.Module) -> int:
     return sum(p.numel() for p in module.parameters())
 

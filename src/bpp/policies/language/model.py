@@ -60,10 +60,12 @@ class LanguageModel(ContextDiffusionPolicy):
             )
         return {"text": [text]}
 
-    @torch.compiler.disable
+    never_compiled = ("tokenize",)
+    """Left to Python by a compiled loss (:func:`bpp.policies.common.keep_eager`): traced, the instructions would be
+    constants of the graph, and each new one would be compiled anew."""
+
     def tokenize(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Instructions -> token ids and valid mask (Bt, longest), on the model's device. Never compiled: a compiled
-        loss would hold the strings as constants, and be compiled anew for every new instruction."""
+        """Instructions -> token ids and valid mask (Bt, longest), on the model's device."""
         ids, valid = self.tokenizer(texts, self.text_encoder.max_tokens)
         device = next(self.text_encoder.parameters()).device
         return ids.to(device), valid.to(device)
