@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One lent-GPU session's work (../shared/DEVICE.md), every log under $OUT (at most 8 files come back):
-#   1. bench/gpu_throughput.py: `bpp train --compile reduce-overhead` against eager, both presets;
+#   1. bench/gpu_throughput.py: `bpp train --compile cudagraphs` and `--compile reduce-overhead` against eager, both
+#      presets;
 #   2. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
 # Each part has its own time limit, so one that hangs cannot take the others' time.
 #
@@ -19,7 +20,7 @@ SMALL=${SMALL:-}
 { date -u; nvidia-smi || true; nproc; df -h /dev/shm || true; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } >"$OUT/machine.txt" 2>&1
 
 # 1. The compiled training step against the eager one, same run: model-bound and end to end, both presets.
-if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=600; else bench_args=(--presets cpu-image paper); limit=${BENCH_LIMIT:-420}; fi
+if [ -n "$SMALL" ]; then bench_args=(--small --presets cpu-image); limit=600; else bench_args=(--presets cpu-image paper); limit=${BENCH_LIMIT:-450}; fi
 timeout $limit $PY bench/gpu_throughput.py "${bench_args[@]}" --parts compile e2e --data-dir /tmp/bench-gpu \
   --out "$OUT/gpu_throughput.json" >"$OUT/bench.log" 2>&1
 echo "bench: exit $?" | tee -a "$OUT/machine.txt"
@@ -27,7 +28,7 @@ echo "bench: exit $?" | tee -a "$OUT/machine.txt"
 # 2. The test suite on the GPU machine, less what its image lacks (LIBERO's simulator, a browser), the new compile
 #    tests first.
 if [ -n "$SMALL" ]; then tests=(tests/test_compile.py); else tests=(tests/test_compile.py tests); fi
-timeout ${TEST_LIMIT:-120} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
+timeout ${TEST_LIMIT:-100} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
   --ignore=tests/test_libero_sim.py --ignore=tests/test_libero_benchmark.py --ignore=tests/test_studio.py >"$OUT/tests.log" 2>&1
 echo "tests: exit $?" | tee -a "$OUT/machine.txt"
 tail -3 "$OUT/tests.log"

@@ -156,7 +156,8 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
 
 
 def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
-    """`bpp train --compile default` on this CPU (inductor's C++ kernels): the same losses as eager, to float
+    """`bpp train --compile default` on this CPU (inductor's C++ kernels), and `--compile cudagraphs` (no GPU here to
+    record on: the captured graph runs eagerly): the same losses as eager, to float
     rounding (the debug preset has no dropout, whose random numbers inductor draws its own way). One prompt shape
     (padded to the model's limit), so it is compiled once."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -165,7 +166,7 @@ def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
     cfg = replace(cfg, diffusion=replace(cfg.diffusion, down_dims=(32,)))  # one U-Net level: fewer kernels to build
     spec = get_method("bpp").model_cls(cfg, debug_store.stats).data_spec()
     losses = {}
-    for mode in ("off", "default"):
+    for mode in ("off", "default", "cudagraphs"):  # cudagraphs: traced and run eagerly on a CPU
         run = tmp_path / mode
         tc = TrainConfig(
             data=debug_store.path, out=run, steps=4, batch_size=8, log_every=1, warmup_steps=2, threads=1,
@@ -178,3 +179,4 @@ def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
         losses[mode] = np.array([e.value for e in events.Scalars("train/loss")])
     assert len(losses["off"]) == 4
     np.testing.assert_allclose(losses["default"], losses["off"], rtol=1e-4)
+    np.testing.assert_allclose(losses["cudagraphs"], losses["off"], rtol=1e-4)

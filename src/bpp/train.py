@@ -26,8 +26,9 @@ from bpp.policies.common import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
 
-CompileMode = Literal["off", "default", "reduce-overhead", "max-autotune-no-cudagraphs"]
-"""``torch.compile``'s modes that suit training, and off."""
+CompileMode = Literal["off", "default", "reduce-overhead", "max-autotune-no-cudagraphs", "cudagraphs"]
+"""``torch.compile``'s modes that suit training; ``cudagraphs``, its backend that records the captured graphs as CUDA
+graphs without generating kernels (no Triton needed, seconds to compile); and off."""
 COMPILE_MODES: tuple[str, ...] = get_args(CompileMode)
 
 
@@ -84,9 +85,10 @@ class TrainConfig:
     compile: CompileMode = "off"
     """Compile the training loss and its backward with ``torch.compile`` in this mode (off: run eagerly).
     ``reduce-overhead`` also records them as CUDA graphs on a GPU and replays them, so the host no longer issues
-    each kernel (a GPU step of a small model is otherwise bound by launching its ~2,700 kernels). Compiling takes
-    a minute or more at the start, and again for each new batch shape (see `pad_to_multiple`); on a CPU it needs a
-    C++ compiler."""
+    each kernel (a GPU step of a small model is otherwise bound by launching its ~2,700 kernels); ``cudagraphs``
+    records the same operators as CUDA graphs without generating new kernels. Compiling takes a minute or more at
+    the start, and again for each new batch shape (see `pad_to_multiple`); on a CPU it needs a C++ compiler, and
+    ``cudagraphs`` runs eagerly there."""
     pad_to_multiple: int = -1
     """Pad the batches' variable time axes (demonstration prompts, ICRT's whole episodes) to a multiple of this many
     steps, at most the model's limit: each batch then has one of a few shapes, as a compiled step needs. Padding
@@ -194,6 +196,8 @@ def compiled(cfg: TrainConfig, net: torch.nn.Module) -> torch.nn.Module:
     if cfg.compile == "off":
         return net
     keep_eager(net)
+    if cfg.compile == "cudagraphs":
+        return torch.compile(net, backend="cudagraphs")
     return torch.compile(net, mode=None if cfg.compile == "default" else cfg.compile)
 
 
