@@ -89,6 +89,8 @@ def train_run(
     tasks_per_batch: int = 1,
     threads: int = 0,
     model_cfg=None,
+    loader_workers: int = 0,
+    compile: str = "off",
 ) -> float:
     """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
     `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
@@ -117,7 +119,8 @@ def train_run(
         tasks_per_batch=tasks_per_batch,
         seed=seed,
         threads=threads,
-        workers=0,
+        workers=loader_workers,
+        compile=compile,
         resume=resume,
         save_every=500,
     )
@@ -200,6 +203,11 @@ def main() -> None:
     parser.add_argument("--num-tasks", type=int, default=500, help="procedural training tasks (5 demos each)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per unseen drawing (paper: 32)")
     parser.add_argument("--train-tasks", type=int, default=20, help="training drawings evaluated")
+    parser.add_argument("--human-tasks", type=int, default=0, help="unseen human drawings evaluated (0: all 50)")
+    parser.add_argument(
+        "--loader-workers", type=int, default=0, help="data-loader processes per training run (a GPU: several)"
+    )
+    parser.add_argument("--compile", default="off", help="`bpp train --compile` mode of every training run")
     parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
     parser.add_argument("--runs", type=Path, default=Path("runs/bench"))
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
@@ -243,12 +251,14 @@ def main() -> None:
                 batch[method],
                 args.tasks_per_batch,
                 args.threads,
+                loader_workers=args.loader_workers,
+                compile=args.compile,
             )
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
             entry["n_action_steps"] = protocol.n_action_steps
             checkpoint = Checkpoint.load(run, use_ema=True)
-            for name, num in (("human", 0), ("train", args.train_tasks)):
+            for name, num in (("human", args.human_tasks), ("train", args.train_tasks)):
                 _, task_set, tasks = resolve_tasks(name, checkpoint, data_dir=args.data_dir, num_tasks=num)
                 out = args.out / run.name / name
                 data = evaluate(checkpoint, task_set, tasks, out, protocol, args.workers)
@@ -305,7 +315,7 @@ def main() -> None:
     if args.n_action_steps:
         executed = f" The diffusion-decoder methods execute {args.n_action_steps} actions per inference."
     (args.out / "table.md").write_text(
-        f"DrawAnything-Sim on a CPU, preset `{label}`, {args.num_tasks} tasks x 5 demos, "
+        f"DrawAnything-Sim, preset `{label}`, {args.num_tasks} tasks x 5 demos, "
         f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "
         f"mean ± std over seeds.{executed}\n\n{table}"
     )

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The paper's visual setting on DrawAnything (camera + proprioception, canvas actions), BPP against Goal-Image and
+# ICRT trained side by side on one GPU, then evaluated on the unseen human-made drawings (issue 17's second part).
+# One lent-GPU call (../shared/DEVICE.md); the table, the chart, the results and each process's log come back under
+# $OUT (7 files: a call returns at most 8); the evaluations' pictures and videos stay under /tmp/gpu-visual.
+#
+#   bash bench/gpu_visual.sh                                   # on the GPU machine: about 9 minutes
+#   OUT=outputs/gpu-visual-small SMALL=1 bash bench/gpu_visual.sh    # here, on a CPU: the same steps at toy sizes
+#
+# Each method is one bench/draw_cpu_benchmark.py process (train, then evaluate with CPU workers), all three at once,
+# so they share the GPU and the cores; a last --report-only call gathers the three into one table (it reuses the
+# evaluations). Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
+set -uo pipefail
+OUT=${OUT:-outputs/gpu-visual}
+PY=${PY:-python3}
+SMALL=${SMALL:-}
+mkdir -p "$OUT" /tmp/gpu-visual
+if [ -n "$SMALL" ]; then
+  STEPS=${STEPS:-4}; ICRT_STEPS=${ICRT_STEPS:-4}; PRESET=debug; BATCH=(bpp=8 goal_image=8 icrt=4)
+  EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12 --workers 1); LOADERS=0; LIMIT=600
+else
+  STEPS=${STEPS:-1000}; ICRT_STEPS=${ICRT_STEPS:-1000}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
+  EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500 --workers 4); LOADERS=${LOADERS:-4}; LIMIT=${LIMIT:-540}
+fi
+common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch 1 --batch "${BATCH[@]}"
+  --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
+  --data-dir /tmp/gpu-visual/data --runs /tmp/gpu-visual/runs --out /tmp/gpu-visual/out "${EVAL[@]}")
+
+# The data first, once (the three processes would otherwise each generate it); nothing is trained yet.
+$PY bench/draw_cpu_benchmark.py --methods bpp --report-only "${common[@]}" >/tmp/gpu-visual/data.log 2>&1
+for method in bpp goal_image icrt; do
+  timeout "$LIMIT" $PY bench/draw_cpu_benchmark.py --methods $method "${common[@]}" >"$OUT/$method.log" 2>&1 &
+done
+wait
+$PY bench/draw_cpu_benchmark.py --methods bpp goal_image icrt --report-only "${common[@]}" >"$OUT/report.log" 2>&1
+echo "report: exit $?"
+cp /tmp/gpu-visual/out/table.md /tmp/gpu-visual/out/chart.png /tmp/gpu-visual/out/results.json "$OUT"/
+tail -n 20 "$OUT/report.log"
