@@ -273,12 +273,11 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
             f"end_to_end_b{b}",
             lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
         )
-    for mode in args.compile_modes if "compile" in parts else ():
-        # At the largest batch sizes only (each compiles anew), next to the eager step in this same run.
+    if "compile" in parts and "model" not in parts:  # the eager step next to the compiled ones, in this same run
         b = batch_sizes[-1]
-        if "model" not in parts:
-            measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
-        for b in batch_sizes[-1:]:
+        measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
+    for mode in args.compile_modes if "compile" in parts else ():
+        for b in batch_sizes[-1:]:  # at the largest batch size only: each compiles anew
             measure(
                 results,
                 name,

@@ -4,7 +4,7 @@
 # One lent-GPU call (../shared/DEVICE.md); the table, the chart, the results and each process's log come back under
 # $OUT (7 files: a call returns at most 8); the evaluations' pictures and videos stay under /tmp/gpu-visual.
 #
-#   bash bench/gpu_visual.sh                                   # on the GPU machine: about 9 minutes
+#   bash bench/gpu_visual.sh                                   # on the GPU machine: at most 9 minutes
 #   OUT=outputs/gpu-visual-small SMALL=1 bash bench/gpu_visual.sh    # here, on a CPU: the same steps at toy sizes
 #
 # Each method is one bench/draw_cpu_benchmark.py process (train, then evaluate with CPU workers), all three at once,
@@ -20,19 +20,21 @@ if [ -n "$SMALL" ]; then
   EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12 --workers 1); LOADERS=0; LIMIT=600
 else
   STEPS=${STEPS:-1000}; ICRT_STEPS=${ICRT_STEPS:-1000}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
-  EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500 --workers 4); LOADERS=${LOADERS:-4}; LIMIT=${LIMIT:-540}
+  EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500 --workers 4); LOADERS=${LOADERS:-4}; LIMIT=${LIMIT:-420}
 fi
 common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch 1 --batch "${BATCH[@]}"
   --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
   --data-dir /tmp/gpu-visual/data --runs /tmp/gpu-visual/runs --out /tmp/gpu-visual/out "${EVAL[@]}")
 
 # The data first, once (the three processes would otherwise each generate it); nothing is trained yet.
-$PY bench/draw_cpu_benchmark.py --methods bpp --report-only "${common[@]}" >/tmp/gpu-visual/data.log 2>&1
+timeout 60 $PY bench/draw_cpu_benchmark.py --methods bpp --report-only "${common[@]}" >/tmp/gpu-visual/data.log 2>&1
 for method in bpp goal_image icrt; do
   timeout "$LIMIT" $PY bench/draw_cpu_benchmark.py --methods $method "${common[@]}" >"$OUT/$method.log" 2>&1 &
 done
 wait
-$PY bench/draw_cpu_benchmark.py --methods bpp goal_image icrt --report-only "${common[@]}" >"$OUT/report.log" 2>&1
+# Evaluations that were cut off would run again here: the limit keeps the call within its 10 minutes.
+timeout 60 $PY bench/draw_cpu_benchmark.py --methods bpp goal_image icrt --report-only "${common[@]}" \
+  >"$OUT/report.log" 2>&1
 echo "report: exit $?"
-cp /tmp/gpu-visual/out/table.md /tmp/gpu-visual/out/chart.png /tmp/gpu-visual/out/results.json "$OUT"/
+cp /tmp/gpu-visual/out/table.md /tmp/gpu-visual/out/chart.png /tmp/gpu-visual/out/results.json "$OUT"/ 2>/dev/null
 tail -n 20 "$OUT/report.log"

@@ -83,7 +83,7 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     del recorded["train_config"]["pad_to_multiple"], recorded["train_config"]["compile"]
     (tmp_path / "run" / "config.json").write_text(json.dumps(recorded))
     train(resume, config("bpp"), progress=False)
-    with pytest.raises(ValueError, match="train_config.pad_to_multiple: None in the run, 100 now"):
+    with pytest.raises(ValueError, match="train_config.pad_to_multiple: absent in the run, 100 now"):
         train(replace(resume, pad_to_multiple=100), config("bpp"), progress=False)
 
 

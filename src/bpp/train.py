@@ -234,21 +234,24 @@ def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
     # A run recorded before a setting existed ran as its default does.
     defaults = {f"train_config.{f.name}": to_dict(f.default) for f in fields(TrainConfig)}
 
+    absent = object()  # a key the run's record lacks
+
     def compare(path: str, old, new) -> None:
         if isinstance(old, dict) and isinstance(new, dict):
             for key in sorted(set(old) | set(new)):
-                compare(f"{path}.{key}" if path else key, old.get(key), new.get(key))
+                compare(f"{path}.{key}" if path else key, old.get(key, absent), new.get(key, absent))
         elif path in ("train_config.out", "train_config.resume"):
             return  # where the run is now (it may have been moved), and whether this call resumes
-        elif old is None and path in defaults and new == defaults[path]:
+        elif old is absent and path in defaults and new == defaults[path]:
             return
-        elif path == "train_config.data" and old and new:
+        elif path == "train_config.data" and old and new and old is not absent:
             if Path(old).resolve() != Path(new).resolve():
                 differences.append(f"{path}: {old!r} in the run, {new!r} now")
         elif old != new:
-            differences.append(f"{path}: {old!r} in the run, {new!r} now")
+            said = lambda value: "absent" if value is absent else repr(value)  # noqa: E731
+            differences.append(f"{path}: {said(old)} in the run, {said(new)} now")
 
-    compare("", {k: recorded.get(k) for k in now}, now)
+    compare("", {k: recorded.get(k, absent) for k in now}, now)
     if differences:
         raise ValueError(
             f"{run} was started with other settings, and --resume continues a run exactly as it began; drop the "
