@@ -13,34 +13,24 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from gpu_throughput import train_subprocess  # this folder's script, on the path when run as a script
+
 
 def run(store: Path, args, mode: str) -> dict:
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    with tempfile.TemporaryDirectory(prefix="bpp-compile-") as tmp:
-        command = [sys.executable, "-m", "bpp.cli", "train", "--data", str(store), "--out", f"{tmp}/run"]
-        command += ["--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
-        command += ["--batch-size", str(args.batch_size)]
-        command += ["--tasks-per-batch", str(args.tasks_per_batch), "--threads", str(args.threads)]
-        command += ["--log-every", str(args.log_every), "--save-every", str(10 * args.steps), "--compile", mode]
-        t0 = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True)
-        wall = time.perf_counter() - t0
-        if done.returncode:
-            raise RuntimeError(f"bpp train --compile {mode} failed ({done.returncode}): {done.stderr[-3000:]}")
-        events = EventAccumulator(f"{tmp}/run/tb")
-        events.Reload()
-        rates = [e.value for e in events.Scalars("train/samples_per_s")]
-        losses = {e.step: e.value for e in events.Scalars("train/loss")}
+    arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
+    arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
+    arguments += ["--threads", str(args.threads), "--log-every", str(args.log_every)]
+    arguments += ["--save-every", str(10 * args.steps), "--compile", mode]
+    wall, logged, _ = train_subprocess(arguments, ("train/samples_per_s", "train/loss"))
+    rates = [value for _, value in logged["train/samples_per_s"]]
+    losses = dict(logged["train/loss"])
     steady = rates[2:] if len(rates) > 2 else rates[-1:]
     first = args.log_every * args.batch_size / rates[0]  # seconds of the first interval (rates are per interval)
     return {

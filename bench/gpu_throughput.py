@@ -174,24 +174,31 @@ def model_rate(
     return out
 
 
-def end_to_end_rate(store_path: Path, size: str, obs: str, batch_size: int, steps: int, log_every: int, extra=()):
-    """Samples/s of `bpp train` (a subprocess with its default loader workers): the median logged rate after the
-    first interval, read back from its TensorBoard log."""
+def train_subprocess(arguments: list[str], scalars: tuple[str, ...]) -> tuple[float, dict, str]:
+    """Run `bpp train ARGUMENTS --out <temporary run>` as a subprocess: (wall seconds, {scalar tag: [(step, value)]}
+    read back from its TensorBoard log, its standard output)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
-    with tempfile.TemporaryDirectory(prefix="bpp-e2e-") as run:
-        command = [sys.executable, "-m", "bpp.cli", "train", "--data", str(store_path), "--out", f"{run}/run"]
-        command += ["--preset", size, "--obs", obs, "--steps", str(steps), "--batch-size", str(batch_size)]
-        command += ["--log-every", str(log_every), "--save-every", str(10 * steps), "--warmup-steps", "10", *extra]
+    with tempfile.TemporaryDirectory(prefix="bpp-train-") as run:
+        command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
         t0 = time.perf_counter()
         done = subprocess.run(command, capture_output=True, text=True)
         wall = time.perf_counter() - t0
         if done.returncode:
-            raise RuntimeError(f"bpp train failed ({done.returncode}): {done.stderr[-2000:]}")
+            raise RuntimeError(f"bpp train {' '.join(arguments)} failed ({done.returncode}): {done.stderr[-3000:]}")
         events = EventAccumulator(f"{run}/run/tb")
         events.Reload()
-        rates = [e.value for e in events.Scalars("train/samples_per_s")]
-        workers = [line for line in done.stdout.splitlines() if "loader workers" in line]
+        return wall, {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in scalars}, done.stdout
+
+
+def end_to_end_rate(store_path: Path, size: str, obs: str, batch_size: int, steps: int, log_every: int, extra=()):
+    """Samples/s of `bpp train` (a subprocess with its default loader workers): the median logged rate after the
+    first interval, read back from its TensorBoard log."""
+    arguments = ["--data", str(store_path), "--preset", size, "--obs", obs, "--steps", str(steps)]
+    arguments += ["--batch-size", str(batch_size), "--log-every", str(log_every), "--save-every", str(10 * steps)]
+    wall, logged, stdout = train_subprocess([*arguments, "--warmup-steps", "10", *extra], ("train/samples_per_s",))
+    rates = [value for _, value in logged["train/samples_per_s"]]
+    workers = [line for line in stdout.splitlines() if "loader workers" in line]
     return {
         "batch_size": batch_size,
         "samples_per_s": round(float(np.median(rates[1:] if len(rates) > 1 else rates)), 1),
