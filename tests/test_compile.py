@@ -70,13 +70,22 @@ def test_auto_padding_is_off_eager_and_an_eighth_of_the_prompt_limit_compiled(de
         TrainConfig(data=tmp_path, compile="fast")
 
 
-@pytest.mark.parametrize("method", ["bpp", "goal_image"])
-def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, method):
+@pytest.mark.parametrize(
+    ("method", "overrides"),
+    [("bpp", {}), ("goal_image", {}), ("icrt", {"max_tokens": 20})],  # ICRT: rollouts longer than fit after the prompt
+)
+def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, method, overrides):
     """`torch.compile(fullgraph=True)` fails on any graph break: the whole loss and its backward are captured, so a
-    GPU can replay them as CUDA graphs. The draws made before the loss are those the loss would make itself."""
-    model = _model(debug_store, method).train()
+    GPU can replay them as CUDA graphs. The draws made before the loss are those the loss would make itself.
+
+    ICRT's eager loss runs only the rollout steps that fit after the batch's longest prompt; the compiled one runs
+    them all and masks the rest. With a context of 20 tokens the cut is real, and the two losses must agree."""
+    model = _model(debug_store, method, **overrides).train()
     spec = model.data_spec()
     batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=2, pad_to_multiple=100)[0], "cpu")
+    if method == "icrt":
+        prompt_tokens = 2 * -(-batch["context"]["valid"].sum(1).max() // model.cfg.chunk_len)
+        assert batch["valid"].sum(1).max() > (model.cfg.max_tokens - prompt_tokens) // 2 * model.cfg.chunk_len
     noise = model.draw_noise(batch, torch.Generator().manual_seed(5))
     eager = model(batch, noise=noise)
     torch.testing.assert_close(eager, model(batch, torch.Generator().manual_seed(5)), rtol=0, atol=0)
@@ -94,7 +103,7 @@ def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, met
 FACTORIES = {torch.arange, torch.full, torch.zeros, torch.ones, torch.empty, torch.tensor, torch.randn, torch.rand}
 
 
-@pytest.mark.parametrize("method", ["bpp", "goal_image", "language"])
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "language", "icrt"])
 def test_the_compiled_loss_reads_only_the_model_and_the_batch(debug_store, described_store, method):
     """What keeps a compiled loss on a GPU from being replayed as a CUDA graph: a CPU tensor read from outside the
     model's parameters and buffers (once, the noise scheduler's schedule) or made without a device inside it. The

@@ -140,7 +140,8 @@ class ICRTModel(PolicyModel):
         """
         start = 0 if cache is None else cache.valid.sum(1, keepdim=True)
         positions = (start + valid.cumsum(1) - 1).clamp_min(0)
-        assert int(positions.max()) < self.cfg.max_tokens, "sequence longer than max_tokens"
+        if not torch.compiler.is_compiling():  # a host read; training's sequences fit by construction
+            assert int(positions.max()) < self.cfg.max_tokens, "sequence longer than max_tokens"
         return self.transformer(tokens + self.pos_embed[positions], valid, cache)
 
     # ------------------------------------------------------------------ train
@@ -158,10 +159,14 @@ class ICRTModel(PolicyModel):
         if "context_index" in batch and prompt["valid"].shape[0] > 1:  # several tasks: each rollout its own prompt
             prompt = index_contexts(prompt, batch["context_index"])
         ctx = self.encode_context(prompt)
-        # A rollout longer than what fits after the prompt is cut: only its first chunks are learned from.
-        steps = (self.cfg.max_tokens - int(ctx.valid.sum(1).max())) // 2 * self.cfg.chunk_len
+        # A rollout longer than what fits after the batch's longest prompt is cut: only its first chunks are learned
+        # from. Eager, the steps after the cut are not run at all; a compiled loss keeps its shapes (reading the cut
+        # on the host would split its graph) and masks them: no valid token attends to them, so the loss is the same.
+        fits = (self.cfg.max_tokens - ctx.valid.sum(1).max()) // 2 * self.cfg.chunk_len
+        steps = batch["action"].shape[1] if torch.compiler.is_compiling() else int(fits)
         obs = {k: v[:, :steps] for k, v in batch["obs"].items()}
         actions, valid = batch["action"][:, :steps], batch["valid"][:, :steps].bool()
+        valid = valid & (torch.arange(valid.shape[1], device=valid.device) < fits)
         predicted = rearrange(
             self.rollout_chunks(ctx, {"obs": obs, "action": actions, "valid": valid}), "b n t a -> b (n t) a"
         )
