@@ -151,6 +151,15 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
     instructions: one graph, and one more for a new token length (after which the length is a dynamic dimension)."""
     model = _model(described_store, "language").train()
     data = PromptBatchDataset(described_store, model.data_spec(), batch_size=4, seed=2, tasks_per_batch=2)
+    lengths = {"eager": set(), "compiled": set()}
+    tokenizer = model.tokenizer
+
+    def recorded(texts, max_tokens, multiple=1):
+        ids, valid = tokenizer(texts, max_tokens, multiple)
+        lengths["eager" if multiple == 1 else "compiled"].add(ids.shape[1])
+        return ids, valid
+
+    model.tokenizer = recorded
     torch._dynamo.reset()
     torch._dynamo.utils.counters.clear()
     loss = torch.compile(keep_eager(model), backend="aot_eager")
@@ -159,9 +168,27 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
         batch = to_torch(data[i], "cpu")
         texts.update(batch["context"]["text"])
         noise = model.draw_noise(batch, torch.Generator().manual_seed(i))
+        # Compiled, the token ids are padded (masked): the loss is the eager one all the same.
         torch.testing.assert_close(loss(batch, noise=noise), model(batch, noise=noise), rtol=1e-5, atol=1e-6)
     assert len(texts) >= 3
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] <= 3
+    # Lengths in steps of 16 tokens: at most max_tokens / 16 CUDA graphs to record under reduce-overhead.
+    assert all(n % model.compiled_token_multiple == 0 for n in lengths["compiled"]), lengths
+    assert len(lengths["compiled"]) <= len(lengths["eager"]), lengths
+
+
+@pytest.mark.parametrize("tokenizer", ["bytes", "pretrained"])
+def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer):
+    from bpp.nn.text import ByteTokenizer, PretrainedTokenizer, pretrained_text_dir
+
+    tokenize = ByteTokenizer() if tokenizer == "bytes" else PretrainedTokenizer(pretrained_text_dir())
+    texts = ["draw a house", "draw the letter b twice, then a star"]
+    ids, valid = tokenize(texts, 64)
+    padded, padded_valid = tokenize(texts, 64, multiple=16)
+    assert padded.shape[1] % 16 == 0 and padded.shape[1] > ids.shape[1]
+    assert torch.equal(padded[:, : ids.shape[1]], ids) and torch.equal(padded_valid[:, : ids.shape[1]], valid)
+    assert not padded_valid[:, ids.shape[1] :].any()
+    assert tokenize(texts, ids.shape[1] + 1, multiple=16)[0].shape[1] == ids.shape[1] + 1  # never past the limit
 
 
 def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):

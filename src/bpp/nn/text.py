@@ -13,6 +13,7 @@ from pathlib import Path
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 PACKAGED_MODEL = "all-MiniLM-L6-v2"
 """The pretrained text encoder used when no path is given: sentence-transformers' all-MiniLM-L6-v2 (Apache-2.0;
@@ -46,6 +47,12 @@ def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return (x * weights).sum(1) / weights.sum(1).clamp_min(1.0)
 
 
+def padded_tokens(longest: int, multiple: int, max_tokens: int) -> int:
+    """A batch's token length: its longest text's (at most `max_tokens`), rounded up to a multiple of `multiple`,
+    at most `max_tokens`."""
+    return min(-(-longest // multiple) * multiple, max_tokens)
+
+
 class ByteTokenizer:
     """Text -> token ids: [BOS] + the text's UTF-8 bytes (+3) + [EOS], padded with [PAD] to the longest.
 
@@ -61,13 +68,14 @@ class ByteTokenizer:
     def num_tokens(text: str) -> int:
         return len(text.encode("utf-8")) + 2
 
-    def __call__(self, texts: Sequence[str], max_tokens: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens."""
+    def __call__(self, texts: Sequence[str], max_tokens: int, multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens, rounded up to a
+        `multiple` (at most `max_tokens`)."""
         encoded = [[self.BOS, *(b + self.OFFSET for b in t.encode("utf-8")), self.EOS] for t in texts]
         longest = max(len(e) for e in encoded)
         if longest > max_tokens:
             raise ValueError(f"a text of {longest} tokens ({self.unit}) exceeds the encoder's {max_tokens}")
-        ids = torch.full((len(encoded), longest), self.PAD, dtype=torch.long)
+        ids = torch.full((len(encoded), padded_tokens(longest, multiple, max_tokens)), self.PAD, dtype=torch.long)
         for i, e in enumerate(encoded):
             ids[i, : len(e)] = torch.tensor(e)
         return ids, ids != self.PAD
@@ -86,14 +94,16 @@ class PretrainedTokenizer:
     def num_tokens(self, text: str) -> int:
         return len(self.tokenizer(text)["input_ids"])
 
-    def __call__(self, texts: Sequence[str], max_tokens: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens."""
+    def __call__(self, texts: Sequence[str], max_tokens: int, multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens, rounded up to a
+        `multiple` (at most `max_tokens`)."""
         batch = self.tokenizer(list(texts), padding=True, return_tensors="pt")
-        if batch["input_ids"].shape[1] > max_tokens:
-            raise ValueError(
-                f"a text of {batch['input_ids'].shape[1]} tokens ({self.unit}) exceeds the encoder's {max_tokens}"
-            )
-        return batch["input_ids"], batch["attention_mask"].bool()
+        longest = batch["input_ids"].shape[1]
+        if longest > max_tokens:
+            raise ValueError(f"a text of {longest} tokens ({self.unit}) exceeds the encoder's {max_tokens}")
+        pad = padded_tokens(longest, multiple, max_tokens) - longest
+        ids = F.pad(batch["input_ids"], (0, pad), value=self.tokenizer.pad_token_id)
+        return ids, F.pad(batch["attention_mask"], (0, pad)).bool()
 
 
 class TextTransformer(nn.Module):

@@ -64,12 +64,18 @@ class LanguageModel(ContextDiffusionPolicy):
     """Left to Python by a compiled loss (:func:`bpp.policies.common.keep_eager`): traced, the instructions would be
     constants of the graph, and each new one would be compiled anew."""
 
-    def tokenize(self, texts: list[str]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Instructions -> token ids and valid mask (Bt, longest), on the model's device."""
-        ids, valid = self.tokenizer(texts, self.text_encoder.max_tokens)
+    def tokenize(self, texts: list[str], multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Instructions -> token ids and valid mask (Bt, longest rounded up to a `multiple`), on the model's
+        device."""
+        ids, valid = self.tokenizer(texts, self.text_encoder.max_tokens, multiple)
         device = next(self.text_encoder.parameters()).device
         return ids.to(device), valid.to(device)
 
+    compiled_token_multiple = 16
+    """A compiled loss pads token ids to a multiple of this: the padding is masked, and fewer lengths are fewer
+    graphs (under ``--compile reduce-overhead`` each length is a CUDA graph recorded anew). Eager, no padding."""
+
     def encode_context(self, context: Mapping) -> torch.Tensor:
         """Instructions ``{"text": [str] * Bt}`` -> instruction embeddings (Bt, D), once per rollout."""
-        return self.text_encoder(*self.tokenize(context["text"]))
+        multiple = self.compiled_token_multiple if torch.compiler.is_compiling() else 1
+        return self.text_encoder(*self.tokenize(context["text"], multiple))
