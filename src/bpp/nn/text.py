@@ -47,9 +47,11 @@ def masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return (x * weights).sum(1) / weights.sum(1).clamp_min(1.0)
 
 
-def padded_tokens(longest: int, multiple: int, max_tokens: int) -> int:
-    """A batch's token length: its longest text's (at most `max_tokens`), rounded up to a multiple of `multiple`,
-    at most `max_tokens`."""
+def padded_tokens(longest: int, multiple: int, max_tokens: int, unit: str = "tokens") -> int:
+    """A batch's token length: its longest text's `longest` tokens (`unit`) rounded up to a multiple of `multiple`,
+    at most `max_tokens`; a longer text is refused."""
+    if longest > max_tokens:
+        raise ValueError(f"a text of {longest} tokens ({unit}) exceeds the encoder's {max_tokens}")
     return min(-(-longest // multiple) * multiple, max_tokens)
 
 
@@ -72,10 +74,8 @@ class ByteTokenizer:
         """Token ids (B, L) long and their valid mask (B, L) bool, L = the longest text's tokens, rounded up to a
         `multiple` (at most `max_tokens`)."""
         encoded = [[self.BOS, *(b + self.OFFSET for b in t.encode("utf-8")), self.EOS] for t in texts]
-        longest = max(len(e) for e in encoded)
-        if longest > max_tokens:
-            raise ValueError(f"a text of {longest} tokens ({self.unit}) exceeds the encoder's {max_tokens}")
-        ids = torch.full((len(encoded), padded_tokens(longest, multiple, max_tokens)), self.PAD, dtype=torch.long)
+        length = padded_tokens(max(len(e) for e in encoded), multiple, max_tokens, self.unit)
+        ids = torch.full((len(encoded), length), self.PAD, dtype=torch.long)
         for i, e in enumerate(encoded):
             ids[i, : len(e)] = torch.tensor(e)
         return ids, ids != self.PAD
@@ -99,9 +99,7 @@ class PretrainedTokenizer:
         `multiple` (at most `max_tokens`)."""
         batch = self.tokenizer(list(texts), padding=True, return_tensors="pt")
         longest = batch["input_ids"].shape[1]
-        if longest > max_tokens:
-            raise ValueError(f"a text of {longest} tokens ({self.unit}) exceeds the encoder's {max_tokens}")
-        pad = padded_tokens(longest, multiple, max_tokens) - longest
+        pad = padded_tokens(longest, multiple, max_tokens, self.unit) - longest
         ids = F.pad(batch["input_ids"], (0, pad), value=self.tokenizer.pad_token_id)
         return ids, F.pad(batch["attention_mask"], (0, pad)).bool()
 

@@ -163,10 +163,13 @@ class ICRTModel(PolicyModel):
         # from. Eager, the steps after the cut are not run at all; a compiled loss keeps its shapes (reading the cut
         # on the host would split its graph) and masks them: no valid token attends to them, so the loss is the same.
         fits = (self.cfg.max_tokens - ctx.valid.sum(1).max()) // 2 * self.cfg.chunk_len
-        steps = batch["action"].shape[1] if torch.compiler.is_compiling() else int(fits)
-        obs = {k: v[:, :steps] for k, v in batch["obs"].items()}
-        actions, valid = batch["action"][:, :steps], batch["valid"][:, :steps].bool()
-        valid = valid & (torch.arange(valid.shape[1], device=valid.device) < fits)
+        obs, actions, valid = batch["obs"], batch["action"], batch["valid"].bool()
+        if torch.compiler.is_compiling():
+            valid = valid & (torch.arange(valid.shape[1], device=valid.device) < fits)
+        else:
+            steps = int(fits)
+            obs = {k: v[:, :steps] for k, v in obs.items()}
+            actions, valid = actions[:, :steps], valid[:, :steps]
         predicted = rearrange(
             self.rollout_chunks(ctx, {"obs": obs, "action": actions, "valid": valid}), "b n t a -> b (n t) a"
         )
