@@ -51,3 +51,24 @@ def test_targets_outside_canvas_are_clipped_and_cursor_stays_inside():
     for _ in range(5):
         state, path = physics.control_step(state, np.array([600.0, -50.0, 0.0]))
         assert path.min() >= 0.0 and path.max() <= 512.0
+
+
+def test_batched_control_steps_are_the_single_steps_bit_for_bit(rng):
+    # Free moves, pens up and down, and moves into every wall (targets outside the canvas) in one batch.
+    states = np.c_[rng.uniform(0, 512, (40, 2)), rng.uniform(-3000, 3000, (40, 2)), rng.integers(0, 2, 40)]
+    actions = np.c_[rng.uniform(-200, 700, (40, 2)), rng.uniform(0, 1, 40)]
+    states[:8, :2], states[:8, 2:4] = [[5.0, 250.0], [508.0, 30.0]] * 4, [[-3000.0, 40.0], [2500.0, -2000.0]] * 4
+    actions[:8, :2] = [[-60.0, 250.0], [700.0, -50.0]] * 4
+    next_states, paths = physics.control_steps(states, actions)
+    assert next_states.shape == (40, 5) and paths.shape == (40, physics.SUBSTEPS + 1, 2)
+    walled = 0
+    for i in range(40):
+        state, path = physics.control_step(states[i], actions[i])
+        np.testing.assert_array_equal(next_states[i], state)
+        np.testing.assert_array_equal(paths[i], path)
+        walled += bool(np.any((path == 0.0) | (path == 512.0)))
+        unwalled = physics._COEF[:, 0:1] * states[i, :2] + physics._COEF[:, 1:2] * states[i, 2:4]
+        free = unwalled + physics._COEF[:, 2:3] * np.clip(actions[i, :2], 0, 512)
+        if free.min() >= 0 and free.max() <= 512:  # the closed form, exactly
+            np.testing.assert_array_equal(path[1:], free)
+    assert 0 < walled < 40

@@ -5,7 +5,8 @@ import pytest
 
 from bpp.envs.draw import physics
 from bpp.envs.draw.dataset import render_episode, render_episode_steps
-from bpp.envs.draw.geometry import CANVAS_SIZE
+from bpp.envs.draw import render
+from bpp.envs.draw.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
 from bpp.envs.draw.render import INK_WIDTH, ink_segments, render_board, render_frames
 from bpp.envs.draw.viz import episode_frames
 
@@ -105,3 +106,32 @@ def test_zero_length_segments_make_a_dot(rng):
             rows, cols = np.nonzero(np.any(last != inkless, axis=-1))
             centers = (np.c_[cols, rows] + 0.5) * (CANVAS_SIZE / size)
             assert len(rows) and np.linalg.norm(centers - cursor, axis=1).max() < INK_WIDTH / 2 + CANVAS_SIZE / size
+
+
+def whole_image_board(resolution: int, angle: float) -> np.ndarray:
+    """The board as every pixel's distance to each line says (what render_board computes only near the lines)."""
+    x, y = render.pixel_centers(resolution)
+    pixel = CANVAS_SIZE / resolution
+    image = np.empty((resolution, resolution, 3))
+    image[:] = render.BACKGROUND_RGB
+    unit = np.array([[0, 0, 1, 1], [0, 1, 1, 0], [0.5, 0, 0.5, 1], [0, 0.5, 1, 0.5]], dtype=np.float64)
+    helpers = unit_to_canvas(unit.reshape(-1, 2), angle).reshape(-1, 4)
+    tl, tr, br, bl = board_corners(angle)
+    for segments, width, rgb in (
+        (helpers, render.HELPER_LINE_WIDTH, render.HELPER_LINE_RGB),
+        (np.array([np.r_[tr, br], np.r_[br, bl], np.r_[bl, tl]]), render.BOARD_EDGE_WIDTH, render.BOARD_EDGE_RGB),
+        (np.r_[tl, tr][None], render.BOARD_EDGE_WIDTH, render.BOARD_TOP_EDGE_RGB),
+    ):
+        cover = render.coverage(render.segment_distance(x, y, segments), width / 2, pixel)[..., None]
+        image *= 1.0 - cover
+        image += cover * np.asarray(rgb, dtype=np.float64)
+    return image
+
+
+@pytest.mark.parametrize("size", [8, 64, render.WHOLE_BOARD_PIXELS, 97, 100, 224, 301])
+def test_the_board_measured_near_its_lines_is_the_whole_image_one(size, rng):
+    for angle in (0.0, np.pi / 4, -np.pi / 4, *rng.uniform(-np.pi, np.pi, 3)):
+        np.testing.assert_array_equal(render_board(size, angle), whole_image_board(size, angle))
+    if size > render.WHOLE_BOARD_PIXELS:  # the tiles are in use, and they leave most pixels unmeasured
+        pixels, _ = render.line_coverage(size, np.array([[100.0, 100.0, 400.0, 120.0]]), 4.0)
+        assert 0 < len(pixels) < size * size / 4

@@ -164,18 +164,25 @@ def task_drawing(store: EpisodeStore, task_index: int) -> Drawing:
     return drawing_from_array(store.tasks[task_index]["id"], store.task_array("strokes", task_index))
 
 
+def episode_physics(store: EpisodeStore, episode: int) -> tuple[np.ndarray, np.ndarray]:
+    """An episode's (T, 5) states and (T, 3) float64 actions, from the store's whole columns, read into memory once
+    (5 + 3 numbers a step: 52 MB for the paper's 10,000 demonstrations): a loader renders a few episodes per batch,
+    and reading each from the store took longer than rendering it."""
+    sl = store.episode_slice(episode)
+    return store.array("state")[sl], store.array("action")[sl].astype(np.float64)
+
+
 def episode_paths(store: EpisodeStore, episode: int) -> list[np.ndarray]:
     """Canvas polylines inked by each pen-down step of an episode, by exact replay of the stored physics."""
-    ep = store.episode(episode, ("state", "action"))
-    return replay_paths(ep["state"], ep["action"].astype(np.float64))
+    return replay_paths(*episode_physics(store, episode))
 
 
 def render_episode_steps(store: EpisodeStore, episode: int, image_size: int, steps: np.ndarray) -> np.ndarray:
     """(k, R, R, 3) uint8 image observations of a stored episode at `steps` (any order, repeats allowed), identical
     to ``render_episode(...)[steps]`` but rendering only those frames (step T: the frame after the last step)."""
-    ep = store.episode(episode, ("state", "action"))
+    states, actions = episode_physics(store, episode)
     angle = float(store.column("board_angle")[episode])
-    return render_frames(ep["state"], ep["action"].astype(np.float64), angle, image_size, steps)
+    return render_frames(states, actions, angle, image_size, steps)
 
 
 def render_last_observation(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:

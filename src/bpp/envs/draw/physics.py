@@ -65,6 +65,23 @@ def control_step(state: np.ndarray, action: np.ndarray) -> tuple[np.ndarray, np.
     return next_state, np.concatenate([pos[None], positions], axis=0)
 
 
+def control_steps(states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`control_step` of N independent (state, action) pairs at once, with the same arithmetic, so the same
+    bits (a test pins it): states (N, 5) float64 and actions (N, 3) -> next states (N, 5) and paths
+    (N, SUBSTEPS + 1, 2). Replaying a stored episode's ink uses it; an env, one step at a time, keeps the
+    scalar form and its fewer array operations."""
+    states = np.asarray(states, dtype=np.float64)
+    pos, vel = states[:, None, 0:2], states[:, None, 2:4]
+    target = np.clip(np.asarray(actions[:, None, :2], dtype=np.float64), 0.0, CANVAS_SIZE)
+    pen = np.where(np.asarray(actions)[:, 2] > PEN_THRESHOLD, 1.0, 0.0)
+    positions = _COEF[:, 0:1] * pos + _COEF[:, 1:2] * vel + _COEF[:, 2:3] * target  # (N, SUBSTEPS, 2)
+    velocities = _COEF[:, 3:4] * pos + _COEF[:, 4:5] * vel + _COEF[:, 5:6] * target
+    for i in np.flatnonzero((positions.min(axis=(1, 2)) < 0.0) | (positions.max(axis=(1, 2)) > CANVAS_SIZE)):
+        positions[i], velocities[i] = _walled_substeps(pos[i, 0], vel[i, 0], target[i, 0])
+    next_states = np.concatenate([positions[:, -1], velocities[:, -1], pen[:, None]], axis=1)
+    return next_states, np.concatenate([pos, positions], axis=1)
+
+
 def _walled_substeps(pos: np.ndarray, vel: np.ndarray, target: np.ndarray):
     """Substeps with the canvas border as a wall (rare: only an overshoot past the border needs it)."""
     dt = 1.0 / PHYSICS_HZ

@@ -88,24 +88,61 @@ def _bbox(points: np.ndarray, margin: float, resolution: int) -> tuple[slice, sl
     return slice(lo[1], hi[1]), slice(lo[0], hi[0])
 
 
+BOARD_TILE = 8
+"""Side in pixels of the tiles in which :func:`render_board` looks for the pixels its lines cover."""
+WHOLE_BOARD_PIXELS = 96
+"""Up to this resolution :func:`line_coverage` measures every pixel."""
+
+
+def line_coverage(resolution: int, segments: np.ndarray, half_width: float) -> tuple[np.ndarray | slice, np.ndarray]:
+    """The pixels that thick (M, 4) segments may cover, as (flat pixel indices or all of them, their coverage): exactly
+    ``coverage(segment_distance(...), half_width, pixel)`` of a whole image at those pixels, and 0 at every other.
+
+    Above WHOLE_BOARD_PIXELS, only pixels of the BOARD_TILE-sided tiles whose centre lies within the lines'
+    reach plus half a tile's diagonal are measured: a pixel's distance differs from its tile centre's by at most
+    that half diagonal. (At 224 px, 3x faster than measuring every pixel; below, the tiles cost more than they save.)
+    """
+    pixel = CANVAS_SIZE / resolution
+    coordinate = centers(resolution)
+    if resolution <= WHOLE_BOARD_PIXELS:
+        x, y = pixel_centers(resolution)
+        return slice(None), coverage(segment_distance(x, y, segments), half_width, pixel).reshape(-1)
+    reach = half_width + pixel  # coverage is exactly 0 from half_width + pixel / 2 on
+    tiles = -(-resolution // BOARD_TILE)
+    tile = BOARD_TILE * pixel
+    tile_x, tile_y = np.meshgrid(*[(np.arange(tiles) + 0.5) * tile] * 2)
+    rows, cols = np.nonzero(segment_distance(tile_x, tile_y, segments) < reach + tile * np.sqrt(0.5))
+    offsets = np.arange(BOARD_TILE)
+    r = (rows[:, None] * BOARD_TILE + offsets)[:, :, None]  # (n, TILE, 1)
+    c = (cols[:, None] * BOARD_TILE + offsets)[:, None, :]  # (n, 1, TILE)
+    flat = (r * resolution + c)[(r < resolution) & (c < resolution)]
+    distance = segment_distance(coordinate[flat % resolution], coordinate[flat // resolution], segments)
+    return flat, coverage(distance, half_width, pixel)
+
+
 def render_board(resolution: int, angle: float, center=BOARD_CENTER) -> np.ndarray:
     """The static scene (background, helper lines, board edges) as a float64 (H, W, 3) image in [0, 255]."""
-    x, y = pixel_centers(resolution)
-    pixel = CANVAS_SIZE / resolution
-    image = np.empty((resolution, resolution, 3))
+    image = np.empty((resolution * resolution, 3))
     image[:] = BACKGROUND_RGB
     helpers = unit_to_canvas(
         np.array([[0, 0, 1, 1], [0, 1, 1, 0], [0.5, 0, 0.5, 1], [0, 0.5, 1, 0.5]], dtype=np.float64).reshape(-1, 2),
         angle,
         center,
     ).reshape(-1, 4)
-    _blend(image, coverage(segment_distance(x, y, helpers), HELPER_LINE_WIDTH / 2, pixel), HELPER_LINE_RGB)
     tl, tr, br, bl = board_corners(angle, center)
     edges = np.array([np.r_[tr, br], np.r_[br, bl], np.r_[bl, tl]])
-    _blend(image, coverage(segment_distance(x, y, edges), BOARD_EDGE_WIDTH / 2, pixel), BOARD_EDGE_RGB)
     top = np.r_[tl, tr][None]
-    _blend(image, coverage(segment_distance(x, y, top), BOARD_EDGE_WIDTH / 2, pixel), BOARD_TOP_EDGE_RGB)
-    return image
+    # Blending a zero coverage leaves a pixel's value exactly as it is, so only the covered pixels are blended.
+    for segments, half_width, rgb in (
+        (helpers, HELPER_LINE_WIDTH / 2, HELPER_LINE_RGB),
+        (edges, BOARD_EDGE_WIDTH / 2, BOARD_EDGE_RGB),
+        (top, BOARD_EDGE_WIDTH / 2, BOARD_TOP_EDGE_RGB),
+    ):
+        pixels, cover = line_coverage(resolution, segments, half_width)
+        patch = image[pixels]
+        _blend(patch, cover, rgb)
+        image[pixels] = patch
+    return image.reshape(resolution, resolution, 3)
 
 
 class SceneRenderer:
@@ -170,9 +207,9 @@ def ink_segments(states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, n
     down = np.flatnonzero(actions[:, 2] > physics.PEN_THRESHOLD)
     if not len(down):
         return np.zeros((0, 4)), np.zeros(0, dtype=np.int64)
-    segments = [polyline_segments(physics.control_step(states[i], actions[i])[1]) for i in down]
-    step = np.repeat(down, [len(s) for s in segments])
-    return np.concatenate(segments), step.astype(np.int64)
+    paths = physics.control_steps(states[down], actions[down])[1]  # (D, SUBSTEPS + 1, 2): polylines of 11 points
+    segments = np.concatenate([paths[:, :-1], paths[:, 1:]], axis=2).reshape(-1, 4)  # as polyline_segments
+    return segments, np.repeat(down, physics.SUBSTEPS).astype(np.int64)
 
 
 def _windows(lo: np.ndarray, width: int, resolution: int) -> np.ndarray:

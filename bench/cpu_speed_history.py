@@ -1,0 +1,121 @@
+"""Is today's code as fast on this CPU as older code? The same `bpp train` run at several commits, alternated.
+
+    python bench/cpu_speed_history.py 43a1c47 HEAD           # the main job's setting (bpp demo), one thread
+    python bench/cpu_speed_history.py 43a1c47 HEAD --repeats 3 --steps 400
+
+Each commit is checked out into a git worktree (under ``--work``, removed at the end) and run from there with this
+environment's packages (``PYTHONPATH`` points at the worktree's ``src``), so only the project's code differs. The
+runs are sequential and alternated (A B A B ...), so a machine that slows down over time slows every commit alike.
+Every run trains on the same store, generated once by the current code (the demo's data preset unless ``--tasks``
+says otherwise). Reported per run: the median logged samples/s after the first two intervals, the wall time and
+the logged losses; at the end, each commit's median rate over its runs and its ratio to the first commit's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def git(*arguments: str) -> str:
+    return subprocess.run(["git", "-C", str(REPO), *arguments], check=True, capture_output=True, text=True).stdout
+
+
+def train(source: Path, store: Path, args) -> dict:
+    """One `bpp train` from `source` (a worktree's src folder): its steady samples/s, wall time and losses."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
+    arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
+    arguments += ["--threads", str(args.threads), "--workers", "0", "--log-every", str(args.log_every)]
+    arguments += ["--save-every", str(10 * args.steps)]
+    environment = {**os.environ, "PYTHONPATH": str(source)}
+    with tempfile.TemporaryDirectory(prefix="bpp-speed-") as run:
+        t0 = time.perf_counter()
+        command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
+        done = subprocess.run(command, capture_output=True, text=True, env=environment)
+        wall = time.perf_counter() - t0
+        if done.returncode:
+            raise RuntimeError(f"{source}: bpp train failed ({done.returncode}): {done.stderr[-3000:]}")
+        events = EventAccumulator(f"{run}/run/tb")
+        events.Reload()
+        rates = [e.value for e in events.Scalars("train/samples_per_s")]
+        losses = {e.step: round(e.value, 5) for e in events.Scalars("train/loss")}
+    steady = rates[2:] if len(rates) > 2 else rates[-1:]
+    return {"samples_per_s": round(float(np.median(steady)), 1), "wall_s": round(wall, 1), "losses": losses}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("commits", nargs="+", help="git revisions to compare; the first is the reference")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--obs", default="board")
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--log-every", type=int, default=25)
+    parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--tasks-per-batch", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeats", type=int, default=2, help="runs per commit, alternated")
+    parser.add_argument("--data-dir", type=Path, default=Path("data/bench-speed-history"))
+    parser.add_argument("--work", type=Path, default=Path("outputs/bench/speed-history-worktrees"))
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/cpu_speed_history.json"))
+    args = parser.parse_args()
+    if len(set(args.commits)) != len(args.commits):
+        parser.error(f"commits must differ, got {args.commits}")
+    shas = [git("rev-parse", "--short", f"{c}^{{commit}}").strip() for c in args.commits]
+
+    store = args.data_dir / f"train-{args.tasks}.zarr"
+    if not store.exists():
+        from dataclasses import replace
+
+        from bpp.envs.draw import dataset as draw_data
+
+        draw_data.generate(replace(draw_data.PRESETS["cpu"], num_tasks=args.tasks), store)
+
+    args.work.mkdir(parents=True, exist_ok=True)
+    trees = {sha: args.work.resolve() / sha for sha in shas}
+    results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "runs": []}
+    try:
+        for sha, tree in trees.items():
+            if not tree.exists():
+                git("worktree", "add", "--detach", "-f", str(tree), sha)
+        for repeat in range(args.repeats):
+            for commit, sha in zip(args.commits, shas):
+                run = {"commit": commit, "sha": sha, "repeat": repeat, **train(trees[sha] / "src", store, args)}
+                results["runs"].append(run)
+                print(json.dumps({k: v for k, v in run.items() if k != "losses"}), flush=True)
+    finally:
+        for tree in trees.values():
+            if tree.exists():
+                git("worktree", "remove", "--force", str(tree))
+        shutil.rmtree(args.work, ignore_errors=True)
+
+    reference = None
+    summary = {}
+    for commit, sha in zip(args.commits, shas):
+        runs = [r for r in results["runs"] if r["sha"] == sha]
+        rate = float(np.median([r["samples_per_s"] for r in runs]))
+        reference = reference or rate
+        same = all(r["losses"] == results["runs"][0]["losses"] for r in runs)
+        summary[commit] = {"sha": sha, "samples_per_s": rate, "ratio": round(rate / reference, 3), "same_losses": same}
+        print(f"{commit:>12} ({sha}): {rate:7.1f} samples/s, {rate / reference:.3f}x, losses as the first: {same}")
+    results["summary"] = summary
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
