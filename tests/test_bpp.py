@@ -1,3 +1,4 @@
+import json
 import os
 import shutil
 import subprocess
@@ -197,6 +198,21 @@ def test_resume_reproduces_an_uninterrupted_run(debug_store, tmp_path):
             torch.testing.assert_close(a[k], b[k], rtol=0, atol=0)
     with pytest.raises(FileExistsError, match="--resume"):
         _train(debug_store, part, steps=6, save_every=3)
+
+
+def test_runs_fuse_the_optimiser_and_an_unfused_run_resumes_unfused(debug_store, tmp_path):
+    run = tmp_path / "run"
+    _train(debug_store, run, steps=6, save_every=3)
+    shutil.rmtree(run / "checkpoints" / "step_00000006")  # killed after step 3
+    (run / "checkpoints" / "last").write_text("step_00000003")
+    saved = run / "checkpoints" / "step_00000003" / "state.json"
+    state = json.loads(saved.read_text())
+    assert [g["fused"] for g in state["optimizer"]["param_groups"]] == [True]  # on a CPU too
+    state["optimizer"]["param_groups"][0]["fused"] = None  # as a run checkpointed before that
+    saved.write_text(json.dumps(state))
+    _train(debug_store, run, steps=6, save_every=3, resume=True)
+    resumed = json.loads((run / "checkpoints" / "step_00000006" / "state.json").read_text())
+    assert [g["fused"] for g in resumed["optimizer"]["param_groups"]] == [None]  # continues as it began
 
 
 def test_only_the_newest_checkpoints_stay_on_disk(debug_store, tmp_path):
