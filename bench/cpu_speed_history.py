@@ -18,12 +18,11 @@ import json
 import os
 import shutil
 import subprocess
-import sys
-import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
+
+from gpu_throughput import train_subprocess  # this folder's script, on the path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -34,26 +33,19 @@ def git(*arguments: str) -> str:
 
 def train(source: Path, store: Path, args) -> dict:
     """One `bpp train` from `source` (a worktree's src folder): its steady samples/s, wall time and losses."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
     arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
     arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
     arguments += ["--threads", str(args.threads), "--workers", "0", "--log-every", str(args.log_every)]
     arguments += ["--save-every", str(10 * args.steps)]
     environment = {**os.environ, "PYTHONPATH": str(source)}
-    with tempfile.TemporaryDirectory(prefix="bpp-speed-") as run:
-        t0 = time.perf_counter()
-        command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
-        done = subprocess.run(command, capture_output=True, text=True, env=environment)
-        wall = time.perf_counter() - t0
-        if done.returncode:
-            raise RuntimeError(f"{source}: bpp train failed ({done.returncode}): {done.stderr[-3000:]}")
-        events = EventAccumulator(f"{run}/run/tb")
-        events.Reload()
-        rates = [e.value for e in events.Scalars("train/samples_per_s")]
-        losses = {e.step: round(e.value, 5) for e in events.Scalars("train/loss")}
+    wall, logged, _ = train_subprocess(arguments, ("train/samples_per_s", "train/loss"), env=environment)
+    rates = [value for _, value in logged["train/samples_per_s"]]
     steady = rates[2:] if len(rates) > 2 else rates[-1:]
-    return {"samples_per_s": round(float(np.median(steady)), 1), "wall_s": round(wall, 1), "losses": losses}
+    return {
+        "samples_per_s": round(float(np.median(steady)), 1),
+        "wall_s": round(wall, 1),
+        "losses": {step: round(value, 5) for step, value in logged["train/loss"]},
+    }
 
 
 def main() -> None:
@@ -92,7 +84,7 @@ def main() -> None:
             if not tree.exists():
                 git("worktree", "add", "--detach", "-f", str(tree), sha)
         for repeat in range(args.repeats):
-            for commit, sha in zip(args.commits, shas):
+            for commit, sha in zip(args.commits, shas, strict=True):
                 run = {"commit": commit, "sha": sha, "repeat": repeat, **train(trees[sha] / "src", store, args)}
                 results["runs"].append(run)
                 print(json.dumps({k: v for k, v in run.items() if k != "losses"}), flush=True)
@@ -104,7 +96,7 @@ def main() -> None:
 
     reference = None
     summary = {}
-    for commit, sha in zip(args.commits, shas):
+    for commit, sha in zip(args.commits, shas, strict=True):
         runs = [r for r in results["runs"] if r["sha"] == sha]
         rate = float(np.median([r["samples_per_s"] for r in runs]))
         reference = reference or rate

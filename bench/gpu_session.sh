@@ -24,7 +24,7 @@ SMALL=${SMALL:-}
 #    cudagraphs (seconds to compile) with the eager end-to-end runs, then reduce-overhead (inductor: minutes), each
 #    with its own time limit, so a slow compile cannot take the other's time.
 if [ -n "$SMALL" ]; then presets=(--small --presets cpu-image); else presets=(--presets cpu-image paper); fi
-timeout ${LIMIT1:-190} $PY bench/gpu_throughput.py "${presets[@]}" --parts compile e2e --compile-modes cudagraphs \
+timeout ${LIMIT1:-190} $PY bench/gpu_throughput.py "${presets[@]}" --parts loader compile e2e --compile-modes cudagraphs \
   --data-dir /tmp/bench-gpu --out "$OUT/throughput-cudagraphs.json" >"$OUT/bench-cudagraphs.log" 2>&1
 echo "bench cudagraphs: exit $?" | tee -a "$OUT/machine.txt"
 # The paper preset first here: its step is the first goal, and a cold inductor compile may use up the limit.

@@ -174,15 +174,17 @@ def model_rate(
     return out
 
 
-def train_subprocess(arguments: list[str], scalars: tuple[str, ...]) -> tuple[float, dict, str]:
-    """Run `bpp train ARGUMENTS --out <temporary run>` as a subprocess: (wall seconds, {scalar tag: [(step, value)]}
-    read back from its TensorBoard log, its standard output)."""
+def train_subprocess(
+    arguments: list[str], scalars: tuple[str, ...], env: dict | None = None
+) -> tuple[float, dict, str]:
+    """Run `bpp train ARGUMENTS --out <temporary run>` as a subprocess (in environment `env`, default this one's):
+    (wall seconds, {scalar tag: [(step, value)]} read back from its TensorBoard log, its standard output)."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     with tempfile.TemporaryDirectory(prefix="bpp-train-") as run:
         command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
         t0 = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True)
+        done = subprocess.run(command, capture_output=True, text=True, env=env)
         wall = time.perf_counter() - t0
         if done.returncode:
             raise RuntimeError(f"bpp train {' '.join(arguments)} failed ({done.returncode}): {done.stderr[-3000:]}")
