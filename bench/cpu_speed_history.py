@@ -14,9 +14,9 @@ the logged losses; at the end, each commit's median rate over its runs and its r
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
@@ -29,6 +29,12 @@ REPO = Path(__file__).resolve().parents[1]
 
 def git(*arguments: str) -> str:
     return subprocess.run(["git", "-C", str(REPO), *arguments], check=True, capture_output=True, text=True).stdout
+
+
+def remove_worktree(tree: Path) -> None:
+    """Remove the git worktree at `tree` if there is one (never raises: it runs while cleaning up)."""
+    subprocess.run(["git", "-C", str(REPO), "worktree", "remove", "--force", str(tree)], capture_output=True)
+    subprocess.run(["git", "-C", str(REPO), "worktree", "prune"], capture_output=True)
 
 
 def train(source: Path, store: Path, args) -> dict:
@@ -64,47 +70,53 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=Path("outputs/bench/speed-history-worktrees"))
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/cpu_speed_history.json"))
     args = parser.parse_args()
-    if len(set(args.commits)) != len(args.commits):
-        parser.error(f"commits must differ, got {args.commits}")
+    if args.steps < 3 * args.log_every:
+        parser.error(
+            f"--steps {args.steps} must be at least 3 x --log-every {args.log_every}: rates after two intervals"
+        )
     shas = [git("rev-parse", "--short", f"{c}^{{commit}}").strip() for c in args.commits]
+    if len(set(shas)) != len(shas):
+        parser.error(f"the commits must differ, got {dict(zip(args.commits, shas, strict=True))}")
 
+    from dataclasses import replace
+
+    from bpp.data.store import stored_with
+    from bpp.envs.draw import dataset as draw_data
+
+    data_cfg = replace(draw_data.PRESETS["cpu"], num_tasks=args.tasks)
     store = args.data_dir / f"train-{args.tasks}.zarr"
-    if not store.exists():
-        from dataclasses import replace
-
-        from bpp.envs.draw import dataset as draw_data
-
-        draw_data.generate(replace(draw_data.PRESETS["cpu"], num_tasks=args.tasks), store)
+    if stored_with(store, data_cfg) is None:
+        draw_data.generate(data_cfg, store, overwrite=True)
 
     args.work.mkdir(parents=True, exist_ok=True)
     trees = {sha: args.work.resolve() / sha for sha in shas}
     results: dict = {"args": {k: str(v) for k, v in vars(args).items()}, "runs": []}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
     try:
         for sha, tree in trees.items():
-            if not tree.exists():
-                git("worktree", "add", "--detach", "-f", str(tree), sha)
+            remove_worktree(tree)  # one a killed run left
+            git("worktree", "add", "--detach", "-f", str(tree), sha)
         for repeat in range(args.repeats):
             for commit, sha in zip(args.commits, shas, strict=True):
                 run = {"commit": commit, "sha": sha, "repeat": repeat, **train(trees[sha] / "src", store, args)}
                 results["runs"].append(run)
+                args.out.write_text(json.dumps(results, indent=1))  # a run cut short keeps what it measured
                 print(json.dumps({k: v for k, v in run.items() if k != "losses"}), flush=True)
     finally:
-        for tree in trees.values():
-            if tree.exists():
-                git("worktree", "remove", "--force", str(tree))
-        shutil.rmtree(args.work, ignore_errors=True)
+        for tree in trees.values():  # only the worktrees made here; --work itself only if that leaves it empty
+            remove_worktree(tree)
+        with contextlib.suppress(OSError):
+            args.work.rmdir()
 
-    reference = None
     summary = {}
+    reference = float(np.median([r["samples_per_s"] for r in results["runs"] if r["sha"] == shas[0]]))
     for commit, sha in zip(args.commits, shas, strict=True):
         runs = [r for r in results["runs"] if r["sha"] == sha]
         rate = float(np.median([r["samples_per_s"] for r in runs]))
-        reference = reference or rate
         same = all(r["losses"] == results["runs"][0]["losses"] for r in runs)
         summary[commit] = {"sha": sha, "samples_per_s": rate, "ratio": round(rate / reference, 3), "same_losses": same}
         print(f"{commit:>12} ({sha}): {rate:7.1f} samples/s, {rate / reference:.3f}x, losses as the first: {same}")
     results["summary"] = summary
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1))
     print(f"wrote {args.out}")
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One lent-GPU session's work (../shared/DEVICE.md), every log under $OUT (at most 8 files come back):
 #   1. bench/gpu_throughput.py: `bpp train --compile cudagraphs` and `--compile reduce-overhead` against eager, both
-#      presets;
+#      presets, and (in the first call, a few seconds within its limit) one loader process's samples/s;
 #   2. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
 # Each part has its own time limit, so one that hangs cannot take the others' time.
 #

@@ -184,8 +184,9 @@ def build_training(cfg: TrainConfig, model: torch.nn.Module, device: torch.devic
         if cfg.channels_last:
             model = model.to(memory_format=torch.channels_last)
     ema = copy.deepcopy(model).requires_grad_(False).eval()
-    # Fused: one kernel for every tensor (on a GPU one launch instead of hundreds; on a CPU 61 -> 18 ms a step of the
-    # main job's model, BENCHMARKS.md). A run checkpointed unfused resumes unfused: the flag is in its saved state.
+    # Fused: one operation for every tensor (on a GPU one launch instead of hundreds; on a CPU 43-61 -> 18-19 ms a
+    # step of the main job's model, BENCHMARKS.md). A run checkpointed unfused resumes unfused: the flag is in its
+    # saved optimiser state.
     optimizer = torch.optim.AdamW(
         model.parameters(),
         lr=cfg.lr,

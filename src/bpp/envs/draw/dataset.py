@@ -165,9 +165,10 @@ def task_drawing(store: EpisodeStore, task_index: int) -> Drawing:
 
 
 def episode_physics(store: EpisodeStore, episode: int) -> tuple[np.ndarray, np.ndarray]:
-    """An episode's (T, 5) states and (T, 3) float64 actions, from the store's whole columns, read into memory once
-    (5 + 3 numbers a step: 52 MB for the paper's 10,000 demonstrations): a loader renders a few episodes per batch,
-    and reading each from the store took longer than rendering it."""
+    """An episode's (T, 5) states (a view of the cached column: do not modify it) and (T, 3) float64 actions, from
+    the store's whole columns, read into memory once (52 bytes a step, about 51 MB for the paper's 10,000
+    demonstrations): a loader renders a few episodes per batch, and reading each from the store took longer than
+    rendering it."""
     sl = store.episode_slice(episode)
     return store.array("state")[sl], store.array("action")[sl].astype(np.float64)
 
