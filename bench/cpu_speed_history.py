@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpu_throughput import train_subprocess  # this folder's script, on the path when run as a script
+from compile_speed import add_main_job_arguments, train_rate  # this folder's, on the path when run as a script
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -37,34 +37,10 @@ def remove_worktree(tree: Path) -> None:
     subprocess.run(["git", "-C", str(REPO), "worktree", "prune"], capture_output=True)
 
 
-def train(source: Path, store: Path, args) -> dict:
-    """One `bpp train` from `source` (a worktree's src folder): its steady samples/s, wall time and losses."""
-    arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
-    arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
-    arguments += ["--threads", str(args.threads), "--workers", "0", "--log-every", str(args.log_every)]
-    arguments += ["--save-every", str(10 * args.steps)]
-    environment = {**os.environ, "PYTHONPATH": str(source)}
-    wall, logged, _ = train_subprocess(arguments, ("train/samples_per_s", "train/loss"), env=environment)
-    rates = [value for _, value in logged["train/samples_per_s"]]
-    steady = rates[2:] if len(rates) > 2 else rates[-1:]
-    return {
-        "samples_per_s": round(float(np.median(steady)), 1),
-        "wall_s": round(wall, 1),
-        "losses": {step: round(value, 5) for step, value in logged["train/loss"]},
-    }
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("commits", nargs="+", help="git revisions to compare; the first is the reference")
-    parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--obs", default="board")
-    parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--log-every", type=int, default=25)
-    parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
-    parser.add_argument("--batch-size", type=int, default=64)
-    parser.add_argument("--tasks-per-batch", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=1)
+    add_main_job_arguments(parser, steps=300)
     parser.add_argument("--repeats", type=int, default=2, help="runs per commit, alternated")
     parser.add_argument("--data-dir", type=Path, default=Path("data/bench-speed-history"))
     parser.add_argument("--work", type=Path, default=Path("outputs/bench/speed-history-worktrees"))
@@ -98,7 +74,9 @@ def main() -> None:
             git("worktree", "add", "--detach", "-f", str(tree), sha)
         for repeat in range(args.repeats):
             for commit, sha in zip(args.commits, shas, strict=True):
-                run = {"commit": commit, "sha": sha, "repeat": repeat, **train(trees[sha] / "src", store, args)}
+                environment = {**os.environ, "PYTHONPATH": str(trees[sha] / "src")}  # the worktree's code
+                measured = train_rate(store, args, ["--workers", "0"], env=environment)
+                run = {"commit": commit, "sha": sha, "repeat": repeat, **measured}
                 results["runs"].append(run)
                 args.out.write_text(json.dumps(results, indent=1))  # a run cut short keeps what it measured
                 print(json.dumps({k: v for k, v in run.items() if k != "losses"}), flush=True)

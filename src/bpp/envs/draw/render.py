@@ -103,10 +103,10 @@ def line_coverage(resolution: int, segments: np.ndarray, half_width: float) -> t
     that half diagonal. (At 224 px, 3x faster than measuring every pixel; below, the tiles cost more than they save.)
     """
     pixel = CANVAS_SIZE / resolution
-    coordinate = centers(resolution)
     if resolution <= WHOLE_BOARD_PIXELS:
         x, y = pixel_centers(resolution)
         return slice(None), coverage(segment_distance(x, y, segments), half_width, pixel).reshape(-1)
+    coordinate = centers(resolution)
     reach = half_width + pixel  # coverage is exactly 0 from half_width + pixel / 2 on
     tiles = -(-resolution // BOARD_TILE)
     tile = BOARD_TILE * pixel
