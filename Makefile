@@ -38,4 +38,4 @@ format: install
 	$(BIN)/ruff check --fix src tests bench
 
 test: lint $(LIBERO_STAMP)
-	$(BIN)/pytest -q --durations=15
+	$(BIN)/pytest -q --durations=15 --numprocesses auto --maxprocesses 4 --dist loadfile
