@@ -9,6 +9,9 @@ first, it measures:
 
 * loader: samples/s of ONE loader process (what a `bpp train` worker does per batch: draw, render the frames it
   needs, collate), over batches after the first;
+* pipeline: samples/s of `bpp train`'s whole loader with no model (its default worker processes, the batches
+  passed to the training process, page-locked and copied to the device), with one worker and with the default
+  number, and the megabytes a batch moves: what the loader can feed, where the loader line is one process's share;
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
   EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, and the peak memory; with
   variants (paper), the same with channels-first weights, with cuDNN's timed algorithm choice, with the 5x5-stem
@@ -51,7 +54,7 @@ from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.nn.norm import GroupNorm
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
-from bpp.train import COMPILE_MODES, TrainConfig, build_training, compiled, train_step, uses_amp
+from bpp.train import COMPILE_MODES, TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
 from bpp.utils import to_torch, usable_cores
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
@@ -116,6 +119,43 @@ def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_
         "samples_per_s": round(batches * batch_size / seconds, 1),
         "ms_per_batch": round(1000 * seconds / batches, 1),
         "whole_episodes": data.whole_episodes,
+    }
+
+
+def tensor_bytes(batch) -> int:
+    if isinstance(batch, dict):
+        return sum(tensor_bytes(v) for v in batch.values())
+    return batch.nbytes if isinstance(batch, (np.ndarray, torch.Tensor)) else 0
+
+
+def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, workers: int, batches: int) -> dict:
+    """Samples/s of `bpp train`'s whole loader with no model: `workers` processes (`bpp train`'s default on this
+    machine), their batches passed to this process, page-locked and copied to `device` as training does.
+
+    The rate is that of the second half of `batches` (at least 12 per worker): each worker's start and the 4 batches
+    it builds ahead are in the first half, and with no model the queue is empty by then, so the second half runs at
+    the rate the workers make batches at."""
+    cache = int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // max(1, workers)
+    batches = max(batches, 12 * workers)
+    data = PromptBatchDataset(store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache)
+    loader = batch_loader(data, range(batches), workers, pin_memory=device.type == "cuda")
+    t0 = time.perf_counter()
+    half, nbytes = None, 0
+    for i, batch in enumerate(loader):
+        nbytes = tensor_bytes(batch)
+        to_torch(batch, device)
+        if i + 1 == batches // 2:
+            synchronize(device)
+            half = time.perf_counter()
+    synchronize(device)
+    end = time.perf_counter()
+    timed = batches - batches // 2
+    return {
+        "workers": workers,
+        "samples_per_s": round(timed * batch_size / (end - half), 1),
+        "first_half_s": round(half - t0, 2),
+        "MB_per_batch": round(nbytes / 2**20, 2),
+        "MB_per_s": round(timed * nbytes / 2**20 / (end - half), 1),
     }
 
 
@@ -260,6 +300,15 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
     parts = set(args.parts)
     if "loader" in parts:
         measure(results, name, "loader", lambda: loader_rate(store, spec, batch_sizes[0], 3 if small else 20, cache))
+    if "pipeline" in parts:  # `bpp train`'s default workers; on a CPU (where it has none) one per core
+        default = cpu_plan(TrainConfig(data=store.path), device)[0] or usable_cores()
+        for workers in sorted({1, default}):
+            measure(
+                results,
+                name,
+                f"pipeline_w{workers}",
+                lambda w=workers: pipeline_rate(store, spec, e2e_sizes[0], device, w, 8 if small else 40),
+            )
     for b in batch_sizes if "model" in parts else ():
         measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
     if "variants" in parts and (small or name == "paper"):
@@ -313,8 +362,8 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="+",
-        default=["loader", "model", "variants", "e2e", "act", "compile"],
-        choices=["loader", "model", "variants", "e2e", "act", "compile"],
+        default=["loader", "pipeline", "model", "variants", "e2e", "act", "compile"],
+        choices=["loader", "pipeline", "model", "variants", "e2e", "act", "compile"],
         help="what to measure (variants, paper only: channels-first, timed cuDNN, the 5x5 stem, fp32 GroupNorm; "
         "compile: model-bound and end to end with `bpp train --compile` in each of --compile-modes)",
     )

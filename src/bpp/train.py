@@ -167,6 +167,20 @@ def _ema_update(ema: torch.nn.Module, model: torch.nn.Module, decay: float) -> N
         e.copy_(b)
 
 
+def batch_loader(dataset, steps: range, workers: int, pin_memory: bool) -> torch.utils.data.DataLoader:
+    """`dataset`'s whole batches for `steps`, built by `workers` processes (0: this one), each up to 4 batches ahead;
+    page-locked when `pin_memory` (for a GPU), so that they copy to it while it computes."""
+    return torch.utils.data.DataLoader(
+        dataset,
+        batch_size=None,
+        sampler=steps,
+        num_workers=workers,
+        persistent_workers=False,
+        prefetch_factor=4 if workers else None,
+        pin_memory=pin_memory,
+    )
+
+
 def uses_amp(cfg: TrainConfig, device: torch.device) -> bool:
     """Whether training on `device` runs under bf16 autocast (CUDA devices that support it well)."""
     return cfg.amp and device.type == "cuda" and torch.cuda.is_bf16_supported()
@@ -333,15 +347,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         frame_cache_bytes=int(cfg.frame_cache_gb * 2**30) // max(1, workers),
         pad_to_multiple=padding,
     )
-    loader = torch.utils.data.DataLoader(
-        dataset,
-        batch_size=None,
-        sampler=range(start, cfg.steps),
-        num_workers=workers,
-        persistent_workers=False,
-        prefetch_factor=4 if workers else None,
-        pin_memory=cuda,  # page-locked batches copy to the GPU while it computes
-    )
+    loader = batch_loader(dataset, range(start, cfg.steps), workers, pin_memory=cuda)
     writer = None
     if main:
         from torch.utils.tensorboard import SummaryWriter
