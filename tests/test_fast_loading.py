@@ -51,6 +51,21 @@ def test_batches_rendering_only_their_frames_equal_those_from_whole_episodes(deb
     assert len(selective._frame_cache) == 0 and len(whole._frame_cache) > 0
 
 
+def test_batches_built_in_loader_processes_equal_those_built_here(debug_store):
+    """`bpp train`'s loader processes (`batch_loader`) must hand over the very batches the dataset builds here."""
+    from bpp.train import batch_loader
+
+    spec = _bpp(debug_store).data_spec()
+    for cache in (0, 1 << 30):  # each batch's frames, and whole episodes kept
+        here = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=cache)
+        there = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=cache)
+        arrived = list(batch_loader(there, range(4), workers=2, pin_memory=False))
+        assert isinstance(arrived[0]["obs"]["image"], torch.Tensor)
+        assert here[0]["obs"]["image"].dtype == np.uint8 and here[0]["obs"]["image"].any()
+        for i, batch in enumerate(arrived):
+            _assert_same(here[i], batch, f"batch {i}, cache {cache}")
+
+
 @pytest.mark.parametrize("relative_to", ["", "agent_pos"])
 def test_a_prompt_with_one_observation_per_chunk_encodes_like_the_whole_prompt(debug_store, relative_to):
     model = _bpp(debug_store, relative_to)
