@@ -129,20 +129,24 @@ def tensor_bytes(batch) -> int:
 
 
 def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, workers: int, batches: int) -> dict:
-    """Samples/s of `bpp train`'s whole loader with no model: `workers` processes (`bpp train`'s default on this
-    machine), their batches passed to this process, page-locked and copied to `device` as training does.
+    """Samples/s of `bpp train`'s whole loader with no model: `workers` loader processes (at least 1) sharing the
+    frame cache as training's do, their batches passed to this process and, on a GPU, page-locked and copied to it.
 
-    The rate is that of the second half of `batches` (at least 12 per worker): each worker's start and the 4 batches
-    it builds ahead are in the first half, and with no model the queue is empty by then, so the second half runs at
-    the rate the workers make batches at."""
-    cache = int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // max(1, workers)
-    batches = max(batches, 12 * workers)
+    The rate is that of the second half of `batches` (at least 24 per worker). The first half holds the workers'
+    start and the 4 batches each builds ahead. With no model the queue is empty by the second half, so that half
+    runs at what the whole pipeline delivers: the workers' rate unless this process cannot take batches as fast.
+    On a CPU this process does not read the batches (the copy to the device is none), so the numbers there leave out
+    what a training process spends reading them."""
+    workers = max(1, workers)
+    cache = int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // workers
+    batches = max(batches, 24 * workers)
     data = PromptBatchDataset(store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache)
     loader = batch_loader(data, range(batches), workers, pin_memory=device.type == "cuda")
     t0 = time.perf_counter()
-    half, nbytes = None, 0
+    half, timed_bytes = None, 0
     for i, batch in enumerate(loader):
-        nbytes = tensor_bytes(batch)
+        if half is not None:
+            timed_bytes += tensor_bytes(batch)
         to_torch(batch, device)
         if i + 1 == batches // 2:
             synchronize(device)
@@ -154,8 +158,8 @@ def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.devi
         "workers": workers,
         "samples_per_s": round(timed * batch_size / (end - half), 1),
         "first_half_s": round(half - t0, 2),
-        "MB_per_batch": round(nbytes / 2**20, 2),
-        "MB_per_s": round(timed * nbytes / 2**20 / (end - half), 1),
+        "MB_per_batch": round(timed_bytes / timed / 2**20, 2),
+        "MB_per_s": round(timed_bytes / 2**20 / (end - half), 1),
     }
 
 

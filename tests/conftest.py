@@ -1,15 +1,19 @@
 """Shared fixtures, and one torch thread budget per test process.
 
-`make test` runs the files on every core at once (pytest-xdist, one file per worker at a time). Two processes that
-each spin two OpenMP threads on two cores run many times slower than one each, so under xdist every worker, and
-every `bpp` process a test starts, gets an equal share of the cores (``OMP_NUM_THREADS``) unless the user set it.
+`make test` runs the files on several cores at once (pytest-xdist, each file in one worker). Two processes that each
+run two OpenMP threads on two cores wait on each other at every operation (this project measured a 30-fold slowdown
+of training beside another busy program; BENCHMARKS.md), so under xdist every worker, and every `bpp` process a
+test starts, gets an equal share of the cores (``OMP_NUM_THREADS``) unless the user set that variable.
 """
 
 import os
 
 _WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+_SHARE = None
 if _WORKERS > 1 and not os.environ.get("OMP_NUM_THREADS"):
-    os.environ["OMP_NUM_THREADS"] = str(max(1, len(os.sched_getaffinity(0)) // _WORKERS))
+    _cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    _SHARE = max(1, _cores // _WORKERS)
+    os.environ["OMP_NUM_THREADS"] = str(_SHARE)
 
 from dataclasses import replace  # noqa: E402
 
@@ -19,8 +23,8 @@ import torch  # noqa: E402
 
 from bpp.envs.draw.dataset import PRESETS, generate  # noqa: E402
 
-if _WORKERS > 1:  # in case torch was imported before this file
-    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+if _SHARE is not None:  # in case torch was imported before this file
+    torch.set_num_threads(_SHARE)
 
 
 @pytest.fixture(scope="session")
