@@ -61,6 +61,8 @@ PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
 """Preset name -> (method size preset, DrawAnything observation preset)."""
 BATCHES = {"paper": ([64, 128, 256], [64, 256]), "cpu-image": ([128, 256, 512], [256])}
 """Preset name -> (model-bound batch sizes, end-to-end batch sizes) on a GPU."""
+PARTS = ("loader", "pipeline", "model", "variants", "e2e", "act", "compile")
+"""What the script can measure (the module docstring says what each is); all by default."""
 
 
 class Results:
@@ -138,7 +140,7 @@ def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.devi
     On a CPU this process does not read the batches (the copy to the device is none), so the numbers there leave out
     what a training process spends reading them."""
     workers = max(1, workers)
-    cache = int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // workers
+    cache = TrainConfig(data=store.path).frame_cache_share(workers)
     batches = max(batches, 24 * workers)
     data = PromptBatchDataset(store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache)
     loader = batch_loader(data, range(batches), workers, pin_memory=device.type == "cuda")
@@ -300,7 +302,7 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
     batch_sizes = args.batch_sizes or batch_sizes
     steps = 3 if small else 15
     # A loader process's share of the frame cache when `bpp train` runs its default workers on this machine.
-    cache = 0 if small else int(TrainConfig(data=store.path).frame_cache_gb * 2**30) // max(1, usable_cores() - 2)
+    cache = 0 if small else TrainConfig(data=store.path).frame_cache_share(usable_cores() - 2)
     parts = set(args.parts)
     if "loader" in parts:
         measure(results, name, "loader", lambda: loader_rate(store, spec, batch_sizes[0], 3 if small else 20, cache))
@@ -366,8 +368,8 @@ def main() -> None:
     parser.add_argument(
         "--parts",
         nargs="+",
-        default=["loader", "pipeline", "model", "variants", "e2e", "act", "compile"],
-        choices=["loader", "pipeline", "model", "variants", "e2e", "act", "compile"],
+        default=list(PARTS),
+        choices=PARTS,
         help="what to measure (variants, paper only: channels-first, timed cuDNN, the 5x5 stem, fp32 GroupNorm; "
         "compile: model-bound and end to end with `bpp train --compile` in each of --compile-modes)",
     )

@@ -116,6 +116,10 @@ class TrainConfig:
             ("compile", self.compile in COMPILE_MODES, f"one of {COMPILE_MODES}"),
         )
 
+    def frame_cache_share(self, workers: int) -> int:
+        """Bytes of the frame cache each of `workers` loader processes keeps (0 workers: this process, all of it)."""
+        return int(self.frame_cache_gb * 2**30) // max(1, workers)
+
     def padding(self, spec: DataSpec) -> int:
         """Steps the loader pads prompts and whole episodes to a multiple of, for a model with data spec `spec`."""
         if self.pad_to_multiple >= 0:
@@ -344,7 +348,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         seed=cfg.seed,
         rank=rank,
         tasks_per_batch=cfg.tasks_per_batch,
-        frame_cache_bytes=int(cfg.frame_cache_gb * 2**30) // max(1, workers),
+        frame_cache_bytes=cfg.frame_cache_share(workers),
         pad_to_multiple=padding,
     )
     loader = batch_loader(dataset, range(start, cfg.steps), workers, pin_memory=cuda)
