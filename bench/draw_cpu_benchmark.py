@@ -292,6 +292,9 @@ def main() -> None:
                 f"{minutes:.1f}",
             )
         )
+    if not rows:  # e.g. --report-only before anything finished training: the data is there, nothing to tabulate
+        print("no run has finished training yet: nothing to tabulate")
+        return
     header = [
         "method",
         "training drawings (px)",
@@ -314,6 +317,7 @@ def main() -> None:
     executed = ""
     if args.n_action_steps:
         executed = f" The diffusion-decoder methods execute {args.n_action_steps} actions per inference."
+    args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "table.md").write_text(
         f"DrawAnything-Sim, preset `{label}`, {args.num_tasks} tasks x 5 demos, "
         f"{args.rollouts} rollouts per unseen drawing, {args.train_tasks} training drawings; Chamfer px at 512, "

@@ -13,7 +13,9 @@ first, it measures:
   passed to the training process, page-locked and copied to the device), with one worker and with the default
   number, and the megabytes a batch moves: what the loader can feed, where the loader line is one process's share;
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
-  EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, and the peak memory; with
+  EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, the peak memory, and the TFLOP/s
+  it achieves (the step's FLOPs counted as ``bench/step_ops.py`` counts them: matrix products, convolutions and
+  attention, on the same batch; to set against the chip's bf16 peak); with
   variants (paper), the same with channels-first weights, with cuDNN's timed algorithm choice, with the 5x5-stem
   encoder of the CPU presets, and with fp32 GroupNorm under autocast, for comparison;
 * end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
@@ -32,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import platform
@@ -56,6 +59,7 @@ from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import COMPILE_MODES, TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
 from bpp.utils import to_torch, usable_cores
+from step_ops import step_flops  # this folder's script, on the path when run as a script
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
 """Preset name -> (method size preset, DrawAnything observation preset)."""
@@ -165,6 +169,26 @@ def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.devi
     }
 
 
+def op_times(step, steps: int, device: torch.device, top: int = 12) -> dict:
+    """Where `steps` calls of `step` (given 0, 1, ...) spend the device's time (on a CPU: its own), per operator,
+    ms per step: the `top` operators by their own (self) time, and the total. On a GPU this says which kernels the
+    step waits on: convolutions, norms, layout copies, pointwise operations."""
+    activities = [torch.profiler.ProfilerActivity.CPU]
+    if device.type == "cuda":
+        activities.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=activities) as prof:
+        for i in range(steps):
+            step(i)
+        synchronize(device)
+    key = "self_device_time_total" if device.type == "cuda" else "self_cpu_time_total"
+    events = [(e.key, getattr(e, key) / 1000 / steps) for e in prof.key_averages()]  # us -> ms per step
+    events.sort(key=lambda kv: -kv[1])
+    return {
+        "total_ms": round(sum(ms for _, ms in events), 2),
+        "top_ms": {name: round(ms, 2) for name, ms in events[:top]},
+    }
+
+
 def model_rate(
     store,
     method,
@@ -175,10 +199,12 @@ def model_rate(
     channels_last: bool = True,
     timed_convs=False,
     compile: str = "off",
+    profile_steps: int = 0,
 ) -> dict:
     """Samples/s of bpp.train's training step on one batch already on `device`, and the peak memory;
     `timed_convs`: let cuDNN time its convolution algorithms (fixed shapes here; `bpp train` does not); `compile`:
-    `bpp train --compile`'s mode (the warm-up steps, timed apart, then compile and record)."""
+    `bpp train --compile`'s mode (the warm-up steps, timed apart, then compile and record); `profile_steps`: that
+    many more steps under torch's profiler, for the time per operator (:func:`op_times`)."""
     torch.backends.cudnn.benchmark = timed_convs
     cfg = TrainConfig(
         data=store.path, method=method.name, batch_size=batch_size, channels_last=channels_last, compile=compile
@@ -203,16 +229,22 @@ def model_rate(
         loss, _ = train_step(cfg, net, model, ema, optimizer, batch, step, amp)
     loss = float(loss.detach())  # waits for the device
     seconds = time.perf_counter() - t0
+    flops = step_flops(model, batch, amp)  # the same math as the compiled step's, counted on the eager model
     out = {
         "batch_size": batch_size,
         "samples_per_s": round(steps * batch_size / seconds, 1),
         "ms_per_step": round(1000 * seconds / steps, 1),
+        "GFLOP_per_step": round(flops / 1e9, 1),
+        "TFLOP_per_s": round(flops * steps / seconds / 1e12, 3),
         "warmup_s": round(t0 - t_start, 1),
         "loss": round(loss, 4),
         "parameters_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
     }
     if device.type == "cuda":
         out["peak_memory_GiB"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+    if profile_steps:
+        step = functools.partial(train_step, cfg, net, model, ema, optimizer, batch)
+        out["time_per_operator"] = op_times(lambda i: step(warmup + steps + i, amp), profile_steps, device)
     del model, ema, optimizer, batch
     torch.backends.cudnn.benchmark = False
     if device.type == "cuda":
@@ -338,8 +370,9 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
             lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
         )
     if "compile" in parts and "model" not in parts:  # the eager step next to the compiled ones, in this same run
-        b = batch_sizes[-1]
-        measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
+        b = batch_sizes[-1]  # with the time per operator of 3 more steps
+        eager = lambda b=b: model_rate(store, method, model_cfg, device, b, steps, profile_steps=3)  # noqa: E731
+        measure(results, name, f"model_b{b}", eager)
     for mode in args.compile_modes if "compile" in parts else ():
         for b in batch_sizes[-1:]:  # at the largest batch size only: each compiles anew
             measure(
