@@ -10,6 +10,9 @@
 # Each method is one bench/draw_cpu_benchmark.py process (train, then evaluate with CPU workers), all three at once,
 # so they share the GPU and the cores; a last --report-only call gathers the three into one table (it reuses the
 # evaluations). Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
+# The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md, "The
+# image-observation run"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
+# about 5 minutes; at 3,000 samples/s each, about 3,500 steps). A run the time limit cuts off is not evaluated.
 set -uo pipefail
 OUT=${OUT:-outputs/gpu-visual}
 PY=${PY:-python3}
