@@ -229,6 +229,7 @@ def model_rate(
         loss, _ = train_step(cfg, net, model, ema, optimizer, batch, step, amp)
     loss = float(loss.detach())  # waits for the device
     seconds = time.perf_counter() - t0
+    peak = torch.cuda.max_memory_allocated(device) if device.type == "cuda" else 0  # before the counted step below
     flops = step_flops(model, batch, amp)  # the same math as the compiled step's, counted on the eager model
     out = {
         "batch_size": batch_size,
@@ -241,7 +242,7 @@ def model_rate(
         "parameters_M": round(sum(p.numel() for p in model.parameters()) / 1e6, 2),
     }
     if device.type == "cuda":
-        out["peak_memory_GiB"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+        out["peak_memory_GiB"] = round(peak / 2**30, 2)
     if profile_steps:
         step = functools.partial(train_step, cfg, net, model, ema, optimizer, batch)
         out["time_per_operator"] = op_times(lambda i: step(warmup + steps + i, amp), profile_steps, device)
