@@ -2,7 +2,8 @@
 # One lent-GPU session's work (../shared/DEVICE.md), every log under $OUT (at most 8 files come back):
 #   1. bench/gpu_throughput.py: `bpp train --compile cudagraphs` and `--compile reduce-overhead` against eager, both
 #      presets, and (in the first call, seconds within its limit) one loader process's samples/s and the whole
-#      loader's (its default workers feeding the GPU, no model);
+#      loader's (its default workers feeding the GPU, no model); every model-bound step with its TFLOP/s, the eager
+#      one with its device time per operator (layout copies, norms, convolutions: what to make faster next);
 #   2. the test suite on the GPU machine, less the tests of what its image lacks: LIBERO's simulator, a browser.
 # Each part has its own time limit, so one that hangs cannot take the others' time.
 #
