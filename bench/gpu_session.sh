@@ -23,6 +23,8 @@ OUT=${OUT:-outputs/gpu-session}
 mkdir -p "$OUT"
 PY=${PY:-python3}
 SMALL=${SMALL:-}
+# A CPU compiles slowly: a dry run there gets longer limits for the inductor compile and the tests, and 2 processes.
+if [ -n "$SMALL" ]; then limit2=480 test_limit=400 test_processes=2; else limit2=240 test_limit=100 test_processes=8; fi
 { date -u; nvidia-smi || true; nproc; df -h /dev/shm || true; $PY -c "import torch; print(torch.__version__, torch.cuda.is_available())"; } >"$OUT/machine.txt" 2>&1
 
 # 1. The compiled training step against the eager one, same run: model-bound and end to end, both presets. First
@@ -34,16 +36,16 @@ timeout ${LIMIT1:-210} $PY bench/gpu_throughput.py "${presets[@]}" --parts loade
 echo "bench cudagraphs: exit $?" | tee -a "$OUT/machine.txt"
 # The paper preset first here: its step is the first goal, and a cold inductor compile may use up the limit.
 if [ -z "$SMALL" ]; then presets=(--presets paper cpu-image); fi
-timeout ${LIMIT2:-$([ -n "$SMALL" ] && echo 480 || echo 240)} $PY bench/gpu_throughput.py "${presets[@]}" --parts compile --compile-modes reduce-overhead \
+timeout ${LIMIT2:-$limit2} $PY bench/gpu_throughput.py "${presets[@]}" --parts compile --compile-modes reduce-overhead \
   --data-dir /tmp/bench-gpu --out "$OUT/throughput-inductor.json" >"$OUT/bench-inductor.log" 2>&1
 echo "bench reduce-overhead: exit $?" | tee -a "$OUT/machine.txt"
 
 # 2. The test suite on the GPU machine, less what its image lacks (LIBERO's simulator, a browser), the new compile
 #    tests first.
 if [ -n "$SMALL" ]; then tests=(tests/test_compile.py); else tests=(tests/test_compile.py tests); fi
-processes=${TEST_PROCESSES:-$([ -n "$SMALL" ] && echo 2 || echo 8)}
+processes=${TEST_PROCESSES:-$test_processes}
 if $PY -c "import xdist, execnet" 2>/dev/null; then tests+=(--numprocesses "$processes" --dist loadfile); fi
-timeout ${TEST_LIMIT:-$([ -n "$SMALL" ] && echo 400 || echo 100)} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
+timeout ${TEST_LIMIT:-$test_limit} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \
   --ignore=tests/test_libero_sim.py --ignore=tests/test_libero_benchmark.py --ignore=tests/test_studio.py >"$OUT/tests.log" 2>&1
 echo "tests: exit $?" | tee -a "$OUT/machine.txt"
 tail -3 "$OUT/tests.log"

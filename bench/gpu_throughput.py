@@ -372,8 +372,8 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
         )
     if "compile" in parts and "model" not in parts:  # the eager step next to the compiled ones, in this same run
         b = batch_sizes[-1]  # with the time per operator of 3 more steps
-        eager = lambda b=b: model_rate(store, method, model_cfg, device, b, steps, profile_steps=3)  # noqa: E731
-        measure(results, name, f"model_b{b}", eager)
+        profiled = functools.partial(model_rate, store, method, model_cfg, device, b, steps, profile_steps=3)
+        measure(results, name, f"model_b{b}", profiled)
     for mode in args.compile_modes if "compile" in parts else ():
         for b in batch_sizes[-1:]:  # at the largest batch size only: each compiles anew
             measure(
