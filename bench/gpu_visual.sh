@@ -13,6 +13,10 @@
 # The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md, "The
 # image-observation run"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
 # about 5 minutes; at 3,000 samples/s each, about 3,500 steps). A run the time limit cuts off is not evaluated.
+# Each step draws TASKS_PER_BATCH tasks, each with its own prompt (8 on the GPU, 2 in the dry run; bpp demo and the
+# CPU benchmark also use 8, the paper's recipe is 1): at a budget this small more prompts per step learn faster
+# (BENCHMARKS.md, third session: 26.6 against 30.2 px at equal steps), and BPP's 8 prompts add about 5% to a
+# 256-window step's FLOPs.
 set -uo pipefail
 OUT=${OUT:-outputs/gpu-visual}
 PY=${PY:-python3}
@@ -20,12 +24,14 @@ SMALL=${SMALL:-}
 mkdir -p "$OUT" /tmp/gpu-visual
 if [ -n "$SMALL" ]; then
   STEPS=${STEPS:-4}; ICRT_STEPS=${ICRT_STEPS:-4}; PRESET=debug; BATCH=(bpp=8 goal_image=8 icrt=4)
+  TASKS_PER_BATCH=${TASKS_PER_BATCH:-2}
   EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12 --workers 1); LOADERS=0; LIMIT=600
 else
   STEPS=${STEPS:-1000}; ICRT_STEPS=${ICRT_STEPS:-1000}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
+  TASKS_PER_BATCH=${TASKS_PER_BATCH:-8}
   EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500 --workers 4); LOADERS=${LOADERS:-4}; LIMIT=${LIMIT:-420}
 fi
-common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch 1 --batch "${BATCH[@]}"
+common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch "$TASKS_PER_BATCH" --batch "${BATCH[@]}"
   --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
   --data-dir /tmp/gpu-visual/data --runs /tmp/gpu-visual/runs --out /tmp/gpu-visual/out "${EVAL[@]}")
 

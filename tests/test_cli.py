@@ -79,6 +79,10 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     second = _bpp(*args)
     assert second.returncode == 0, second.stderr[-3000:]
     assert second.stdout.count("reusing") == 4  # training data, human set, trained policy, evaluation
+    # The same run folder asked for another observation preset: refused, not evaluated as if it were that model.
+    other = _bpp(*args, "--obs", "canvas")
+    assert other.returncode != 0 and "holds a policy trained with another model" in other.stderr
+    assert "Traceback" not in other.stderr
 
 
 def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):

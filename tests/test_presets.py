@@ -15,7 +15,7 @@ from bpp.envs.draw.dataset import generate
 from bpp.policies.registry import METHODS, get_method
 from bpp.utils import to_torch
 
-SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "board"), ("cpu", "image64")]
+SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "canvas-ink"), ("cpu", "board"), ("cpu", "image64")]
 CASES = [(m, size, obs) for m in METHODS for size, obs in SETTINGS]
 
 
@@ -37,3 +37,9 @@ def test_preset_builds_and_takes_a_finite_loss(store, method, size, obs):
     batch = to_torch(PromptBatchDataset(store, spec, batch_size=2, seed=0)[0], "cpu")
     loss = model(batch, torch.Generator().manual_seed(0))
     assert loss.ndim == 0 and math.isfinite(loss.item())
+
+
+def test_canvas_ink_is_canvas_with_the_ink_drawn():
+    canvas, ink = BENCHMARK.observations["canvas"], BENCHMARK.observations["canvas-ink"]
+    assert ink.lowdim_keys == canvas.lowdim_keys and ink.action_key == canvas.action_key == "action"
+    assert ink.proprio_keys == (*canvas.proprio_keys, "ink_length")

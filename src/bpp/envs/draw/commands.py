@@ -16,7 +16,7 @@ import tyro
 
 from bpp.envs.draw.dataset import PRESETS, DrawDataConfig
 from bpp.envs.draw.studio.command import StudioCommand, studio
-from bpp.utils import check_fields
+from bpp.utils import check_fields, read_json, to_dict
 
 
 @dataclass(frozen=True)
@@ -161,7 +161,8 @@ class Demo:
     preset: str = "cpu"
     """BPP size preset (debug, cpu, paper)."""
     obs: str = "board"
-    """Observation preset (board: state-only, board-frame actions; canvas: state-only, the paper's canvas actions)."""
+    """Observation preset (board: state-only, board-frame actions; canvas: state-only, the paper's canvas actions;
+    canvas-ink: canvas and the ink drawn so far)."""
     steps: int = 6000
     """Training steps (batch 64)."""
     tasks_per_batch: int = 8
@@ -229,6 +230,12 @@ def demo(args: Demo) -> None:
     with contextlib.suppress(OSError, ValueError):  # no checkpoint yet
         finished = read_state(resolve_checkpoint(run))["step"] >= args.steps
     if finished:
+        recorded = read_json(run / "config.json", "run configuration")
+        if not isinstance(recorded, dict) or recorded.get("model_config") != to_dict(model_cfg):
+            raise ValueError(
+                f"{run} holds a policy trained with another model than --preset {args.preset} --obs {args.obs} "
+                "(observations or sizes); pass another --run-dir, or the flags it was trained with"
+            )
         stage(f"reusing the trained policy in {run}")
     else:
         resume = (run / "checkpoints" / "last").is_file()
