@@ -231,7 +231,7 @@ def demo(args: Demo) -> None:
         finished = read_state(resolve_checkpoint(run))["step"] >= args.steps
     if finished:
         recorded = read_json(run / "config.json", "run configuration")
-        if not isinstance(recorded, dict) or recorded.get("model_config") != to_dict(model_cfg):
+        if not isinstance(recorded, dict) or _differs(recorded.get("model_config"), to_dict(model_cfg)):
             raise ValueError(
                 f"{run} holds a policy trained with another model than --preset {args.preset} --obs {args.obs} "
                 "(observations or sizes); pass another --run-dir, or the flags it was trained with"
@@ -262,6 +262,14 @@ def demo(args: Demo) -> None:
     write_demo_report(args, result, time.perf_counter() - t0)
     stage(f"done. Report: {args.out_dir / 'report.md'}")
     print(f"[demo] prompt it yourself: `bpp studio --runs {args.run_dir.parent}` opens a page where you draw a prompt")
+
+
+def _differs(recorded, now) -> bool:
+    """Whether a run's recorded configuration differs from `now` in a field both have (a field added since the run was
+    recorded is at its default there, as it ran)."""
+    if isinstance(recorded, dict) and isinstance(now, dict):
+        return any(_differs(value, now[key]) for key, value in recorded.items() if key in now)
+    return recorded != now
 
 
 def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
