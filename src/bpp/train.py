@@ -248,9 +248,9 @@ def train_step(cfg: TrainConfig, net, model, ema, optimizer, batch, step: int, a
     return loss, grad_norm
 
 
-def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
-    """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
-    exactly as it would have): ValueError naming each differing field with both values."""
+def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
+    """How the settings `run` was started with differ from `cfg` and `model_cfg`: one "path: old in the run, new now"
+    line per field (where the run lives, and whether a call resumes it, are not settings)."""
     recorded = read_json(run / "config.json", "run configuration")
     if not isinstance(recorded, dict):
         raise ValueError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
@@ -277,6 +277,13 @@ def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
             differences.append(f"{path}: {said(old)} in the run, {said(new)} now")
 
     compare("", {k: recorded.get(k, absent) for k in now}, now)
+    return differences
+
+
+def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
+    """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
+    exactly as it would have): ValueError naming each differing field with both values."""
+    differences = run_differences(run, cfg, model_cfg)
     if differences:
         raise ValueError(
             f"{run} was started with other settings, and --resume continues a run exactly as it began; drop the "

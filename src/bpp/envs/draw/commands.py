@@ -16,7 +16,7 @@ import tyro
 
 from bpp.envs.draw.dataset import PRESETS, DrawDataConfig
 from bpp.envs.draw.studio.command import StudioCommand, studio
-from bpp.utils import check_fields, read_json, to_dict
+from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
@@ -205,7 +205,7 @@ def demo(args: Demo) -> None:
     from bpp.envs.draw.dataset import generate
     from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
     from bpp.policies.registry import get_method
-    from bpp.train import TrainConfig, train
+    from bpp.train import TrainConfig, run_differences, train
 
     t0 = time.perf_counter()
 
@@ -229,29 +229,30 @@ def demo(args: Demo) -> None:
     finished = False
     with contextlib.suppress(OSError, ValueError):  # no checkpoint yet
         finished = read_state(resolve_checkpoint(run))["step"] >= args.steps
+    resume = (run / "checkpoints" / "last").is_file()
+    tc = TrainConfig(
+        data=store.path,
+        out=run,
+        steps=args.steps,
+        tasks_per_batch=args.tasks_per_batch,
+        seed=args.seed,
+        resume=resume,
+        save_every=500,
+        threads=args.threads,
+        workers=args.loader_workers,
+    )
     if finished:
-        recorded = read_json(run / "config.json", "run configuration")
-        if not isinstance(recorded, dict) or _differs(recorded.get("model_config"), to_dict(model_cfg)):
+        # Its model must be this one (how long or how it trained may differ: a finished run is reused as it is).
+        differences = [d for d in run_differences(run, tc, model_cfg) if not d.startswith("train_config.")]
+        if differences:
             raise ValueError(
-                f"{run} holds a policy trained with another model than --preset {args.preset} --obs {args.obs} "
-                "(observations or sizes); pass another --run-dir, or the flags it was trained with"
+                f"{run} holds a policy trained with another model than --preset {args.preset} --obs {args.obs}; "
+                "pass another --run-dir, or the flags it was trained with: " + "; ".join(differences)
             )
         stage(f"reusing the trained policy in {run}")
     else:
-        resume = (run / "checkpoints" / "last").is_file()
         what = f"{args.preset} preset, {args.obs} observations, {args.steps} steps"
         stage(f"{'resuming' if resume else 'training'} BPP ({what}) in {run}")
-        tc = TrainConfig(
-            data=store.path,
-            out=run,
-            steps=args.steps,
-            tasks_per_batch=args.tasks_per_batch,
-            seed=args.seed,
-            resume=resume,
-            save_every=500,
-            threads=args.threads,
-            workers=args.loader_workers,
-        )
         train(tc, model_cfg)
 
     stage(f"evaluating on the unseen human-made drawings ({args.rollouts} rollouts each)")
@@ -262,14 +263,6 @@ def demo(args: Demo) -> None:
     write_demo_report(args, result, time.perf_counter() - t0)
     stage(f"done. Report: {args.out_dir / 'report.md'}")
     print(f"[demo] prompt it yourself: `bpp studio --runs {args.run_dir.parent}` opens a page where you draw a prompt")
-
-
-def _differs(recorded, now) -> bool:
-    """Whether a run's recorded configuration differs from `now` in a field both have (a field added since the run was
-    recorded is at its default there, as it ran)."""
-    if isinstance(recorded, dict) and isinstance(now, dict):
-        return any(_differs(value, now[key]) for key, value in recorded.items() if key in now)
-    return recorded != now
 
 
 def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
