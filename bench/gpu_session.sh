@@ -31,7 +31,7 @@ if [ -n "$SMALL" ]; then limit2=480 test_limit=400 test_processes=2; else limit2
 #    cudagraphs (seconds to compile) with the eager end-to-end runs, then reduce-overhead (inductor: minutes), each
 #    with its own time limit, so a slow compile cannot take the other's time.
 if [ -n "$SMALL" ]; then presets=(--small --presets cpu-image); else presets=(--presets cpu-image paper); fi
-timeout ${LIMIT1:-210} $PY bench/gpu_throughput.py "${presets[@]}" --parts loader pipeline compile e2e --compile-modes cudagraphs \
+timeout ${LIMIT1:-210} $PY bench/gpu_throughput.py "${presets[@]}" --parts loader pipeline frames compile e2e --compile-modes cudagraphs \
   --data-dir /tmp/bench-gpu --out "$OUT/throughput-cudagraphs.json" >"$OUT/bench-cudagraphs.log" 2>&1
 echo "bench cudagraphs: exit $?" | tee -a "$OUT/machine.txt"
 # The paper preset first here: its step is the first goal, and a cold inductor compile may use up the limit.
@@ -42,7 +42,7 @@ echo "bench reduce-overhead: exit $?" | tee -a "$OUT/machine.txt"
 
 # 2. The test suite on the GPU machine, less what its image lacks (LIBERO's simulator, a browser), the new compile
 #    tests first.
-if [ -n "$SMALL" ]; then tests=(tests/test_compile.py); else tests=(tests/test_compile.py tests); fi
+if [ -n "$SMALL" ]; then tests=(tests/test_compile.py tests/test_device_frames.py); else tests=(tests/test_compile.py tests/test_device_frames.py tests); fi
 processes=${TEST_PROCESSES:-$test_processes}
 if $PY -c "import xdist, execnet" 2>/dev/null; then tests+=(--numprocesses "$processes" --dist loadfile); fi
 timeout ${TEST_LIMIT:-$test_limit} $PY -X faulthandler -m pytest -q -p no:cacheprovider -rfE "${tests[@]}" \

@@ -12,6 +12,9 @@ first, it measures:
 * pipeline: samples/s of `bpp train`'s whole loader with no model (its default worker processes, the batches
   passed to the training process, page-locked and copied to the device), with one worker and with the default
   number, and the megabytes a batch moves: what the loader can feed, where the loader line is one process's share;
+* frames: the same with frame references (``bpp train --frames-on device``): one loader process building them,
+  the device rendering a batch's frames from them alone (:class:`bpp.envs.draw.device_render.DrawFrameTable`), and
+  the whole pipeline, its default workers for that setting sending references and this process rendering them;
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
   EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, the peak memory, and the TFLOP/s
   it achieves (the step's FLOPs counted as ``bench/step_ops.py`` counts them: matrix products, convolutions and
@@ -19,10 +22,10 @@ first, it measures:
   variants (paper), the same with channels-first weights, with cuDNN's timed algorithm choice, with the 5x5-stem
   encoder of the CPU presets, and with fp32 GroupNorm under autocast, for comparison;
 * end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
-  rates after the first interval;
+  rates after the first interval; and at the largest end-to-end batch, again with ``--frames-on device``;
 * compiled: the model-bound and end-to-end numbers again with `bpp train --compile MODE` (``--compile-modes``; on a
   GPU cudagraphs, the captured operators replayed as CUDA graphs, and reduce-overhead, inductor's kernels replayed
-  so), with the warm-up's time (compiling);
+  so), with the warm-up's time (compiling); end to end with ``--frames-on device``;
 * act: ms per inference call of :class:`bpp.policies.agent.PolicyAgent` (its prompt encoded once at reset), eager
   and, on a GPU, replayed from a CUDA graph, with the largest difference between the two.
 
@@ -50,8 +53,10 @@ import numpy as np
 import torch
 
 from bpp.data.contexts import task_context
+from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
+from bpp.envs.benchmark import device_frames
 from bpp.envs.draw import dataset as draw_data
 from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.nn.norm import GroupNorm
@@ -65,7 +70,7 @@ PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
 """Preset name -> (method size preset, DrawAnything observation preset)."""
 BATCHES = {"paper": ([64, 128, 256], [64, 256]), "cpu-image": ([128, 256, 512], [256])}
 """Preset name -> (model-bound batch sizes, end-to-end batch sizes) on a GPU."""
-PARTS = ("loader", "pipeline", "model", "variants", "e2e", "act", "compile")
+PARTS = ("loader", "pipeline", "frames", "model", "variants", "e2e", "act", "compile")
 """What the script can measure (the module docstring says what each is); all by default."""
 
 
@@ -113,9 +118,12 @@ def synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_bytes: int) -> dict:
-    """Samples/s of one loader process over `batches` batches after a first one (which loads the store's arrays)."""
-    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_cache_bytes=cache_bytes)
+def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_bytes: int, refs=False) -> dict:
+    """Samples/s of one loader process over `batches` batches after a first one (which loads the store's arrays);
+    with `refs`, batches of frame references (``bpp train --frames-on device``), which render nothing."""
+    data = PromptBatchDataset(
+        store, spec, batch_size=batch_size, seed=1, frame_cache_bytes=cache_bytes, frame_refs=refs
+    )
     data[0]
     t0 = time.perf_counter()
     for i in range(1, batches + 1):
@@ -134,7 +142,9 @@ def tensor_bytes(batch) -> int:
     return batch.nbytes if isinstance(batch, (np.ndarray, torch.Tensor)) else 0
 
 
-def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, workers: int, batches: int) -> dict:
+def pipeline_rate(
+    store: EpisodeStore, spec, batch_size: int, device: torch.device, workers: int, batches: int, renderer=None
+) -> dict:
     """Samples/s of `bpp train`'s whole loader with no model: `workers` loader processes (at least 1) sharing the
     frame cache as training's do, their batches passed to this process and, on a GPU, page-locked and copied to it.
 
@@ -142,17 +152,25 @@ def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.devi
     start and the 4 batches each builds ahead. With no model the queue is empty by the second half, so that half
     runs at what the whole pipeline delivers: the workers' rate unless this process cannot take batches as fast.
     On a CPU this process does not read the batches (the copy to the device is none), so the numbers there leave out
-    what a training process spends reading them."""
+    what a training process spends reading them.
+
+    With a `renderer` (``bpp train --frames-on device``), the workers send frame references and this process renders
+    them on the device, as training does: the rate then includes the rendering."""
     workers = max(1, workers)
     cache = TrainConfig(data=store.path).frame_cache_share(workers)
     batches = max(batches, 24 * workers)
-    data = PromptBatchDataset(store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache)
+    refs = renderer is not None
+    data = PromptBatchDataset(
+        store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache, frame_refs=refs
+    )
     loader = batch_loader(data, range(batches), workers, pin_memory=device.type == "cuda")
     t0 = time.perf_counter()
     half, timed_bytes = None, 0
     for i, batch in enumerate(loader):
         if half is not None:
             timed_bytes += tensor_bytes(batch)
+        if renderer is not None:
+            batch = render_batch(batch, spec, renderer)
         to_torch(batch, device)
         if i + 1 == batches // 2:
             synchronize(device)
@@ -167,6 +185,38 @@ def pipeline_rate(store: EpisodeStore, spec, batch_size: int, device: torch.devi
         "MB_per_batch": round(timed_bytes / timed / 2**20, 2),
         "MB_per_s": round(timed_bytes / 2**20 / (end - half), 1),
     }
+
+
+def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, batches: int) -> dict:
+    """Samples/s of rendering batches' frames on `device` from references (``bpp train --frames-on device``;
+    :class:`bpp.envs.draw.device_render.DrawFrameTable`), the batches built beforehand; after a first batch."""
+    t0 = time.perf_counter()
+    renderer = device_frames(BENCHMARK, store, device)
+    table_s = time.perf_counter() - t0
+    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_refs=True)
+    ready = [data[i] for i in range(batches + 1)]
+    first = ready[0]
+    frames = sum(first["obs"][k][..., 0].size for k in spec.image_keys)
+    if "obs" in first["context"]:
+        frames += sum(first["context"]["obs"][k][..., 0].size for k in spec.image_keys)
+    render_batch(ready[0], spec, renderer)
+    synchronize(device)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    t0 = time.perf_counter()
+    for batch in ready[1:]:
+        render_batch(batch, spec, renderer)
+    synchronize(device)
+    seconds = time.perf_counter() - t0
+    out = {
+        "samples_per_s": round(batches * batch_size / seconds, 1),
+        "ms_per_batch": round(1000 * seconds / batches, 2),
+        "frames_per_batch": int(frames),
+        "table_s": round(table_s, 2),
+    }
+    if device.type == "cuda":
+        out["peak_memory_gib"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+    return out
 
 
 def op_times(step, steps: int, device: torch.device, top: int = 12) -> dict:
@@ -348,6 +398,20 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
                 f"pipeline_w{workers}",
                 lambda w=workers: pipeline_rate(store, spec, e2e_sizes[0], device, w, 8 if small else 40),
             )
+    if "frames" in parts:  # frames rendered on the device from references (`bpp train --frames-on device`)
+        b = e2e_sizes[-1]
+        measure(results, name, "loader_refs", lambda: loader_rate(store, spec, b, 3 if small else 20, 0, refs=True))
+        render = functools.partial(device_render_rate, store, spec, b, device, 3 if small else 20)
+        measure(results, name, f"device_render_b{b}", render)
+        on_device = replace(TrainConfig(data=store.path), frames_on="device")
+        workers = cpu_plan(on_device, device)[0] or usable_cores()
+        renderer = device_frames(BENCHMARK, store, device)
+        measure(
+            results,
+            name,
+            f"pipeline_frames_on_device_w{workers}",
+            lambda: pipeline_rate(store, spec, b, device, workers, 8 if small else 40, renderer),
+        )
     for b in batch_sizes if "model" in parts else ():
         measure(results, name, f"model_b{b}", lambda b=b: model_rate(store, method, model_cfg, device, b, steps))
     if "variants" in parts and (small or name == "paper"):
@@ -370,6 +434,14 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
             f"end_to_end_b{b}",
             lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, extra),
         )
+    on_device = [*extra, "--frames-on", "device"]
+    for b in e2e_sizes[-1:] if "e2e" in parts else ():  # the same, frames rendered on the device
+        measure(
+            results,
+            name,
+            f"end_to_end_b{b}_frames_on_device",
+            lambda b=b: end_to_end_rate(Path(store.path), size, obs, b, e2e_steps, log_every, on_device),
+        )
     if "compile" in parts and "model" not in parts:  # the eager step next to the compiled ones, in this same run
         b = batch_sizes[-1]  # with the time per operator of 3 more steps
         profiled = functools.partial(model_rate, store, method, model_cfg, device, b, steps, profile_steps=3)
@@ -383,7 +455,7 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
                 lambda b=b, mode=mode: model_rate(store, method, model_cfg, device, b, steps, compile=mode),
             )
         for b in e2e_sizes[-1:]:
-            compiled_extra = [*extra, "--compile", mode]
+            compiled_extra = [*on_device, "--compile", mode]  # against the eager run with frames on the device
             measure(
                 results,
                 name,

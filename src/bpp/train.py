@@ -19,9 +19,12 @@ import torch.distributed as dist
 from tqdm import tqdm
 
 from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpoint
+from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
+from bpp.envs.benchmark import device_frames
+from bpp.envs.registry import get_benchmark
 from bpp.policies.common import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
@@ -30,6 +33,8 @@ CompileMode = Literal["off", "default", "reduce-overhead", "max-autotune-no-cuda
 """``torch.compile``'s modes that suit training; ``cudagraphs``, its backend that records the captured graphs as CUDA
 graphs without generating kernels (no Triton needed, seconds to compile); and off."""
 COMPILE_MODES: tuple[str, ...] = get_args(CompileMode)
+FramesOn = Literal["loader", "device"]
+FRAMES_ON: tuple[str, ...] = get_args(FramesOn)
 
 
 @dataclass(frozen=True)
@@ -58,7 +63,7 @@ class TrainConfig:
     workers: int = -1
     """Data-loader worker processes per training process (0: load in the training process; -1: auto, 0 on a CPU,
     where a loader process competes with torch for the cores, and on a GPU the process's share of the cores less
-    two, for the training process itself and the thread that pins its batches)."""
+    two, for the training process itself and the thread that pins its batches; at most 2 with `frames_on` device)."""
     device: str = "auto"
     """auto (cuda if available), cpu, cuda, cuda:N."""
     amp: bool = True
@@ -89,6 +94,11 @@ class TrainConfig:
     records the same operators as CUDA graphs without generating new kernels. Compiling takes a minute or more at
     the start, and again for each new batch shape (see `pad_to_multiple`); on a CPU it needs a C++ compiler, and
     ``cudagraphs`` runs eagerly there."""
+    frames_on: FramesOn = "loader"
+    """Where camera frames are rendered. loader: by the loader (its processes), sent whole to the training process.
+    device: on the training device, from references the loader sends instead (16 bytes a frame; see
+    :mod:`bpp.data.frame_refs`), which leaves the loader almost nothing to do; the benchmark must offer it
+    (DrawAnything does) and the frames are the same (bit for bit on a CPU). State-only methods render nothing."""
     pad_to_multiple: int = -1
     """Pad the batches' variable time axes (demonstration prompts, ICRT's whole episodes) to a multiple of this many
     steps, at most the model's limit: each batch then has one of a few shapes, as a compiled step needs. Padding
@@ -114,6 +124,7 @@ class TrainConfig:
             ("frame_cache_gb", self.frame_cache_gb >= 0, ">= 0"),
             ("pad_to_multiple", self.pad_to_multiple >= -1, ">= -1 (-1: auto, 0: no extra padding)"),
             ("compile", self.compile in COMPILE_MODES, f"one of {COMPILE_MODES}"),
+            ("frames_on", self.frames_on in FRAMES_ON, f"one of {FRAMES_ON}"),
         )
 
     def frame_cache_share(self, workers: int) -> int:
@@ -156,7 +167,8 @@ def _setup_distributed(requested: str) -> tuple[int, int, torch.device]:
 def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
     """(loader workers, torch threads; 0: torch's default) for `cfg`'s auto settings on `device`."""
     cores = usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # shared by torchrun's processes
-    workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else max(1, cores - 2))
+    gpu_workers = min(2, cores - 2) if cfg.frames_on == "device" else cores - 2  # references take little building
+    workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else max(1, gpu_workers))
     threads = cfg.threads
     if not threads and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
         threads = max(1, cores - 1 - workers)
@@ -347,6 +359,11 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
             f"each new batch shape, take a while; prompts padded to a multiple of {padding} steps"
         )
 
+    renderer = None  # with frames_on device: the benchmark's renderer of the store's frames on the device
+    if cfg.frames_on == "device" and (spec.image_keys or spec.context == "goal_image"):
+        renderer = device_frames(get_benchmark(store.benchmark), store, device)
+        if main:
+            print(f"[train] camera frames rendered on {device} from references the loader sends (--frames-on device)")
     dataset = PromptBatchDataset(
         store,
         spec,
@@ -357,6 +374,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         tasks_per_batch=cfg.tasks_per_batch,
         frame_cache_bytes=cfg.frame_cache_share(workers),
         pad_to_multiple=padding,
+        frame_refs=renderer is not None,
     )
     loader = batch_loader(dataset, range(start, cfg.steps), workers, pin_memory=cuda)
     writer = None
@@ -372,6 +390,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     model.train()
     for step, batch in zip(range(start, cfg.steps), loader, strict=False):
         lr = lr_at(step, cfg)
+        if renderer is not None:
+            batch = render_batch(batch, spec, renderer)
         loss, grad_norm = train_step(cfg, net, model, ema, optimizer, to_torch(batch, device), step, amp, world, rank)
         loss_sum += loss.detach().float()
         loss_n += 1

@@ -27,6 +27,8 @@ from bpp.data.contexts import (
     padded_length,
     task_context,
 )
+from bpp.data.frame_refs import frame_refs as reference_source
+from bpp.data.frame_refs import window_refs
 from bpp.data.spec import ContextKind, DataSpec
 from bpp.data.store import EpisodeStore
 
@@ -89,6 +91,10 @@ class PromptBatchDataset(torch.utils.data.Dataset):
 
     With `pad_to_multiple` k > 0, these padded time axes (a demonstration context's L, whole-episode samples' L)
     are padded further, to a multiple of k steps (at most the spec's limit), so that batches come in a few shapes.
+
+    With `frame_refs`, every camera frame is a reference instead, (..., 2) int64 where the frame would be
+    (..., H, W, 3) uint8 (see :mod:`bpp.data.frame_refs`): nothing is rendered, and the training process renders
+    them on its device (:func:`bpp.data.frame_refs.render_batch`).
     """
 
     def __init__(
@@ -106,12 +112,16 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         frame_cache_bytes: int = 4 << 30,
         goal_cache_bytes: int = 128 << 20,
         pad_to_multiple: int = 0,
+        frame_refs: bool = False,
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
         self.spec = spec
         missing = [k for k in [*spec.lowdim_keys, spec.action_key] if k not in self.store.keys]
         if missing:
             raise KeyError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
+        self.frame_refs = frame_refs
+        if frame_refs:
+            frames = reference_source
         if frames is None and (spec.image_keys or spec.context == "goal_image"):
             from bpp.envs.registry import get_benchmark
 
@@ -142,7 +152,8 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         # kept; if not, keeping a few episodes would rarely help a random draw, so each batch renders just the
         # frames it uses (a 224x224 dataset of 2000 x 5 demonstrations would need hundreds of GB).
         frame_bytes = len(spec.image_keys) * spec.image_size**2 * 3
-        self.whole_episodes = int((self.ends - self.starts).sum()) * frame_bytes <= frame_cache_bytes
+        fits = int((self.ends - self.starts).sum()) * frame_bytes <= frame_cache_bytes
+        self.whole_episodes = fits and not frame_refs
 
     def __len__(self) -> int:
         return self.num_batches
@@ -167,7 +178,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     ) -> np.ndarray:
         """The benchmark's frames (a :data:`FrameSource`) through the caches. A final frame alone (a goal image)
         comes from the episode's cached frames if a policy that observes images has them, else is rendered alone
-        and kept."""
+        and kept. (References are made, not cached.)"""
+        if self.frame_refs:
+            return self.frames(store, episode, key, size, last_only=last_only, steps=steps)
         if last_only:
             frames = self._frame_cache.peek((episode, key, size))
             if frames is not None:
@@ -184,6 +197,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         obs = {k: data[k][base + index] for k in self.spec.lowdim_keys}
         size = self.spec.image_size
         for key in self.spec.image_keys:
+            if self.frame_refs:
+                obs[key] = window_refs(episodes, index)
+                continue
             frames = obs[key] = np.empty((*index.shape, size, size, 3), dtype=np.uint8)
             for episode in np.unique(episodes):  # each episode's frames made once per batch
                 rows = episodes == episode

@@ -182,6 +182,19 @@ class Benchmark(Protocol):
     """The benchmark's own commands besides ``generate`` (e.g. pictures of a store, a demo job)."""
 
 
+def device_frames(benchmark: Benchmark, store: EpisodeStore, device):
+    """The benchmark's optional renderer of `store`'s frames on `device` (a :class:`bpp.data.frame_refs.DeviceFrames`,
+    for ``bpp train --frames-on device``): its ``device_frames(store, device)``, which a benchmark may provide beside
+    :meth:`Benchmark.frames` (DrawAnything does). ValueError if it provides none."""
+    make = getattr(benchmark, "device_frames", None)
+    if make is None:
+        raise ValueError(
+            f"benchmark {benchmark.name!r} cannot render its frames on the training device (it has no "
+            "device_frames); train with --frames-on loader"
+        )
+    return make(store, device)
+
+
 def run_prompted(
     agent, benchmark: Benchmark, store: EpisodeStore, plan: Sequence[Mapping], max_steps: int, record_frames
 ) -> tuple[list[RolloutResult], list[np.ndarray] | None]:

@@ -96,6 +96,13 @@ class DrawAnything:
             return dataset.render_episode_steps(store, episode, size, steps)
         return dataset.render_episode(store, episode, size)
 
+    def device_frames(self, store: EpisodeStore, device):
+        """What :meth:`frames` draws, held on `device`, which renders frame references there (``bpp train
+        --frames-on device``; :mod:`bpp.data.frame_refs`)."""
+        from bpp.envs.draw.device_render import DrawFrameTable
+
+        return DrawFrameTable(store, device)
+
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:
         if name != "human":

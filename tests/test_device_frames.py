@@ -1,0 +1,126 @@
+"""Frames rendered on the training device from references (``bpp train --frames-on device``) must be exactly the
+frames the loader renders: the renderer itself, whole batches of every method, and training."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from bpp.data.frame_refs import DeviceFrames, render_batch
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.envs.benchmark import device_frames
+from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.envs.draw.dataset import render_episode_steps
+from bpp.envs.draw.device_render import DrawFrameTable
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, batch_loader, train
+from helpers import config, obs_config
+
+IMAGE_OBS = obs_config(
+    image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
+)
+
+
+@pytest.fixture(scope="module")
+def table(debug_store):
+    return DrawFrameTable(debug_store)
+
+
+@pytest.mark.parametrize("size", [16, 64, 224])
+def test_the_table_renders_the_numpy_renderer_s_frames_exactly(debug_store, table, rng, size):
+    refs, expected = [], []
+    for episode in rng.choice(len(debug_store.episode_starts), 5, replace=False):
+        length = int(debug_store.episode_ends[episode] - debug_store.episode_starts[episode])
+        steps = rng.integers(0, length + 1, 8)  # any order, repeats, and the frame after the last step
+        steps[:2] = 0, length
+        refs += [(episode + 1, s) for s in steps]
+        expected.append(render_episode_steps(debug_store, int(episode), size, steps))
+    refs.insert(3, (0, 0))  # a blank
+    expected = np.concatenate(expected)
+    expected = np.concatenate([expected[:3], np.zeros((1, size, size, 3), np.uint8), expected[3:]])
+    frames = table.render(torch.tensor(refs), size)
+    assert frames.dtype == torch.uint8 and frames.shape == (len(refs), size, size, 3)
+    np.testing.assert_array_equal(frames.numpy(), expected)
+    assert expected[5].any() and (expected[5] != expected[4]).any()  # frames with ink and a cursor, not all alike
+
+
+def test_the_table_refuses_what_it_cannot_render(debug_store, table):
+    length = int(debug_store.episode_ends[0])
+    with pytest.raises(IndexError, match="out of range"):
+        table.render(torch.tensor([[1, length + 1]]), 16)
+    with pytest.raises(IndexError, match="out of range"):
+        table.render(torch.tensor([[len(debug_store.episode_starts) + 1, 0]]), 16)
+    with pytest.raises(ValueError, match="at least 8"):
+        table.render(torch.tensor([[1, 0]]), 4)
+    assert not table.render(torch.zeros((2, 2), dtype=torch.int64), 16).any()
+
+
+def test_the_benchmarks_say_whether_they_render_on_a_device(debug_store):
+    assert isinstance(device_frames(BENCHMARK, debug_store, "cpu"), DeviceFrames)
+    import toy_reach  # a plug-in benchmark that renders in its loader only
+
+    with pytest.raises(ValueError, match="--frames-on loader"):
+        device_frames(toy_reach.BENCHMARK, debug_store, "cpu")
+
+
+def _spec(store, method: str):
+    cfg = config(method)
+    if method != "goal_image":  # Goal-Image observes the state and is conditioned on a goal frame
+        cfg = replace(cfg, obs=IMAGE_OBS)
+    return get_method(method).model_cls(cfg, store.stats).data_spec()
+
+
+def _assert_same(a, b, where="batch"):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _assert_same(a[k], b[k], f"{where}.{k}")
+    else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
+
+
+@pytest.mark.parametrize(("method", "pad"), [("bpp", 0), ("bpp", 100), ("goal_image", 0), ("icrt", 0), ("icrt", 50)])
+def test_batches_of_references_render_to_the_batches_of_frames(debug_store, table, method, pad):
+    spec = _spec(debug_store, method)
+    kw = dict(batch_size=8, seed=3, tasks_per_batch=2, pad_to_multiple=pad)
+    frames = PromptBatchDataset(debug_store, spec, **kw)
+    refs = PromptBatchDataset(debug_store, spec, frame_refs=True, **kw)
+    for i in range(3):
+        plain, referenced = frames[i], refs[i]
+        key = "image" if method == "goal_image" else None
+        small = referenced["context"][key] if key else referenced["obs"]["image"]
+        assert small.dtype == np.int64 and small.shape[-1] == 2  # references, not frames
+        _assert_same(plain, render_batch(referenced, spec, table), f"{method} batch {i}")
+
+
+def test_references_built_in_loader_processes_render_to_the_same_batches(debug_store, table):
+    spec = _spec(debug_store, "bpp")
+    here = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3)
+    there = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_refs=True)
+    for i, batch in enumerate(batch_loader(there, range(3), workers=2, pin_memory=False)):
+        _assert_same(here[i], render_batch(batch, spec, table), f"batch {i}")
+
+
+def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader_s(debug_store, tmp_path):
+    weights = {}
+    for frames_on in ("loader", "device"):
+        cfg = TrainConfig(
+            data=debug_store.path,
+            out=tmp_path / frames_on,
+            steps=3,
+            batch_size=8,
+            tasks_per_batch=2,
+            save_every=3,
+            workers=0,
+            warmup_steps=1,
+            frames_on=frames_on,
+        )
+        run = train(cfg, replace(config("bpp"), obs=IMAGE_OBS), progress=False)
+        weights[frames_on] = load_file(run / "model.safetensors")
+    assert weights["loader"].keys() == weights["device"].keys()
+    for k, v in weights["loader"].items():
+        torch.testing.assert_close(weights["device"][k], v, rtol=0, atol=0, msg=k)
+    with pytest.raises(ValueError, match="frames_on"):
+        TrainConfig(data=debug_store.path, frames_on="gpu")
