@@ -91,6 +91,7 @@ def train_run(
     model_cfg=None,
     loader_workers: int = 0,
     compile: str = "off",
+    frames_on: str = "loader",
 ) -> float:
     """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
     `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
@@ -121,6 +122,7 @@ def train_run(
         threads=threads,
         workers=loader_workers,
         compile=compile,
+        frames_on=frames_on,
         resume=resume,
         save_every=500,
     )
@@ -208,6 +210,9 @@ def main() -> None:
         "--loader-workers", type=int, default=0, help="data-loader processes per training run (a GPU: several)"
     )
     parser.add_argument("--compile", default="off", help="`bpp train --compile` mode of every training run")
+    parser.add_argument(
+        "--frames-on", default="loader", choices=["loader", "device"], help="`bpp train --frames-on` of every run"
+    )
     parser.add_argument("--data-dir", type=Path, default=Path("data/draw"))
     parser.add_argument("--runs", type=Path, default=Path("runs/bench"))
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_cpu"))
@@ -253,6 +258,7 @@ def main() -> None:
                 args.threads,
                 loader_workers=args.loader_workers,
                 compile=args.compile,
+                frames_on=args.frames_on,
             )
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]

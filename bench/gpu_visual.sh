@@ -16,7 +16,8 @@
 # Each step draws TASKS_PER_BATCH tasks, each with its own prompt (8 on the GPU, 2 in the dry run; bpp demo and the
 # CPU benchmark also use 8, the paper's recipe is 1): at a budget this small more prompts per step learn faster
 # (BENCHMARKS.md, third session: 26.6 against 30.2 px at equal steps), and BPP's 8 prompts add about 5% to a
-# 256-window step's FLOPs.
+# 256-window step's FLOPs. FRAMES_ON=device renders the camera frames on the GPU (`bpp train --frames-on device`),
+# which frees the loader processes' cores: set it if the throughput run measured it faster end to end.
 set -uo pipefail
 OUT=${OUT:-outputs/gpu-visual}
 PY=${PY:-python3}
@@ -33,6 +34,7 @@ else
 fi
 common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch "$TASKS_PER_BATCH" --batch "${BATCH[@]}"
   --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
+  --frames-on "${FRAMES_ON:-loader}"
   --data-dir /tmp/gpu-visual/data --runs /tmp/gpu-visual/runs --out /tmp/gpu-visual/out "${EVAL[@]}")
 
 # The data first, once (the three processes would otherwise each generate it); nothing is trained yet.

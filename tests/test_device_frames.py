@@ -116,6 +116,7 @@ def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader
             workers=0,
             warmup_steps=1,
             frames_on=frames_on,
+            device="cpu",  # bit for bit: a GPU's atomics would make even two identical runs differ
         )
         run = train(cfg, replace(config("bpp"), obs=IMAGE_OBS), progress=False)
         weights[frames_on] = load_file(run / "model.safetensors")
@@ -124,3 +125,17 @@ def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader
         torch.testing.assert_close(weights["device"][k], v, rtol=0, atol=0, msg=k)
     with pytest.raises(ValueError, match="frames_on"):
         TrainConfig(data=debug_store.path, frames_on="gpu")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (bench/gpu_session.sh runs it on one)")
+@pytest.mark.parametrize("size", [64, 224])
+def test_on_a_gpu_the_frames_are_the_cpu_s_but_for_a_level_at_the_cursor_s_rim(debug_store, table, size):
+    refs = []
+    for episode in range(0, len(debug_store.episode_starts), 5):
+        length = int(debug_store.episode_ends[episode] - debug_store.episode_starts[episode])
+        refs += [(episode + 1, s) for s in range(0, length + 1, 3)]
+    refs = torch.tensor(refs)
+    here = table.render(refs, size).numpy().astype(int)
+    there = DrawFrameTable(debug_store, "cuda").render(refs, size).cpu().numpy().astype(int)
+    differ = np.abs(here - there)
+    assert differ.max() <= 1 and (differ > 0).mean() < 1e-4, f"{(differ > 0).sum()} values differ, by {differ.max()}"

@@ -11,7 +11,7 @@ the same float64 operations, in the same order, as the numpy renderer, for all f
 1. the board of each episode the batch shows, every pixel measured;
 2. each needed ink segment's coverage over its pixel window, maxed into the first wanted frame of its episode
    that shows it (a scatter), then carried to the episode's later frames (a segmented running max, log-steps);
-3. the composite and the cursor, rounded to uint8 as the numpy renderer rounds.
+3. the composite, then the cursor in a window around it, rounded to uint8 as the numpy renderer rounds.
 
 On a CPU the frames are the numpy renderer's bit for bit (tests pin it). On a GPU they are the same arithmetic in
 IEEE float64 (CUDA's float64 add, multiply, divide and square root round as a CPU's do); only ``hypot``, the
@@ -64,12 +64,6 @@ def _coverage(distance: torch.Tensor, half_width: float, pixel: float) -> torch.
     return torch.clamp((half_width - distance) / pixel + 0.5, 0.0, 1.0)
 
 
-def _blend(image: torch.Tensor, cover: torch.Tensor, rgb) -> torch.Tensor:
-    """render._blend's arithmetic: image * (1 - cover) + cover * rgb, (..., 3) float64."""
-    colour = torch.tensor(rgb, dtype=torch.float64, device=image.device)
-    return image * (1.0 - cover[..., None]) + cover[..., None] * colour
-
-
 class DrawFrameTable:
     """What every camera frame of a DrawAnything store is drawn from: each episode's ink segments on `device` (32
     bytes a segment, 10 segments an inked step: about 200 MB for the paper's 10,000 demonstrations), the rest on the
@@ -98,6 +92,7 @@ class DrawFrameTable:
         self.starts, self.lengths = starts, ends - starts
         self.angles = np.asarray(store.column("board_angle"), dtype=np.float64)
         self.device_segments = torch.as_tensor(self.segments).to(self.device)
+        self._colours: dict[tuple, torch.Tensor] = {}
 
     # ------------------------------------------------------------------ public
     def render(self, refs, size: int) -> torch.Tensor:
@@ -120,6 +115,12 @@ class DrawFrameTable:
         return out
 
     # ------------------------------------------------------------------ internals
+    def _blend(self, image: torch.Tensor, cover: torch.Tensor, rgb) -> torch.Tensor:
+        """render._blend's arithmetic: image * (1 - cover) + cover * rgb, (..., 3) float64."""
+        if rgb not in self._colours:  # made once: a new tensor would be a copy to the device every call
+            self._colours[rgb] = torch.tensor(rgb, dtype=torch.float64, device=self.device)
+        return image * (1.0 - cover[..., None]) + cover[..., None] * self._colours[rgb]
+
     def _put(self, array: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(np.ascontiguousarray(array)).to(self.device, non_blocking=True)
 
@@ -136,44 +137,56 @@ class DrawFrameTable:
         ink = torch.zeros(n * n_px, dtype=torch.float64, device=device)
         self._scatter_ink(ink, key, episodes, span, coordinate, pixel, size)
         ink = ink.view(n, n_px)
-        shift = 1
+        shift, position = 1, self._put(position)
         while shift < per_episode.max():  # a running max along each episode's frames (Hillis-Steele)
-            rows = self._put(np.flatnonzero(position >= shift))
-            ink = ink.clone()
-            ink[rows] = torch.maximum(ink[rows], ink[rows - shift])
+            # Frame i takes frame i - shift's ink where both are its episode's (ink >= 0: elsewhere max with 0).
+            earlier = ink[:-shift] * (position[shift:, None] >= shift)
+            ink[shift:] = torch.maximum(ink[shift:], earlier)  # computed whole before any row is written
             shift *= 2
 
-        ended = layer_step == self.lengths[layer_episode]
-        row = np.minimum(self.starts[layer_episode] + layer_step, len(self.cursor) - 1)
-        cursor = self._put(np.where(ended[:, None], self.after_last[layer_episode], self.cursor[row]))
         slot = self._put(slot)
         frames = torch.empty((n, n_px, 3), dtype=torch.uint8, device=device)
-        x, y = coordinate.repeat(size), coordinate.repeat_interleave(size)  # pixel centres, row-major
-        outer = render.CURSOR_RADIUS + render.CURSOR_OUTLINE_WIDTH
         chunk = max(1, COMPOSITE_PIXELS // n_px)
         for lo in range(0, n, chunk):
             rows = slice(lo, lo + chunk)
-            canvas = torch.round(_blend(board[slot[rows]], ink[rows], render.INK_RGB))  # half to even, as np.rint
-            distance = torch.hypot(x - cursor[rows, 0, None], y - cursor[rows, 1, None])
-            image = _blend(canvas, _coverage(distance, outer, pixel), render.CURSOR_OUTLINE_RGB)
-            image = _blend(image, _coverage(distance, render.CURSOR_RADIUS, pixel), render.CURSOR_RGB)
-            frames[rows] = torch.round(image).to(torch.uint8)
-        return frames.view(n, size, size, 3)
+            image = torch.round(self._blend(board[slot[rows]], ink[rows], render.INK_RGB))  # half to even, as np.rint
+            frames[rows] = image.to(torch.uint8)
+        frames = frames.view(n, size, size, 3)
+        self._draw_cursors(frames, layer_episode, layer_step, coordinate, pixel)
+        return frames
+
+    def _draw_cursors(self, frames, layer_episode, layer_step, coordinate, pixel) -> None:
+        """The cursor on each frame, in the pixel window around it only, as render_frames draws it."""
+        ended = layer_step == self.lengths[layer_episode]
+        row = np.minimum(self.starts[layer_episode] + layer_step, len(self.cursor) - 1)
+        cursor = np.where(ended[:, None], self.after_last[layer_episode], self.cursor[row])
+        size, outer = frames.shape[1], render.CURSOR_RADIUS + render.CURSOR_OUTLINE_WIDTH
+        scale = size / CANVAS_SIZE
+        margin = outer + pixel
+        lo = np.floor((cursor - margin) * scale - 0.5).astype(np.int64)  # as render._window_starts
+        width = int((np.ceil((cursor + margin) * scale + 0.5).astype(np.int64) - lo).max())
+        window = torch.arange(width, device=self.device)
+        lo, cursor = self._put(lo), self._put(cursor)
+        cols = (lo[:, 0, None] + window).clamp(0, size - 1)[:, None, :]  # (N, 1, W), clipped pixels repeat
+        rows = (lo[:, 1, None] + window).clamp(0, size - 1)[:, :, None]  # (N, W, 1)
+        distance = torch.hypot(coordinate[cols] - cursor[:, 0, None, None], coordinate[rows] - cursor[:, 1, None, None])
+        index = (torch.arange(len(frames), device=self.device)[:, None, None], rows, cols)
+        patch = self._blend(frames[index].double(), _coverage(distance, outer, pixel), render.CURSOR_OUTLINE_RGB)
+        patch = self._blend(patch, _coverage(distance, render.CURSOR_RADIUS, pixel), render.CURSOR_RGB)
+        frames[index] = torch.round(patch).to(torch.uint8)
 
     def _boards(self, episodes: np.ndarray, coordinate: torch.Tensor, pixel: float) -> torch.Tensor:
         """render.render_board of each episode's angle, every pixel measured: (E, R*R, 3) float64."""
         size = len(coordinate)
-        x, y = coordinate.repeat(size)[None], coordinate.repeat_interleave(size)[None]  # (1, R*R)
-        image = torch.full((len(episodes), size * size, 3), 255.0, dtype=torch.float64, device=self.device)
+        x, y = coordinate.repeat(size), coordinate.repeat_interleave(size)  # (R*R,) pixel centres, row-major
         lines = self._put(np.stack([board_lines(a) for a in self.angles[episodes]]))  # (E, 8, 4)
+        x0, y0, x1, y1 = (lines[..., j, None] for j in range(4))  # (E, 8, 1) each: all lines at once
+        dx, dy = x1 - x0, y1 - y0
+        distance = _distance(x - x0, y - y0, dx, dy, dx * dx + dy * dy)  # (E, 8, R*R)
+        image = torch.full((len(episodes), size * size, 3), 255.0, dtype=torch.float64, device=self.device)
         for begin, stop, half_width, rgb in _BOARD_LAYERS:
-            nearest = None
-            for i in range(begin, stop):
-                x0, y0, x1, y1 = (lines[:, i, j, None] for j in range(4))
-                dx, dy = x1 - x0, y1 - y0
-                d = _distance(x - x0, y - y0, dx, dy, dx * dx + dy * dy)
-                nearest = d if nearest is None else torch.minimum(nearest, d)
-            image = _blend(image, _coverage(nearest, half_width, pixel), rgb)
+            nearest = distance[:, begin:stop].amin(dim=1)  # segment_distance's minimum over the layer's lines
+            image = self._blend(image, _coverage(nearest, half_width, pixel), rgb)
         return image
 
     def _scatter_ink(self, ink, key, episodes, span, coordinate, pixel, size) -> None:
