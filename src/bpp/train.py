@@ -98,7 +98,7 @@ class TrainConfig:
     """Where camera frames are rendered. loader: by the loader (its processes), sent whole to the training process.
     device: on the training device, from references the loader sends instead (16 bytes a frame; see
     :mod:`bpp.data.frame_refs`), which leaves the loader almost nothing to do; the benchmark must offer it
-    (DrawAnything does) and the frames are the same (bit for bit on a CPU). State-only methods render nothing."""
+    (``device_frames``) and the frames are the same (bit for bit on a CPU). State-only methods render nothing."""
     pad_to_multiple: int = -1
     """Pad the batches' variable time axes (demonstration prompts, ICRT's whole episodes) to a multiple of this many
     steps, at most the model's limit: each batch then has one of a few shapes, as a compiled step needs. Padding

@@ -22,8 +22,7 @@ from bpp.data.store import EpisodeStore
 
 @runtime_checkable
 class DeviceFrames(Protocol):
-    """A benchmark's renderer of a store's frames on a device (DrawAnything's:
-    :class:`bpp.envs.draw.device_render.DrawFrameTable`)."""
+    """A benchmark's renderer of a store's frames on a device (what its ``device_frames(store, device)`` returns)."""
 
     def render(self, refs: torch.Tensor, size: int) -> torch.Tensor:
         """(N, 2) int64 references -> (N, size, size, 3) uint8 frames, exactly the benchmark's ``frames(...)``."""

@@ -185,7 +185,7 @@ class Benchmark(Protocol):
 def device_frames(benchmark: Benchmark, store: EpisodeStore, device):
     """The benchmark's optional renderer of `store`'s frames on `device` (a :class:`bpp.data.frame_refs.DeviceFrames`,
     for ``bpp train --frames-on device``): its ``device_frames(store, device)``, which a benchmark may provide beside
-    :meth:`Benchmark.frames` (DrawAnything does). ValueError if it provides none."""
+    :meth:`Benchmark.frames`. ValueError if it provides none."""
     make = getattr(benchmark, "device_frames", None)
     if make is None:
         raise ValueError(

@@ -66,8 +66,8 @@ def _coverage(distance: torch.Tensor, half_width: float, pixel: float) -> torch.
 
 class DrawFrameTable:
     """What every camera frame of a DrawAnything store is drawn from: each episode's ink segments on `device` (32
-    bytes a segment, 10 segments an inked step: about 200 MB for the paper's 10,000 demonstrations), the rest on the
-    host.
+    bytes a segment, about 7 segments a step: 21 MB for 1,000 demonstrations, so about 215 MB for the paper's
+    10,000), the rest on the host.
 
     ``table.render(refs, size)`` turns (N, 2) references (episode + 1, step; 0: a blank, all-zero frame) into the
     (N, size, size, 3) uint8 frames :func:`bpp.envs.draw.dataset.render_episode_steps` makes, on the device. The
