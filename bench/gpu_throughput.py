@@ -187,12 +187,9 @@ def pipeline_rate(
     }
 
 
-def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, batches: int) -> dict:
-    """Samples/s of rendering batches' frames on `device` from references (``bpp train --frames-on device``;
-    :class:`bpp.envs.draw.device_render.DrawFrameTable`), the batches built beforehand; after a first batch."""
-    t0 = time.perf_counter()
-    renderer = device_frames(BENCHMARK, store, device)
-    table_s = time.perf_counter() - t0
+def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, batches: int, renderer):
+    """Samples/s of `renderer` (:class:`bpp.envs.draw.device_render.DrawFrameTable`) rendering batches' frames on
+    `device` from references (``bpp train --frames-on device``), the batches built beforehand; after a first batch."""
     data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_refs=True)
     ready = [data[i] for i in range(batches + 1)]
     first = ready[0]
@@ -212,7 +209,6 @@ def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch
         "samples_per_s": round(batches * batch_size / seconds, 1),
         "ms_per_batch": round(1000 * seconds / batches, 2),
         "frames_per_batch": int(frames),
-        "table_s": round(table_s, 2),
     }
     if device.type == "cuda":
         out["peak_memory_gib"] = round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
@@ -401,11 +397,13 @@ def bench_preset(results: Results, name: str, store: EpisodeStore, device: torch
     if "frames" in parts:  # frames rendered on the device from references (`bpp train --frames-on device`)
         b = e2e_sizes[-1]
         measure(results, name, "loader_refs", lambda: loader_rate(store, spec, b, 3 if small else 20, 0, refs=True))
-        render = functools.partial(device_render_rate, store, spec, b, device, 3 if small else 20)
+        t0 = time.perf_counter()
+        renderer = device_frames(BENCHMARK, store, device)
+        results.record(name, "device_frames_table_s", round(time.perf_counter() - t0, 2))
+        render = functools.partial(device_render_rate, store, spec, b, device, 3 if small else 20, renderer)
         measure(results, name, f"device_render_b{b}", render)
         on_device = replace(TrainConfig(data=store.path), frames_on="device")
         workers = cpu_plan(on_device, device)[0] or usable_cores()
-        renderer = device_frames(BENCHMARK, store, device)
         measure(
             results,
             name,

@@ -68,3 +68,13 @@ def obs_config(**fields):
 
     canvas = BENCHMARK.observations["canvas"]
     return ObsConfig(**{"lowdim_keys": canvas.lowdim_keys, "proprio_keys": canvas.proprio_keys, **fields})
+
+
+def assert_same_batches(a, b, where="batch"):
+    """Nested dicts of arrays or tensors `a` and `b` are equal: the same keys, and every array the same exactly."""
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            assert_same_batches(a[k], b[k], f"{where}.{k}")
+    else:
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)

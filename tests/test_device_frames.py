@@ -16,7 +16,7 @@ from bpp.envs.draw.dataset import render_episode_steps
 from bpp.envs.draw.device_render import DrawFrameTable
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, batch_loader, train
-from helpers import config, obs_config
+from helpers import assert_same_batches, config, obs_config
 
 IMAGE_OBS = obs_config(
     image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
@@ -72,15 +72,6 @@ def _spec(store, method: str):
     return get_method(method).model_cls(cfg, store.stats).data_spec()
 
 
-def _assert_same(a, b, where="batch"):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for k in a:
-            _assert_same(a[k], b[k], f"{where}.{k}")
-    else:
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
-
-
 @pytest.mark.parametrize(("method", "pad"), [("bpp", 0), ("bpp", 100), ("goal_image", 0), ("icrt", 0), ("icrt", 50)])
 def test_batches_of_references_render_to_the_batches_of_frames(debug_store, table, method, pad):
     spec = _spec(debug_store, method)
@@ -92,7 +83,7 @@ def test_batches_of_references_render_to_the_batches_of_frames(debug_store, tabl
         key = "image" if method == "goal_image" else None
         small = referenced["context"][key] if key else referenced["obs"]["image"]
         assert small.dtype == np.int64 and small.shape[-1] == 2  # references, not frames
-        _assert_same(plain, render_batch(referenced, spec, table), f"{method} batch {i}")
+        assert_same_batches(plain, render_batch(referenced, spec, table), f"{method} batch {i}")
 
 
 def test_references_built_in_loader_processes_render_to_the_same_batches(debug_store, table):
@@ -100,7 +91,7 @@ def test_references_built_in_loader_processes_render_to_the_same_batches(debug_s
     here = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3)
     there = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_refs=True)
     for i, batch in enumerate(batch_loader(there, range(3), workers=2, pin_memory=False)):
-        _assert_same(here[i], render_batch(batch, spec, table), f"batch {i}")
+        assert_same_batches(here[i], render_batch(batch, spec, table), f"batch {i}")
 
 
 def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader_s(debug_store, tmp_path):

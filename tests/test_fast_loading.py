@@ -16,7 +16,7 @@ from bpp.nn.vision import ResNetGN
 from bpp.policies.common import ObsConfig
 from bpp.policies.registry import get_method
 from bpp.utils import to_torch
-from helpers import config, obs_config
+from helpers import assert_same_batches, config, obs_config
 
 IMAGE_OBS = obs_config(
     image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
@@ -30,15 +30,6 @@ def _bpp(store, relative_to: str = "", **prompt):
     return get_method("bpp").model_cls(cfg, store.stats).eval()
 
 
-def _assert_same(a, b, where="batch"):
-    if isinstance(a, dict):
-        assert a.keys() == b.keys(), where
-        for k in a:
-            _assert_same(a[k], b[k], f"{where}.{k}")
-    else:
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=where)
-
-
 def test_batches_rendering_only_their_frames_equal_those_from_whole_episodes(debug_store):
     spec = _bpp(debug_store).data_spec()
     assert spec.context_obs_stride == 10
@@ -47,7 +38,7 @@ def test_batches_rendering_only_their_frames_equal_those_from_whole_episodes(deb
     assert whole.whole_episodes and not selective.whole_episodes
     for i in range(3):
         a, b = whole[i], selective[i]
-        _assert_same(a, b)
+        assert_same_batches(a, b)
     assert len(selective._frame_cache) == 0 and len(whole._frame_cache) > 0
 
 
@@ -63,7 +54,7 @@ def test_batches_built_in_loader_processes_equal_those_built_here(debug_store):
         assert isinstance(arrived[0]["obs"]["image"], torch.Tensor)
         assert here[0]["obs"]["image"].dtype == np.uint8 and here[0]["obs"]["image"].any()
         for i, batch in enumerate(arrived):
-            _assert_same(here[i], batch, f"batch {i}, cache {cache}")
+            assert_same_batches(here[i], batch, f"batch {i}, cache {cache}")
 
 
 @pytest.mark.parametrize("relative_to", ["", "agent_pos"])
