@@ -30,6 +30,9 @@ def test_size_presets_observe_nothing_until_given_a_benchmarks_observations(debu
     with pytest.raises(ValueError, match="no observation preset 'pixels'"):
         bpp.config("cpu", "pixels", BENCHMARK)
     assert bpp.config("paper", None, BENCHMARK).obs.image_size == 224  # the benchmark's default for that size
+    # The state sizes observe the ink drawn so far by default: without it half the rollouts never stop.
+    for size in ("debug", "cpu"):
+        assert bpp.config(size, None, BENCHMARK).obs.proprio_keys == ("agent_pos", "pen_down", "ink_length")
     goal = get_method("goal_image").config("cpu", "image64", BENCHMARK)
     assert goal.shares_camera_encoder and goal.goal_image_size == 64
 

@@ -301,7 +301,7 @@ def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
         lines.append(
             "Note: the `board` observations are the cursor, the pen and the length of ink drawn so far, and actions "
             "in the board's own frame (state only), which removes the need to learn rotations from data; the "
-            "paper's setting is images and canvas actions (`--obs canvas` is state-only with canvas actions). "
+            "paper's setting is images and canvas actions (`--obs canvas-ink` is state-only with canvas actions). "
             "See BENCHMARKS.md."
         )
     (args.out_dir / "report.md").write_text("\n".join(lines) + "\n")
