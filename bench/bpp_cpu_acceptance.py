@@ -15,14 +15,14 @@ import argparse
 
 import numpy as np
 
+from bpp.benchmarks.contract import RolloutResult, run_prompted
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.env import DrawEnv
+from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE
+from bpp.benchmarks.draw.rollouts import prompt_target
+from bpp.benchmarks.draw.viz import contact_sheet, group_strokes, render_strokes
 from bpp.checkpoint import resolve_checkpoint
 from bpp.data.store import EpisodeStore
-from bpp.envs.benchmark import RolloutResult, run_prompted
-from bpp.envs.draw.benchmark import BENCHMARK
-from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import MAX_BOARD_ANGLE
-from bpp.envs.draw.rollouts import prompt_target
-from bpp.envs.draw.viz import contact_sheet, group_strokes, render_strokes
 from bpp.policies.agent import PolicyAgent
 
 
@@ -76,8 +76,8 @@ def prompt_use(model, store_path: str, batches: int = 5) -> tuple[float, float]:
     another task. A policy that uses its prompt does much better with the right one."""
     import torch
 
+    from bpp.benchmarks.draw.geometry import BOARD_SIZE
     from bpp.data.prompt_dataset import PromptBatchDataset
-    from bpp.envs.draw.geometry import BOARD_SIZE
     from bpp.utils import to_torch
 
     cfg = model.cfg

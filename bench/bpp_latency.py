@@ -17,10 +17,10 @@ import time
 import numpy as np
 import torch
 
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import task_context
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.model import BPPModel
 from bpp.policies.registry import get_method

@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/compile_speed.json"))
     args = parser.parse_args()
 
-    from bpp.envs.draw import dataset as draw_data
+    from bpp.benchmarks.draw import dataset as draw_data
 
     store = args.data_dir / f"procedural-{args.tasks}.zarr"
     if not (store / "zarr.json").exists():

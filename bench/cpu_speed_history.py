@@ -56,8 +56,8 @@ def main() -> None:
 
     from dataclasses import replace
 
+    from bpp.benchmarks.draw import dataset as draw_data
     from bpp.data.store import stored_with
-    from bpp.envs.draw import dataset as draw_data
 
     data_cfg = replace(draw_data.PRESETS["cpu"], num_tasks=args.tasks)
     store = args.data_dir / f"train-{args.tasks}.zarr"

@@ -28,11 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
 from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
 from bpp.data.store import EpisodeStore, StoreError
-from bpp.envs.draw.benchmark import BENCHMARK
-from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig, generate
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method

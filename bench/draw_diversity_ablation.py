@@ -14,9 +14,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.benchmarks.draw.dataset import DrawDataConfig
 from bpp.checkpoint import Checkpoint
-from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import DrawDataConfig
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.utils import write_json_atomic

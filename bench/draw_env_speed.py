@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-from bpp.envs.draw.demonstrator import demonstrate, replay_paths
-from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import canvas_to_upright
-from bpp.envs.draw.human import human_drawings
+from bpp.benchmarks.draw.demonstrator import demonstrate, replay_paths
+from bpp.benchmarks.draw.env import DrawEnv
+from bpp.benchmarks.draw.geometry import canvas_to_upright
+from bpp.benchmarks.draw.human import human_drawings
 
 
 def main() -> None:

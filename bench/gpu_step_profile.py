@@ -20,10 +20,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bpp.benchmarks.draw import dataset as draw_data
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw import dataset as draw_data
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, _ema_update, build_training, uses_amp
 from bpp.utils import to_torch

@@ -13,7 +13,7 @@ first, it measures:
   passed to the training process, page-locked and copied to the device), with one worker and with the default
   number, and the megabytes a batch moves: what the loader can feed, where the loader line is one process's share;
 * frames: the same with frame references (``bpp train --frames-on device``): one loader process building them,
-  the device rendering a batch's frames from them alone (:class:`bpp.envs.draw.device_render.DrawFrameTable`), and
+  the device rendering a batch's frames from them alone (:class:`bpp.benchmarks.draw.device_render.DrawFrameTable`), and
   the whole pipeline, its default workers for that setting sending references and this process rendering them;
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
   EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, the peak memory, and the TFLOP/s
@@ -52,13 +52,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bpp.benchmarks.contract import device_frames
+from bpp.benchmarks.draw import dataset as draw_data
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import task_context
 from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
-from bpp.envs.benchmark import device_frames
-from bpp.envs.draw import dataset as draw_data
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.nn.norm import GroupNorm
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
@@ -188,7 +188,7 @@ def pipeline_rate(
 
 
 def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, batches: int, renderer):
-    """Samples/s of `renderer` (:class:`bpp.envs.draw.device_render.DrawFrameTable`) rendering batches' frames on
+    """Samples/s of `renderer` (:class:`bpp.benchmarks.draw.device_render.DrawFrameTable`) rendering batches' frames on
     `device` from references (``bpp train --frames-on device``), the batches built beforehand; after a first batch."""
     data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_refs=True)
     ready = [data[i] for i in range(batches + 1)]

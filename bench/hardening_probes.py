@@ -387,7 +387,7 @@ def probes(ws: Workspace) -> list[Probe]:
         )
 
     def svg_check(_):
-        from bpp.envs.draw.files import load_drawings
+        from bpp.benchmarks.draw.files import load_drawings
 
         a = load_drawings(p("t.svg"))[0]
         b = load_drawings(p("plain.svg"))[0]
@@ -732,8 +732,8 @@ def probes(ws: Workspace) -> list[Probe]:
             "python",
             (
                 "import numpy as np\n"
-                "from bpp.envs.draw.geometry import canvas_to_upright, rotation\n"
-                "from bpp.envs.draw.metric import chamfer_distance, ink_mask\n"
+                "from bpp.benchmarks.draw.geometry import canvas_to_upright, rotation\n"
+                "from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask\n"
                 "line = np.array([[x, 256] for x in range(156, 357, 10)], float)\n"
                 "moved = canvas_to_upright((line - 256) @ rotation(0.3).T + 256, 0.3)\n"
                 "assert chamfer_distance(ink_mask([line]), ink_mask([moved])) == 0.0"
@@ -748,7 +748,7 @@ def probes(ws: Workspace) -> list[Probe]:
             "python",
             (
                 "import numpy as np\n"
-                "from bpp.envs.draw.metric import chamfer_distance, ink_mask\n"
+                "from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask\n"
                 "th = np.deg2rad(np.arange(360))\n"
                 "c = lambda r: np.round(np.stack([256 + r * np.cos(th), 256 + r * np.sin(th)], 1))\n"
                 "assert round(chamfer_distance(ink_mask([c(100)]), ink_mask([c(110)])), 3) == 9.684"

@@ -4,7 +4,7 @@
     python bench/libero_chain_demos.py --view unseen_chains --seeds 2     # the 10 held-out chains
     python bench/libero_chain_demos.py --view all --match "middle drawer"  # every task that names it
 
-Every task of a view of the Chain suite (`bpp.envs.libero.chain`: first_step, second_step, seen_chains,
+Every task of a view of the Chain suite (`bpp.benchmarks.libero.chain`: first_step, second_step, seen_chains,
 unseen_chains) is written as its LIBERO-Goal problem (a second-step task's start state in its ``:init``), loaded in
 LIBERO, and demonstrated once per seed by the demonstrator's operators, step after step in one episode. A task's
 line shows each seed's result; the last line the total. Needs the `libero` extra.
@@ -19,10 +19,10 @@ import tempfile
 import time
 from pathlib import Path
 
-from bpp.envs.libero.chain import VIEWS, chain
-from bpp.envs.libero.dataset import problem_text
-from bpp.envs.libero.demonstrator import DemoConfig, demonstrate_task
-from bpp.envs.libero.sim import make_env
+from bpp.benchmarks.libero.chain import VIEWS, chain
+from bpp.benchmarks.libero.dataset import problem_text
+from bpp.benchmarks.libero.demonstrator import DemoConfig, demonstrate_task
+from bpp.benchmarks.libero.sim import make_env
 
 
 def main() -> None:

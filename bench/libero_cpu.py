@@ -26,10 +26,10 @@ from pathlib import Path
 
 import numpy as np
 
+from bpp.benchmarks.libero.benchmark import BENCHMARK
+from bpp.benchmarks.libero.dataset import PRESETS, generate
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import stored_with
-from bpp.envs.libero.benchmark import BENCHMARK
-from bpp.envs.libero.dataset import PRESETS, generate
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method

@@ -19,14 +19,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
+from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
+from bpp.benchmarks.libero.rollouts import observe, task_problem
+from bpp.benchmarks.libero.sim import make_env
+from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
-from bpp.envs.libero.dataset import PROPRIO_LAYOUT
-from bpp.envs.libero.demonstrator import SETTLE_STEPS
-from bpp.envs.libero.rollouts import observe, task_problem
-from bpp.envs.libero.sim import make_env
-from bpp.envs.registry import get_benchmark
 from bpp.policies.agent import PolicyAgent
 
 EEF = list(PROPRIO_LAYOUT["eef_pos"])

@@ -22,10 +22,10 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw.benchmark import BENCHMARK
-from bpp.envs.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
-from bpp.envs.registry import get_benchmark
 from bpp.policies.agent import PolicyAgent
 
 

@@ -31,10 +31,10 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import FlopCounterMode
 
+from bpp.benchmarks.draw import dataset as draw_data
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
-from bpp.envs.draw import dataset as draw_data
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, _ema_update, build_training
 from bpp.utils import to_torch

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.envs.draw.studio.client import StudioClient, StudioClientError
+from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError
 
 TOKEN = "load-test-token-0123456789"
 

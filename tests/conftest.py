@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import torch  # noqa: E402
 
-from bpp.envs.draw.dataset import PRESETS, generate  # noqa: E402
+from bpp.benchmarks.draw.dataset import PRESETS, generate  # noqa: E402
 
 if _SHARE is not None:  # in case torch was imported before this file
     torch.set_num_threads(_SHARE)

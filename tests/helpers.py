@@ -6,10 +6,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from bpp.benchmarks.contract import run_prompted
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import task_context
 from bpp.data.spec import DataSpec
-from bpp.envs.benchmark import run_prompted
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.policies.registry import get_method
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from bpp.benchmarks.draw.dataset import DrawDataConfig, render_episode
+from bpp.benchmarks.draw.procedural import describe_parts
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.envs.draw.dataset import DrawDataConfig, render_episode
-from bpp.envs.draw.procedural import describe_parts
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.common import ContextError

@@ -11,21 +11,21 @@ import numpy as np
 import pytest
 
 import bpp
+from bpp.benchmarks.registry import BENCHMARKS, get_benchmark, register_benchmark
 from bpp.cli import main
 from bpp.data.store import EpisodeStore
-from bpp.envs.registry import BENCHMARKS, get_benchmark, register_benchmark
 from bpp.evaluation.evaluate import Protocol
 
 SRC = Path(bpp.__file__).parent
-GENERIC = [p for p in SRC.rglob("*.py") if "envs" not in p.relative_to(SRC).parts]
-"""Everything but bpp/envs/: data, nn, policies, training, checkpoints, evaluation, the command line."""
-ENVS_GENERIC = [SRC / "envs" / "__init__.py", SRC / "envs" / "benchmark.py"]
-"""The contract itself (the registry, envs/registry.py, is where benchmarks are named)."""
+GENERIC = [p for p in SRC.rglob("*.py") if "benchmarks" not in p.relative_to(SRC).parts]
+"""Everything but bpp/benchmarks/: data, nn, policies, training, checkpoints, evaluation, the command line."""
+CONTRACT_FILES = [SRC / "benchmarks" / "__init__.py", SRC / "benchmarks" / "contract.py"]
+"""The contract itself (the registry, benchmarks/registry.py, is where benchmarks are named)."""
 DRAW_VOCABULARY = ["cursor_on_board", "action_on_board", "ink_length", "pen_down", "board_angle", "chamfer", "hershey"]
 
 
 def _benchmark_folders() -> dict[str, str]:
-    """Registered built-in benchmark name -> its folder under bpp/envs/."""
+    """Registered built-in benchmark name -> its folder under bpp/benchmarks/."""
     return {
         name: target.split(":")[0].split(".")[2] for name, target in BENCHMARKS.items() if target.startswith("bpp.")
     }
@@ -35,12 +35,12 @@ def test_generic_layers_name_no_benchmark():
     folders = _benchmark_folders()
     assert folders == {"drawanything": "draw", "libero_gen": "libero"}
     offences = []
-    for path in [*GENERIC, *ENVS_GENERIC]:
+    for path in [*GENERIC, *CONTRACT_FILES]:
         text = path.read_text()
         for name, folder in folders.items():
             patterns = [
-                rf"bpp\.envs\.{folder}\b",
-                rf"from bpp\.envs import {folder}\b",
+                rf"bpp\.benchmarks\.{folder}\b",
+                rf"from bpp\.benchmarks import {folder}\b",
                 rf"\b{name}\b",
                 *DRAW_VOCABULARY,
             ]
@@ -54,7 +54,7 @@ def test_generic_modules_load_no_benchmark_at_import():
         "bpp.policies.agent, bpp.checkpoint\n"
         "from bpp.policies.registry import METHODS, get_method\n"
         "[get_method(m) for m in METHODS]\n"
-        "print([m for m in sys.modules if m.startswith('bpp.envs.') and m.count('.') > 2])"
+        "print([m for m in sys.modules if m.startswith('bpp.benchmarks.') and m.count('.') > 2])"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
@@ -74,7 +74,7 @@ def reach(monkeypatch):
 
     monkeypatch.setitem(BENCHMARKS, "reach", "toy_reach:BENCHMARK")
     yield toy_reach.BENCHMARK
-    from bpp.envs import registry
+    from bpp.benchmarks import registry
 
     registry._LOADED.pop("reach", None)
 

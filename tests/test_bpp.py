@@ -330,7 +330,7 @@ def test_image_observations_train_and_act(debug_store):
 
 
 def test_rendered_frames_are_cached_within_a_byte_budget(debug_store):
-    from bpp.envs.draw.dataset import render_episode
+    from bpp.benchmarks.draw.dataset import render_episode
 
     frames = {e: render_episode(debug_store, e, 16) for e in (0, 1, 2)}
     budget = frames[0].nbytes + max(frames[1].nbytes, frames[2].nbytes)  # room for two of the three episodes

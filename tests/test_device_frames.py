@@ -8,12 +8,12 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
+from bpp.benchmarks.contract import device_frames
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.dataset import render_episode_steps
+from bpp.benchmarks.draw.device_render import DrawFrameTable
 from bpp.data.frame_refs import DeviceFrames, render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.envs.benchmark import device_frames
-from bpp.envs.draw.benchmark import BENCHMARK
-from bpp.envs.draw.dataset import render_episode_steps
-from bpp.envs.draw.device_render import DrawFrameTable
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, batch_loader, train
 from helpers import assert_same_batches, config, obs_config
@@ -118,7 +118,9 @@ def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader
         TrainConfig(data=debug_store.path, frames_on="gpu")
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (bench/gpu_session.sh runs it on one)")
+@pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device (bench/gpu_throughput_and_tests.sh runs it on one)"
+)
 @pytest.mark.parametrize("size", [64, 224])
 def test_on_a_gpu_the_frames_are_the_cpu_s_but_for_a_level_at_the_cursor_s_rim(debug_store, table, size):
     refs = []

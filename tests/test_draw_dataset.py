@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from bpp.envs.draw.dataset import (
+from bpp.benchmarks.draw.dataset import (
     PRESETS,
     episode_paths,
     generate,
@@ -9,8 +9,8 @@ from bpp.envs.draw.dataset import (
     render_last_observation,
     task_drawing,
 )
-from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
+from bpp.benchmarks.draw.env import DrawEnv
+from bpp.benchmarks.draw.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
 
 
 def test_store_contents(debug_store):

@@ -3,13 +3,13 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import bpp.envs  # noqa: F401  (registers the environments)
-from bpp.envs.draw.demonstrator import demonstrate
-from bpp.envs.draw.env import ENV_ID as DRAW_ENV_ID
-from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import canvas_to_upright
-from bpp.envs.draw.human import glyph_drawing
-from bpp.envs.draw.render import CURSOR_RGB, SceneRenderer
+import bpp.benchmarks  # noqa: F401  (registers the environments)
+from bpp.benchmarks.draw.demonstrator import demonstrate
+from bpp.benchmarks.draw.env import ENV_ID as DRAW_ENV_ID
+from bpp.benchmarks.draw.env import DrawEnv
+from bpp.benchmarks.draw.geometry import canvas_to_upright
+from bpp.benchmarks.draw.human import glyph_drawing
+from bpp.benchmarks.draw.render import CURSOR_RGB, SceneRenderer
 
 
 @pytest.mark.filterwarnings("ignore:.*symmetric and normalized space")

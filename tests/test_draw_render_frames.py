@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from bpp.envs.draw import physics, render
-from bpp.envs.draw.dataset import render_episode, render_episode_steps
-from bpp.envs.draw.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
-from bpp.envs.draw.render import INK_WIDTH, ink_segments, render_board, render_frames
-from bpp.envs.draw.viz import episode_frames
+from bpp.benchmarks.draw import physics, render
+from bpp.benchmarks.draw.dataset import render_episode, render_episode_steps
+from bpp.benchmarks.draw.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
+from bpp.benchmarks.draw.render import INK_WIDTH, ink_segments, render_board, render_frames
+from bpp.benchmarks.draw.viz import episode_frames
 
 
 def stored(store, episode: int):

@@ -3,12 +3,12 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from bpp.envs.draw.demonstrator import DemoConfig, demonstrate, replay_paths
-from bpp.envs.draw.env import DrawEnv
-from bpp.envs.draw.geometry import canvas_to_upright, unit_to_canvas
-from bpp.envs.draw.human import HUMAN_GLYPHS, human_drawings
-from bpp.envs.draw.metric import chamfer_distance, ink_mask
-from bpp.envs.draw.procedural import ProceduralConfig, generate_drawing
+from bpp.benchmarks.draw.demonstrator import DemoConfig, demonstrate, replay_paths
+from bpp.benchmarks.draw.env import DrawEnv
+from bpp.benchmarks.draw.geometry import canvas_to_upright, unit_to_canvas
+from bpp.benchmarks.draw.human import HUMAN_GLYPHS, human_drawings
+from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
+from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
 
 
 def test_procedural_drawings_respect_their_config():

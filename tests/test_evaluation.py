@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-import bpp.envs.benchmark as contract
-import bpp.envs.draw.rollouts as draw_rollouts
-from bpp.envs.benchmark import TaskSet
-from bpp.envs.draw.benchmark import BENCHMARK
+import bpp.benchmarks.contract as contract
+import bpp.benchmarks.draw.rollouts as draw_rollouts
+from bpp.benchmarks.contract import TaskSet
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp import BPPModel

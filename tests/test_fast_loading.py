@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import batch_context, task_context
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.envs.draw.benchmark import BENCHMARK
 from bpp.nn.vision import ResNetGN
 from bpp.policies.common import ObsConfig
 from bpp.policies.registry import get_method

@@ -10,12 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from bpp.benchmarks.libero import dataset
+from bpp.benchmarks.libero.benchmark import BENCHMARK, _render
+from bpp.benchmarks.libero.demonstrator import DemoConfig
+from bpp.benchmarks.libero.suites import combination
 from bpp.cli import main
 from bpp.data.store import EpisodeStore, StoreError
-from bpp.envs.libero import dataset
-from bpp.envs.libero.benchmark import BENCHMARK, _render
-from bpp.envs.libero.demonstrator import DemoConfig
-from bpp.envs.libero.suites import combination
 from bpp.evaluation.evaluate import resolve_tasks
 
 
@@ -96,7 +96,7 @@ def test_a_libero_dataset_file_imports_as_its_libero_task(tmp_path, capsys):
     initial states. Bad files are refused with what is wrong."""
     import h5py
 
-    from bpp.envs.libero.sim import libero_problem, make_env
+    from bpp.benchmarks.libero.sim import libero_problem, make_env
 
     goal = tmp_path / "goal.bddl"
     goal.write_text(libero_problem("libero_goal", "turn_on_the_stove"))
@@ -229,9 +229,9 @@ class _Recorder:
 
 
 def test_libero_own_tasks_are_evaluated_from_libero_own_initial_states(tmp_path):
-    from bpp.envs.libero.demonstrator import SETTLE_STEPS
-    from bpp.envs.libero.rollouts import run_rollouts
-    from bpp.envs.libero.sim import initial_states, make_env, problems_folder
+    from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
+    from bpp.benchmarks.libero.rollouts import run_rollouts
+    from bpp.benchmarks.libero.sim import initial_states, make_env, problems_folder
 
     cfg = dataset.LiberoDataConfig(suite="libero_spatial", task_indices=(1,), demos_per_task=1, goal_size=0)
     store = dataset.generate(cfg, tmp_path / "spatial.zarr", workers=1, progress=False)
@@ -261,7 +261,7 @@ def test_a_terminated_generation_stops_its_workers(tmp_path):
     import time
 
     code = (
-        "from bpp.envs.libero.dataset import LiberoDataConfig, generate\n"
+        "from bpp.benchmarks.libero.dataset import LiberoDataConfig, generate\n"
         f"generate(LiberoDataConfig(task_indices=(0, 1), demos_per_task=1, goal_size=0), {str(tmp_path / 's.zarr')!r},"
         " workers=2, progress=False)\n"
     )

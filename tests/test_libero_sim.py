@@ -4,10 +4,10 @@ problem LIBERO ships, and a generated Combination problem loads in the simulator
 import numpy as np
 import pytest
 
-from bpp.envs.libero.bddl import combination_problem, dumps, parse, section
-from bpp.envs.libero.rollouts import observe
-from bpp.envs.libero.sim import make_env, place_object, problems_folder, spatial_problem
-from bpp.envs.libero.suites import combination
+from bpp.benchmarks.libero.bddl import combination_problem, dumps, parse, section
+from bpp.benchmarks.libero.rollouts import observe
+from bpp.benchmarks.libero.sim import make_env, place_object, problems_folder, spatial_problem
+from bpp.benchmarks.libero.suites import combination
 
 
 def test_every_problem_libero_ships_survives_a_round_trip():
@@ -79,7 +79,7 @@ def test_a_suite_is_written_as_problems_and_an_index(tmp_path, capsys):
 
 
 def test_the_scripted_demonstrator_passes_libero_predicates_for_each_kind_of_place_and_the_drawer(tmp_path):
-    from bpp.envs.libero.demonstrator import demonstrate
+    from bpp.benchmarks.libero.demonstrator import demonstrate
 
     suite = combination()
     first = next(t for t in suite.train if t.scene.name == "S1" and t.bowl == 1 and t.place == "PL")
@@ -121,7 +121,7 @@ CHEESE, BOWL_1, WINE, CABINET_TOP = "cream_cheese_1", "akita_black_bowl_1", "win
 def test_each_operator_passes_libero_predicate_on_a_libero_goal_task(operator, problem, objects, state):
     """LIBERO-Goal's own problems, judged by LIBERO: the problem's goal (the stove's knob turned on, the plate pushed
     in front of it), or, for the first of two steps, LIBERO's predicate on the object's state (the drawer open)."""
-    from bpp.envs.libero.demonstrator import demonstrate_operator
+    from bpp.benchmarks.libero.demonstrator import demonstrate_operator
 
     env = make_env(problems_folder() / "libero_goal" / f"{problem}.bddl")
     try:
@@ -144,10 +144,10 @@ def test_the_close_operator_shuts_both_drawers_by_libero_goal_check(tmp_path):
     then opens the middle one and closes it again, with the fingers leading (a hand pointing down met the top
     drawer's handle 6 mm short of the stop). LIBERO's scene cannot start with the middle drawer open: it opens
     around the bowl, which then keeps it from closing."""
-    from bpp.envs.libero.bddl import set_section
-    from bpp.envs.libero.chain import parse_step
-    from bpp.envs.libero.demonstrator import demonstrate_steps
-    from bpp.envs.libero.sim import GOAL_BASE, libero_problem
+    from bpp.benchmarks.libero.bddl import set_section
+    from bpp.benchmarks.libero.chain import parse_step
+    from bpp.benchmarks.libero.demonstrator import demonstrate_steps
+    from bpp.benchmarks.libero.sim import GOAL_BASE, libero_problem
 
     top, middle = parse_step("close the top drawer"), parse_step("close the middle drawer of the cabinet")
     assert (top.operator, top.goal) == ("close", "(Close wooden_cabinet_1_top_region)")
@@ -169,7 +169,7 @@ def test_libero_goal_own_two_step_task_the_bowl_into_the_opened_drawer():
     """LIBERO-Goal's "open the top drawer and put the bowl inside", both steps in one episode, judged by LIBERO's
     goal. The opened drawer overhangs the bowl: taken on the near rim and lifted straight up, the bowl met the
     drawer's floor (0 of 2 seeds before the demonstrator slid it out first and took it across the drawer's width)."""
-    from bpp.envs.libero.demonstrator import DemoConfig, demonstrate_steps
+    from bpp.benchmarks.libero.demonstrator import DemoConfig, demonstrate_steps
 
     steps = [("open", {}), ("place", {"obj": BOWL_1, "target": "wooden_cabinet_1_top_region"})]
     env = make_env(problems_folder() / "libero_goal" / "open_the_top_drawer_and_put_the_bowl_inside.bddl")
@@ -184,9 +184,9 @@ def test_chain_start_states_written_into_init_hold_in_libero_once_settled(tmp_pa
     """Second-step tasks start from a first step's end state written into the problem's ``:init``. Four such effects
     at once (the plate pushed, the drawer open, the stove on, the bowl on the cream cheese) hold by LIBERO's own
     predicates after the demonstrator's settling steps; a demonstration whose start state does not hold is refused."""
-    from bpp.envs.libero.chain import ChainTask, parse_step
-    from bpp.envs.libero.demonstrator import demonstrate_steps
-    from bpp.envs.libero.sim import GOAL_BASE, holds, libero_problem
+    from bpp.benchmarks.libero.chain import ChainTask, parse_step
+    from bpp.benchmarks.libero.demonstrator import demonstrate_steps
+    from bpp.benchmarks.libero.sim import GOAL_BASE, holds, libero_problem
 
     starts = [
         "push the plate to the front of the stove",
@@ -210,7 +210,7 @@ def test_chain_start_states_written_into_init_hold_in_libero_once_settled(tmp_pa
 
 
 def test_stored_states_render_the_same_frames_every_time(tmp_path):
-    from bpp.envs.libero.sim import render_states
+    from bpp.benchmarks.libero.sim import render_states
 
     task = combination().train[0]
     path = tmp_path / "task.bddl"
@@ -241,7 +241,7 @@ def test_torch_can_load_its_compiler_after_a_camera_env(tmp_path):
     path = tmp_path / "task.bddl"
     path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
     code = (
-        "from bpp.envs.libero.sim import make_env\n"
+        "from bpp.benchmarks.libero.sim import make_env\n"
         f"env = make_env({str(path)!r}, cameras=('agentview',), image_size=32)\n"
         "env.reset()\n"
         "import torch._dynamo  # loads triton\n"
@@ -254,7 +254,7 @@ def test_torch_can_load_its_compiler_after_a_camera_env(tmp_path):
 def test_a_missing_renderer_is_named_with_its_package(monkeypatch):
     import pytest
 
-    from bpp.envs.libero import sim
+    from bpp.benchmarks.libero import sim
 
     monkeypatch.setenv("MUJOCO_GL", "egl")
     sim._check_renderer()  # Debian's Mesa provides EGL here
@@ -267,9 +267,9 @@ def test_a_missing_renderer_is_named_with_its_package(monkeypatch):
 
 
 def test_libero_goal_is_libero_own_ten_problems_with_their_initial_states():
-    from bpp.envs.libero.dataset import problem_text
-    from bpp.envs.libero.sim import initial_states
-    from bpp.envs.libero.suites import SUITES_BY_NAME
+    from bpp.benchmarks.libero.dataset import problem_text
+    from bpp.benchmarks.libero.sim import initial_states
+    from bpp.benchmarks.libero.suites import SUITES_BY_NAME
 
     suite = SUITES_BY_NAME["libero_goal"]()
     assert suite.original and len(suite.train) == 10 and not suite.test
@@ -285,9 +285,9 @@ def test_written_initial_states_are_what_libero_sampler_gives_and_load_back(tmp_
     0 .. N-1; LIBERO's ``set_init_state`` puts the scene back into each of them."""
     import json
 
+    from bpp.benchmarks.libero.suites import Suite
+    from bpp.benchmarks.libero.tasks import write_suite
     from bpp.cli import main
-    from bpp.envs.libero.suites import Suite
-    from bpp.envs.libero.tasks import write_suite
 
     task = combination().test[0]
     index = json.loads(write_suite(Suite("mini", (), (task,)), tmp_path / "mini", init_states=2).read_text())

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bpp.envs.libero.suites import BOWL, combination, instruction_counts
+from bpp.benchmarks.libero.suites import BOWL, combination, instruction_counts
 
 # The appendix's held-out tasks (pick, place key) with its counts: training tasks with the same pick and a
 # different place, and with a different pick and the same place.
@@ -53,15 +53,15 @@ def test_every_task_is_one_of_nine_options_and_never_where_a_bowl_is():
 
 
 def _chain_tasks() -> list[tuple[str, str]]:
-    from bpp.envs.libero.chain import TASK_LIST
+    from bpp.benchmarks.libero.chain import TASK_LIST
 
     lines = TASK_LIST.read_text().splitlines()
     return [tuple(line.split("|")) for line in lines if line and not line.startswith("#")]
 
 
 def test_every_published_chain_task_reads_as_steps_with_goals():
-    from bpp.envs.libero.chain import parse_instruction
-    from bpp.envs.libero.demonstrator import OPERATORS
+    from bpp.benchmarks.libero.chain import parse_instruction
+    from bpp.benchmarks.libero.demonstrator import OPERATORS
 
     lengths = Counter()
     for view, label in _chain_tasks():
@@ -77,7 +77,7 @@ def test_every_published_chain_task_reads_as_steps_with_goals():
 
 
 def test_chain_steps_map_to_libero_goals():
-    from bpp.envs.libero.chain import goal_problem, parse_instruction
+    from bpp.benchmarks.libero.chain import goal_problem, parse_instruction
 
     first, second = parse_instruction("open the middle drawer of the cabinet and put the cream cheese inside")
     assert (first.operator, first.kwargs, first.goal) == (
@@ -102,7 +102,7 @@ def test_chain_steps_map_to_libero_goals():
 
 
 def test_chain_steps_that_make_no_sense_are_refused_by_name():
-    from bpp.envs.libero.chain import parse_instruction
+    from bpp.benchmarks.libero.chain import parse_instruction
 
     with pytest.raises(ValueError, match="unknown place 'under the table'"):
         parse_instruction("put the bowl under the table")
@@ -113,7 +113,7 @@ def test_chain_steps_that_make_no_sense_are_refused_by_name():
 
 
 def test_what_may_follow_what_is_read_from_the_declared_effects():
-    from bpp.envs.libero.chain import may_follow, parse_step
+    from bpp.benchmarks.libero.chain import may_follow, parse_step
 
     cheese_in_bowl = parse_step("put the cream cheese in the bowl")
     assert (cheese_in_bowl.moves, cheese_in_bowl.leaves_at) == ("cream_cheese_1", "akita_black_bowl_1")
@@ -127,9 +127,9 @@ def test_what_may_follow_what_is_read_from_the_declared_effects():
 
 
 def test_a_view_selects_tasks_by_their_fields_and_is_the_ablations_view():
-    from bpp.envs.libero.chain import chain, chain_no_second_step
-    from bpp.envs.libero.dataset import LiberoDataConfig
-    from bpp.envs.libero.suites import combination, view
+    from bpp.benchmarks.libero.chain import chain, chain_no_second_step
+    from bpp.benchmarks.libero.dataset import LiberoDataConfig
+    from bpp.benchmarks.libero.suites import combination, view
 
     ablation = view(chain(), "view!=second_step")
     assert (ablation.train, ablation.test) == (chain_no_second_step().train, chain_no_second_step().test)
@@ -149,7 +149,7 @@ def test_a_view_selects_tasks_by_their_fields_and_is_the_ablations_view():
 
 
 def test_generated_chain_candidates_hold_every_published_chain():
-    from bpp.envs.libero.chain import chain, chain_candidates, chain_candidates_suite, parse_instruction
+    from bpp.benchmarks.libero.chain import chain, chain_candidates, chain_candidates_suite, parse_instruction
 
     candidates = chain_candidates()
     assert len(candidates) == len(set(candidates)) == 228  # chain-analysis.md's count
@@ -177,7 +177,7 @@ CHAIN_APPENDIX = {
 
 
 def test_chain_has_the_papers_size_held_out_chains_and_appendix_counts():
-    from bpp.envs.libero.chain import chain, chain_no_second_step
+    from bpp.benchmarks.libero.chain import chain, chain_no_second_step
 
     suite = chain()
     assert (len(suite.train), len(suite.test)) == (311, 10)  # 321 = 10 LIBERO-Goal originals + 311 generated
@@ -203,7 +203,7 @@ def test_chain_has_the_papers_size_held_out_chains_and_appendix_counts():
 
 
 def test_each_second_step_starts_from_a_first_steps_end_state_that_allows_it():
-    from bpp.envs.libero.chain import chain, may_follow, parse_step
+    from bpp.benchmarks.libero.chain import chain, may_follow, parse_step
 
     suite = chain()
     firsts = {t.label for t in suite.train if t.view == "first_step"}
@@ -222,8 +222,8 @@ def test_each_second_step_starts_from_a_first_steps_end_state_that_allows_it():
 
 
 def test_a_second_step_task_writes_its_start_state_into_the_problem():
-    from bpp.envs.libero.bddl import parse, section
-    from bpp.envs.libero.chain import ChainTask
+    from bpp.benchmarks.libero.bddl import parse, section
+    from bpp.benchmarks.libero.chain import ChainTask
 
     base = """(define (problem P) (:domain robosuite) (:language x)
       (:init (On wine_bottle_1 main_table_wine_bottle_region)
@@ -242,7 +242,7 @@ def test_a_second_step_task_writes_its_start_state_into_the_problem():
 
 
 def test_rollouts_record_which_objects_were_lifted_and_a_chain_s_first_goal():
-    from bpp.envs.libero.rollouts import LIFT, _Heights, goal_objects, goal_terms
+    from bpp.benchmarks.libero.rollouts import LIFT, _Heights, goal_objects, goal_terms
 
     problem = """(define (problem P) (:domain robosuite) (:fixtures main_table - table stove_1 - flat_stove)
       (:objects bowl_1 bowl_2 - akita_black_bowl plate_1 - plate) (:goal (And (On bowl_2 plate_1) (Turnon stove_1))))"""
@@ -262,7 +262,7 @@ def test_demonstrator_noise_perturbs_the_executed_position_actions_never_the_rec
     """DART: the robot executes each position action plus noise; the demonstration records the clean action."""
     from types import SimpleNamespace
 
-    from bpp.envs.libero.demonstrator import Arm, DemoConfig
+    from bpp.benchmarks.libero.demonstrator import Arm, DemoConfig
 
     sent = []
     sim = SimpleNamespace(get_state=lambda: np.zeros(3))

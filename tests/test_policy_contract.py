@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bpp.envs.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp import BPPModel
 from bpp.policies.bpp.config import BPPConfig, PromptConfig

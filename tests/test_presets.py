@@ -8,10 +8,10 @@ from dataclasses import replace
 import pytest
 import torch
 
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.benchmarks.draw.dataset import generate
 from bpp.data.prompt_dataset import PromptBatchDataset
-from bpp.envs.draw.benchmark import BENCHMARK
-from bpp.envs.draw.dataset import PRESETS as DATA_PRESETS
-from bpp.envs.draw.dataset import generate
 from bpp.policies.registry import METHODS, get_method
 from bpp.utils import to_torch
 

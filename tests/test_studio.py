@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from bpp.envs.draw.studio.client import StudioClient, StudioClientError
-from bpp.envs.draw.studio.engine import Limits, Studio, find_checkpoints
+from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError
+from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints
 from bpp.train import TrainConfig, train
 from helpers import config
 
@@ -42,7 +42,7 @@ class Server:
     def __init__(self, runs: Path, workdir: Path, limits: Limits, data_dir: Path):
         import uvicorn
 
-        from bpp.envs.draw.studio.server import create_app
+        from bpp.benchmarks.draw.studio.server import create_app
 
         with socket.socket() as s:
             s.bind(("127.0.0.1", 0))
@@ -76,7 +76,7 @@ def client(server) -> StudioClient:
 
 
 def test_every_api_call_needs_the_token(server):
-    from bpp.envs.draw.studio.server import create_app
+    from bpp.benchmarks.draw.studio.server import create_app
 
     routes = [(m, r.path) for r in create_app(server.studio, TOKEN).routes for m in getattr(r, "methods", ())]
     paths = [(m, p.replace("{pid}", "x").replace("{rid}", "x").replace("{fmt}", "gif")) for m, p in routes]
@@ -118,7 +118,7 @@ def test_a_rollout_streams_steps_and_is_downloadable(server, tmp_path):
         assert gif.read_bytes()[:3] == b"GIF"
         task = tmp_path / "task.json"
         task.write_text(json.dumps(c.task_file(prompt["id"])))
-        from bpp.envs.draw.files import load_drawings
+        from bpp.benchmarks.draw.files import load_drawings
 
         assert len(load_drawings(task)[0].strokes) == 1  # a task file `bpp eval --files` accepts
 
@@ -257,7 +257,7 @@ def test_no_client_path_touches_the_file_system(server):
 
 
 def test_the_command_binds_loopback_by_default():
-    from bpp.envs.draw.studio.command import StudioCommand
+    from bpp.benchmarks.draw.studio.command import StudioCommand
 
     assert StudioCommand().host == "127.0.0.1"
     with pytest.raises(ValueError, match="token must be at least 16"):
@@ -304,7 +304,7 @@ def test_a_person_draws_a_prompt_and_watches_the_policy(server, tmp_path):
 
 
 def test_a_session_keeps_only_its_newest_finished_rollouts(server):
-    from bpp.envs.draw.studio.engine import KEEP_FINISHED_ROLLOUTS
+    from bpp.benchmarks.draw.studio.engine import KEEP_FINISHED_ROLLOUTS
 
     with client(server) as c:
         prompt = c.prompt_strokes(TRIANGLE)

@@ -16,7 +16,7 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from bpp.envs.registry import DEFAULT_BENCHMARK, benchmark_for_command, benchmark_names, get_benchmark
+from bpp.benchmarks.registry import DEFAULT_BENCHMARK, benchmark_for_command, benchmark_names, get_benchmark
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig
 from bpp.utils import check_fields

@@ -18,13 +18,13 @@ import torch
 import torch.distributed as dist
 from tqdm import tqdm
 
+from bpp.benchmarks.contract import device_frames
+from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpoint
 from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
-from bpp.envs.benchmark import device_frames
-from bpp.envs.registry import get_benchmark
 from bpp.policies.common import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic

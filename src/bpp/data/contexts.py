@@ -20,7 +20,8 @@ from bpp.data.store import EpisodeStore
 FrameSource = Callable[..., np.ndarray]
 """``frames(store, episode, key, size, last_only=False, steps=None)``: (T, size, size, 3) uint8 frames of an
 episode's observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3); with
-``steps``, those steps' (k, size, size, 3). Each benchmark provides one (see :class:`bpp.envs.benchmark.Benchmark`)."""
+``steps``, those steps' (k, size, size, 3). Each benchmark provides one (see
+:class:`bpp.benchmarks.contract.Benchmark`)."""
 
 
 def task_context(

@@ -123,7 +123,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         if frame_refs:
             frames = reference_source
         if frames is None and (spec.image_keys or spec.context == "goal_image"):
-            from bpp.envs.registry import get_benchmark
+            from bpp.benchmarks.registry import get_benchmark
 
             frames = get_benchmark(self.store.benchmark).frames  # how the store's benchmark yields camera frames
         self.frames = frames

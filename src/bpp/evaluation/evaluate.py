@@ -27,10 +27,10 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp import __version__
+from bpp.benchmarks.contract import Benchmark, Metric, TaskSet, run_prompted
+from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
-from bpp.envs.benchmark import Benchmark, Metric, TaskSet, run_prompted
-from bpp.envs.registry import get_benchmark
 from bpp.utils import check_fields, read_json, usable_cores, write_json_atomic
 
 

@@ -1,0 +1,351 @@
+"""Generate LIBERO-Gen demonstrations into the project's episode store (``bpp libero generate``).
+
+    bpp libero generate --preset cpu --out data/libero/combination-train.zarr
+
+Each task's problem is loaded without camera observations (physics only: rendering is about 10x slower than
+physics on a CPU). The scripted demonstrator tries seeds until the task has ``demos_per_task`` demonstrations
+that LIBERO's own predicate accepts, or ``max_tries`` have been spent; failures are counted, never stored. Per
+step the store keeps the action (7-D OSC_POSE deltas and the gripper), LIBERO's ``robot0_proprio-state`` (39) and
+``object-state`` (70) vectors, and the full simulator state, so that any camera can be rendered later from the
+stored state. Per demonstration it keeps the final agent-view frame (the Goal-Image baseline's goal) and, if
+``cameras`` are named, every step's frames, rendered from the stored states.
+
+Tasks run in parallel over processes. Each finished task is written at once to a journal beside the store, so a
+killed run resumes where it stopped (same command); the store itself is written atomically at the end and the
+journal removed.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import shutil
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from bpp.benchmarks.libero.chain import ChainTask
+from bpp.benchmarks.libero.demonstrator import DemoConfig
+from bpp.benchmarks.libero.sim import CAMERAS
+from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, matches
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, derive_keys
+from bpp.utils import check_fields, to_dict
+
+BENCHMARK = "libero_gen"
+GOAL_KEY = "goal_agentview"
+"""Per-episode column: the demonstration's final agent-view frame (upright), the Goal-Image baseline's goal."""
+STEP_KEYS = ("action", "proprio", "object_state", "sim_state")
+PROPRIO_LAYOUT = {
+    "joint_pos": range(0, 7),
+    "joint_pos_cos": range(7, 14),
+    "joint_pos_sin": range(14, 21),
+    "joint_vel": range(21, 28),
+    "eef_pos": range(28, 31),
+    "eef_quat": range(31, 35),
+    "gripper_qpos": range(35, 37),
+    "gripper_qvel": range(37, 39),
+}
+"""The parts of LIBERO's (robosuite's) 39-D ``robot0_proprio-state``, by feature index."""
+EEF = ("eef_pos", "eef_quat", "gripper_qpos")
+"""The derived key ``eef``: the gripper's pose and opening (9 of the 39 features), what LIBERO's own datasets and
+robomimic's low-dimensional policies observe of the robot; the joints' angles and velocities are left out."""
+derive_keys(BENCHMARK, {"eef": ("proprio", [i for part in EEF for i in PROPRIO_LAYOUT[part]])})
+
+
+@dataclass(frozen=True)
+class LiberoDataConfig:
+    """Which tasks to demonstrate, how many times, and which frames to render into the store."""
+
+    suite: str = "combination"
+    """combination or chain (LIBERO-Gen), chain_no_second_step (Chain without its second-step tasks),
+    chain_candidates (every chain the candidate rule generates, 218 training + the 10 held out), or
+    libero_spatial / libero_goal (LIBERO's own 10 tasks of that suite, evaluated from LIBERO's initial states)."""
+    split: Literal["train", "test"] = "train"
+    """train: the suite's training tasks; test: its held-out tasks."""
+    num_tasks: int = 0
+    """Tasks of the split to demonstrate, spread evenly over it (0: all)."""
+    task_indices: tuple[int, ...] = ()
+    """Exactly these tasks of the split (indices, as ``bpp libero tasks`` lists them) instead of num_tasks."""
+    where: str = ""
+    """A view: only the split's tasks whose fields match, e.g. ``pick=TD`` or ``view!=second_step`` (see
+    :func:`bpp.benchmarks.libero.suites.matches`). Tasks keep their index in the split, so their seeds too."""
+    demos_per_task: int = 5
+    max_tries: int = 0
+    """Demonstration attempts per task at most (0: twice the demonstrations plus two)."""
+    seed: int = 0
+    cameras: tuple[str, ...] = ()
+    """Cameras whose frames are rendered for every step into the store (agentview, eye_in_hand); image policies
+    need them (the state-only preset does not)."""
+    image_size: int = 128
+    goal_size: int = 128
+    """Size of each demonstration's stored final agent-view frame (0: none; the Goal-Image baseline needs it)."""
+    demo: DemoConfig = field(default_factory=DemoConfig)
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("suite", self.suite in SUITES_BY_NAME, f"one of {', '.join(SUITES_BY_NAME)}"),
+            ("num_tasks", self.num_tasks >= 0, ">= 0 (0: all)"),
+            ("task_indices", all(i >= 0 for i in self.task_indices), "indices >= 0"),
+            ("demos_per_task", 1 <= self.demos_per_task <= 1000, "in [1, 1000]"),
+            ("max_tries", 0 <= self.max_tries <= 100_000, "in [0, 100000] (0: automatic)"),
+            ("seed", self.seed >= 0, ">= 0"),
+            ("cameras", set(self.cameras) <= set(CAMERAS), f"a subset of {', '.join(CAMERAS)}"),
+            ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
+            ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
+            ("demo.action_noise", 0.0 <= self.demo.action_noise <= 1.0, "in [0, 1] (action units)"),
+            ("demo.max_steps", self.demo.max_steps >= 1, ">= 1"),
+        )
+
+    @property
+    def tries(self) -> int:
+        return self.max_tries or 2 * self.demos_per_task + 2
+
+    @property
+    def original(self) -> bool:
+        """Whether the suite is one of LIBERO's own (its problems verbatim, its initial states for rollouts)."""
+        return SUITES_BY_NAME[self.suite]().original
+
+    def tasks(self) -> list[tuple[int, PickPlace | ChainTask]]:
+        """(index in the split, task) of the tasks to demonstrate."""
+        split = list(getattr(SUITES_BY_NAME[self.suite](), self.split))
+        if not split:
+            raise ValueError(f"the {self.suite} suite has no {self.split} tasks")
+        if self.task_indices:
+            bad = [i for i in self.task_indices if i >= len(split)]
+            if bad:
+                raise ValueError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
+            outside = [i for i in self.task_indices if self.where and not matches(split[i], self.where)]
+            if outside:
+                raise ValueError(f"task_indices {outside} are not in the view {self.where!r}")
+            return [(i, split[i]) for i in sorted(set(self.task_indices))]
+        chosen = [(i, t) for i, t in enumerate(split) if not self.where or matches(t, self.where)]
+        if not chosen:
+            raise ValueError(f"no {self.split} task of {self.suite} is in the view {self.where!r}")
+        n = len(chosen) if not self.num_tasks else min(self.num_tasks, len(chosen))
+        return [chosen[i] for i in np.unique(np.linspace(0, len(chosen) - 1, n).round().astype(int))]
+
+
+PRESETS: dict[str, LiberoDataConfig] = {
+    "cpu": LiberoDataConfig(demos_per_task=3),
+    "held-out": LiberoDataConfig(split="test", demos_per_task=5),
+    "libero-spatial": LiberoDataConfig(suite="libero_spatial", demos_per_task=5),
+    "libero-goal": LiberoDataConfig(suite="libero_goal", demos_per_task=5, demo=DemoConfig(max_steps=1200)),
+    "paper": LiberoDataConfig(demos_per_task=50, cameras=tuple(CAMERAS)),
+    "debug": LiberoDataConfig(task_indices=(0,), demos_per_task=2, goal_size=32),
+    "chain-cpu": LiberoDataConfig(suite="chain", demos_per_task=2, demo=DemoConfig(max_steps=1200)),
+    "chain-held-out": LiberoDataConfig(suite="chain", split="test", demos_per_task=5, demo=DemoConfig(max_steps=1200)),
+}
+"""``cpu``: every Combination training task x 3 demonstrations, state only (about an hour on 2 cores);
+``held-out``: the 10 held-out tasks x 5 (evaluation prompts); ``paper``: 50 per task with both cameras (LIBERO's
+own count per task; the paper does not state LIBERO-Gen's); ``libero-spatial`` and ``libero-goal``: that LIBERO
+suite's own 10 tasks x 5 (prompts for evaluating on it from LIBERO's initial states); ``debug``: one task x 2, for
+tests; ``chain-cpu`` and ``chain-held-out``: ``cpu`` (with 2 demonstrations per task: a chain takes about twice as
+long, so the 311 tasks also generate in about an hour on 2 cores) and ``held-out`` for the Chain suite (up to 1200
+steps per demonstration: a chain is two operators in one episode, and the scripted push alone takes about 550)."""
+
+
+def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:
+    return f"{split}-{index:03d}-{task.name}"
+
+
+def problem_text(task: PickPlace | ChainTask, original: bool = False) -> str:
+    """The BDDL problem of a task: its scene's LIBERO problem, edited (or as LIBERO ships it, for `original` tasks)."""
+    from bpp.benchmarks.libero.bddl import combination_problem
+    from bpp.benchmarks.libero.sim import GOAL_BASE, libero_problem, spatial_problem
+
+    if original:
+        return libero_problem(*task.libero_source)
+    if isinstance(task, ChainTask):
+        return task.problem(libero_problem("libero_goal", GOAL_BASE))
+    return combination_problem(task, spatial_problem(task.scene.base))
+
+
+# ----------------------------------------------------------------------------------------------- workers
+def _task_job(job) -> dict:
+    """Worker: demonstrate one task and write its demonstrations to `journal/<task>.npz` (atomically). Returns
+    a summary: tries and demonstrations kept."""
+    index, task, cfg, journal = job
+    import tempfile
+
+    from bpp.benchmarks.libero.demonstrator import demonstrate_task
+    from bpp.benchmarks.libero.sim import make_env, render_now, render_states
+
+    summary = {"index": index, "kept": 0, "tries": 0}
+    with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
+        problem = Path(folder) / "task.bddl"
+        problem.write_text(problem_text(task, cfg.original))
+        env = make_env(problem, render=bool(cfg.cameras or cfg.goal_size))
+        episodes: list[dict] = []
+        try:
+            for attempt in range(cfg.tries):
+                if len(episodes) >= cfg.demos_per_task:
+                    break
+                seed = cfg.seed * 1_000_003 + index * 1009 + attempt
+                demo = demonstrate_task(env, task, seed, cfg.demo)
+                summary["tries"] += 1
+                if not demo.success:
+                    continue
+                episode = {
+                    "action": demo.actions.astype(np.float32),
+                    "proprio": demo.observations["robot0_proprio-state"].astype(np.float32),
+                    "object_state": demo.observations["object-state"].astype(np.float32),
+                    "sim_state": demo.states.astype(np.float64),
+                    "seed": np.int64(seed),
+                }
+                if cfg.goal_size:
+                    episode[GOAL_KEY] = render_now(env, CAMERAS["agentview"], cfg.goal_size)  # the final state
+                for camera in cfg.cameras:
+                    episode[camera] = render_states(env, demo.states, CAMERAS[camera], cfg.image_size)
+                episodes.append(episode)
+        finally:
+            env.close()
+    summary["kept"] = len(episodes)
+    arrays = {f"{i}/{k}": v for i, ep in enumerate(episodes) for k, v in ep.items()}
+    tmp = journal / f".task-{index:04d}.{os.getpid()}.npz"
+    np.savez(tmp, summary=json.dumps(summary), **arrays)
+    os.replace(tmp, journal / f"task-{index:04d}.npz")
+    return summary
+
+
+def _read_journal(path: Path) -> tuple[dict, list[dict]]:
+    with np.load(path) as data:
+        summary = json.loads(str(data["summary"]))
+        episodes: list[dict] = [{} for _ in range(summary["kept"])]
+        for name in data.files:
+            if name != "summary":
+                i, key = name.split("/", 1)
+                episodes[int(i)][key] = data[name]
+    return summary, episodes
+
+
+def _journal(out: Path, cfg: LiberoDataConfig) -> Path:
+    """The journal folder of a generation into `out`: reused if it was started with the same configuration."""
+    journal = out.with_name(f".{out.name}.journal")
+    config = json.dumps(to_dict(cfg), sort_keys=True)
+    if journal.exists():
+        try:
+            same = (journal / "config.json").read_text() == config
+        except OSError:
+            same = False
+        if not same:
+            print(f"[generate] discarding {journal}: it was started with another configuration")
+            shutil.rmtree(journal)
+    journal.mkdir(parents=True, exist_ok=True)
+    (journal / "config.json").write_text(config)
+    return journal
+
+
+def generate(
+    cfg: LiberoDataConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
+) -> EpisodeStore:
+    """Demonstrate `cfg`'s tasks into the store `out`, over `workers` processes (0: one per core), resuming a
+    killed run's finished tasks. The generation report (tries and successes per pick and per place, tasks left
+    without a demonstration, demonstrations per hour) is printed and kept in the store's ``generation`` attribute."""
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise StoreError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    tasks = cfg.tasks()
+    journal = _journal(out, cfg)
+    done = {int(p.stem.split("-")[1]) for p in journal.glob("task-*.npz")}
+    jobs = [(i, t, cfg, journal) for i, t in tasks if i not in done]
+    workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
+    t0 = time.perf_counter()
+    pool = mp.get_context("spawn").Pool(workers) if workers > 1 else None
+    stop = _exit_on_sigterm()  # a `kill` stops the workers too (the journal keeps every finished task)
+    try:
+        results = pool.imap_unordered(_task_job, jobs) if pool else map(_task_job, jobs)
+        bar = tqdm(results, total=len(tasks), initial=len(tasks) - len(jobs), desc=f"demonstrating {out.name}",
+                   unit="task", disable=not progress)  # fmt: skip
+        made = 0
+        for summary in bar:
+            made += summary["kept"]
+            bar.set_postfix(demos_per_hour=round(3600 * made / (time.perf_counter() - t0)))
+    finally:
+        if pool is not None:
+            pool.terminate()
+        stop()
+    seconds = time.perf_counter() - t0
+    timing = {"seconds_this_run": round(seconds, 1), "demos_per_hour_this_run": round(3600 * made / seconds, 1)}
+    report = _write_store(cfg, tasks, journal, out, overwrite, timing)
+    store = EpisodeStore(out)
+    shutil.rmtree(journal, ignore_errors=True)
+    if progress:
+        print(describe_report(report))
+    return store
+
+
+def _exit_on_sigterm():
+    """Turn SIGTERM into SystemExit while generating (the default would leave the pool's workers running);
+    returns the function that restores the previous handler."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+
+    def exit_(signum, frame):
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, exit_)
+    return lambda: signal.signal(signal.SIGTERM, previous)
+
+
+def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:
+    """The store from the journal's tasks, in the split's order; returns the generation report."""
+    tries, successes, missing, stored = Counter(), Counter(), [], 0
+    stats_keys = ("action", "proprio", "object_state")
+    original = cfg.original
+    with EpisodeWriter(
+        out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=stats_keys
+    ) as writer:
+        for index, task in tasks:
+            summary, episodes = _read_journal(journal / f"task-{index:04d}.npz")
+            for family in task.families:
+                tries[family] += summary["tries"]
+                successes[family] += summary["kept"]
+            stored += len(episodes)
+            if not episodes:
+                missing.append(task.instruction)
+                continue
+            info = {k: v for k, v in task.describe().items() if k != "instruction"}
+            info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, original))
+            if original:  # rollouts start from LIBERO's own initial states of the task
+                info["initial_states"] = "{}/{}.pruned_init".format(*task.libero_source)
+            task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
+            for episode in episodes:
+                columns = {"seed": int(episode.pop("seed"))}
+                if GOAL_KEY in episode:
+                    columns[GOAL_KEY] = episode.pop(GOAL_KEY)
+                writer.add_episode(episode, task_index, **columns)
+        report = {
+            "tasks": len(tasks),
+            "stored": stored,
+            "tries": dict(tries),
+            "successes": dict(successes),
+            "without_demonstrations": missing,
+            **timing,
+        }
+        if not report["stored"]:
+            writer.abort()
+            raise StoreError(f"no demonstration of {len(tasks)} tasks succeeded; nothing to store")
+        writer.root.attrs["generation"] = report
+    return report
+
+
+def describe_report(report: dict) -> str:
+    lines = [f"[generate] {report['stored']} demonstrations of {report['tasks']} tasks"]
+    for family in sorted(report["tries"]):
+        done, tries = report["successes"].get(family, 0), report["tries"][family]
+        lines.append(f"  {family:11s} {done}/{tries} tries succeeded")
+    if report["without_demonstrations"]:
+        lines.append(f"  tasks left without a demonstration: {len(report['without_demonstrations'])}")
+    if "demos_per_hour_this_run" in report:
+        lines.append(f"  {report['demos_per_hour_this_run']} demonstrations per hour in this run")
+    return "\n".join(lines)

@@ -1,0 +1,170 @@
+"""LIBERO-Gen rollouts: a policy, already given each rollout's task context, acts in LIBERO from a new initial
+state; LIBERO's own goal predicates score it (success at any step ends the rollout), as in the paper's protocol.
+Each rollout also records how far it got: whether it lifted an object its goal moves (``lifted``) and whether it
+lifted any other object (``lifted_other``), by at least :data:`LIFT` above where the object started. With two
+identical bowls (Combination), picking the right one is what the prompt has to convey. A task whose goal has
+several terms (a Chain's two steps) also records whether its first term held at some step (``first_step``).
+
+Rollouts step in lockstep through one batched agent; each has its own env (physics only unless the policy
+observes cameras or a video is recorded). Camera observations are rendered from the simulator state after each
+step, upright, the same way training frames are rendered from stored states.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from bpp.benchmarks.contract import RolloutResult
+from bpp.benchmarks.libero.dataset import BENCHMARK
+from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
+from bpp.benchmarks.libero.sim import CAMERAS, holds, initial_states, make_env, render_now
+from bpp.data.store import EpisodeStore, with_derived
+
+LIFT = 0.05
+"""Metres above its settled start that count an object as lifted."""
+VIDEO_SIZE = 128
+VIDEO_STRIDE = 2
+"""Recorded rollouts keep every other control step's frame (and the last): real time in the 10 fps videos, and
+half the rendering, which costs about 90 ms a frame on a CPU (as much as the rollout's physics)."""
+
+
+def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, np.ndarray]:
+    """The policy's observation keys (as stored by generation, and the derived ones) from an env's observation
+    dictionary."""
+    obs = with_derived(
+        BENCHMARK,
+        {
+            "proprio": np.asarray(raw["robot0_proprio-state"], dtype=np.float32),
+            "object_state": np.asarray(raw["object-state"], dtype=np.float32),
+        },
+    )
+    for camera in cameras:
+        obs[camera] = render_now(env, CAMERAS[camera], size)
+    return obs
+
+
+def goal_terms(problem: str | list) -> list[list]:
+    """The terms of the problem's goal (its text, or parsed), in order (a conjunction's parts), e.g.
+    ``[["Open", "..."], ["In", ...]]``."""
+    from bpp.benchmarks.libero.bddl import parse, section
+
+    goal = section(parse(problem) if isinstance(problem, str) else problem, ":goal")[1:]
+    return [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
+
+
+def goal_objects(problem: str) -> tuple[list[str], list[str]]:
+    """(objects the problem's goal puts somewhere, its other movable objects), by name."""
+    from bpp.benchmarks.libero.bddl import objects, parse
+
+    parsed = parse(problem)
+    movable = set(objects(parsed)) - set(objects(parsed, (":fixtures",)))
+    terms = goal_terms(parsed)
+    moved = [t[1] for t in terms if isinstance(t, list) and len(t) == 3 and t[0] in ("On", "In") and t[1] in movable]
+    return moved, sorted(movable - set(moved))
+
+
+def task_problem(store: EpisodeStore, episode: int) -> str:
+    """The BDDL problem of an episode's task, as generation stored it."""
+    task = store.tasks[int(store.column("task_index")[episode])]
+    problem = task.get("info", {}).get("problem")
+    if not problem:
+        raise ValueError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
+    return problem
+
+
+def run_rollouts(
+    agent,
+    store: EpisodeStore,
+    rollouts: Sequence[Mapping],
+    max_steps: int = 550,
+    record_frames: Sequence[bool] | None = None,
+) -> list[RolloutResult]:
+    """Rollout i starts from the initial state LIBERO samples with ``rollouts[i]["init_seed"]`` in the problem of
+    ``rollouts[i]["target_episode"]``'s task (for LIBERO's own tasks: its initial state number init_seed modulo
+    their count, as LIBERO's evaluation uses them) and succeeds when that task's goal holds. `agent` must already
+    be reset with the rollouts' contexts."""
+    spec = agent.data_spec
+    cameras = tuple(spec.image_keys)
+    unknown = sorted(set(cameras) - set(CAMERAS))
+    if unknown:
+        raise ValueError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
+    n = len(rollouts)
+    record = list(record_frames) if record_frames is not None else [False] * n
+    envs, obs, heights, first_goals = [], [], [], []
+    with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
+        problems: dict[int, Path] = {}
+        starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
+        lifts: dict[int, tuple[list[str], list[str]]] = {}  # a task's goal objects and other objects
+        firsts: dict[int, str | None] = {}  # the first of a task's several goal terms
+        try:
+            for row, rec in zip(rollouts, record, strict=True):
+                episode = int(row["target_episode"])
+                task = int(store.column("task_index")[episode])
+                if task not in problems:
+                    text = task_problem(store, episode)
+                    problems[task] = Path(folder) / f"task-{task}.bddl"
+                    problems[task].write_text(text)
+                    lifts[task] = goal_objects(text)
+                    terms = goal_terms(text)
+                    firsts[task] = "({})".format(" ".join(terms[0])) if len(terms) > 1 else None
+                    named = store.tasks[task]["info"].get("initial_states")
+                    starts[task] = initial_states(named) if named else None
+                env = make_env(problems[task], render=bool(cameras) or rec)
+                envs.append(env)
+                env.seed(int(row["init_seed"]))
+                raw = env.reset()
+                states = starts[task]
+                if states is not None:
+                    raw = env.set_init_state(states[int(row["init_seed"]) % len(states)])
+                for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
+                    raw, *_ = env.step(np.zeros(7))
+                obs.append(observe(env, raw, cameras, spec.image_size))
+                heights.append(_Heights(raw, *lifts[task]))
+                first_goals.append(firsts[task])
+            frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
+            done = np.zeros(n, dtype=bool)
+            success = np.zeros(n, dtype=bool)
+            steps = np.zeros(n, dtype=int)
+            first_step = np.zeros(n, dtype=bool)
+            while not done.all():
+                actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
+                for i in np.flatnonzero(~done):
+                    raw, *_ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
+                    steps[i] += 1
+                    heights[i].update(raw)
+                    obs[i] = observe(envs[i], raw, cameras, spec.image_size)
+                    success[i] = bool(envs[i].env._check_success())
+                    if first_goals[i] is not None and not first_step[i]:
+                        first_step[i] = success[i] or holds(envs[i], first_goals[i])
+                    done[i] = success[i] or steps[i] >= max_steps
+                    if record[i] and (done[i] or steps[i] % VIDEO_STRIDE == 0):
+                        frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
+        finally:
+            for env in envs:
+                env.close()
+    extras = [heights[i].extra() | ({"first_step": float(first_step[i])} if first_goals[i] else {}) for i in range(n)]
+    return [RolloutResult(float(success[i]), int(steps[i]), extras[i], frames[i]) for i in range(n)]
+
+
+class _Heights:
+    """The highest each object got above its start in one rollout."""
+
+    def __init__(self, raw: Mapping, moved: list[str], others: list[str]):
+        self.moved, self.others = moved, others
+        self.start = {name: float(raw[f"{name}_pos"][2]) for name in (*moved, *others)}
+        self.top = dict(self.start)
+
+    def update(self, raw: Mapping) -> None:
+        for name, top in self.top.items():
+            self.top[name] = max(top, float(raw[f"{name}_pos"][2]))
+
+    def extra(self) -> dict:
+        lifted = [name for name in self.top if self.top[name] - self.start[name] >= LIFT]
+        return {
+            "lifted": float(any(name in lifted for name in self.moved)),
+            "lifted_other": float(any(name in lifted for name in self.others)),
+        }

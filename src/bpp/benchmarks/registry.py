@@ -1,0 +1,92 @@
+"""Benchmarks by name. Adding a benchmark is a new folder under ``bpp/benchmarks/`` plus one line in :data:`BENCHMARKS`.
+
+The contract a benchmark satisfies is :class:`bpp.benchmarks.contract.Benchmark`. Packages outside bpp can add
+benchmarks through the ``bpp.benchmarks`` entry-point group (``name = "package.module:OBJECT"``), and code (e.g. a
+test) through :func:`register_benchmark`.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+
+from bpp.benchmarks.contract import Benchmark
+
+BENCHMARKS: dict[str, str] = {
+    "drawanything": "bpp.benchmarks.draw.benchmark:BENCHMARK",
+    "libero_gen": "bpp.benchmarks.libero.benchmark:BENCHMARK",
+}
+"""Benchmark name (as stored in every store) -> ``module:object`` implementing the contract."""
+
+DEFAULT_BENCHMARK = "drawanything"
+"""The benchmark of the main job (``bpp demo``)."""
+
+GYM_ENVS: dict[str, str] = {
+    "bpp/DrawAnything-v0": "bpp.benchmarks.draw.env:DrawEnv",
+}
+"""Gymnasium ids registered by ``import bpp.benchmarks`` (entry points are imported lazily, on ``gym.make``)."""
+
+RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio")
+"""The generic command-line groups a benchmark's `command` may not take."""
+
+_LOADED: dict[str, Benchmark] = {}
+
+
+def register_benchmark(name: str, target: str | Benchmark) -> None:
+    """Add (or replace) benchmark `name`: a ``module:object`` path or the object itself."""
+    if isinstance(target, str):
+        BENCHMARKS[name] = target
+        _LOADED.pop(name, None)
+    else:
+        _check(name, target)
+        BENCHMARKS[name] = f"{type(target).__module__}:<object>"
+        _LOADED[name] = target
+
+
+def _plugins() -> dict[str, str]:
+    return {ep.name: ep.value for ep in entry_points(group="bpp.benchmarks")}
+
+
+def benchmark_names() -> list[str]:
+    return sorted({*BENCHMARKS, *_plugins()})
+
+
+def get_benchmark(name: str) -> Benchmark:
+    """The benchmark registered as `name`; a clear error naming the registered ones otherwise."""
+    if name in _LOADED:
+        return _LOADED[name]
+    target = BENCHMARKS.get(name) or _plugins().get(name)
+    if target is None or ":" not in target or target.endswith(":<object>"):
+        raise ValueError(f"unknown benchmark {name!r}; registered: {', '.join(benchmark_names())}")
+    module, attr = target.split(":", 1)
+    benchmark = getattr(importlib.import_module(module), attr)
+    _check(name, benchmark)
+    _LOADED[name] = benchmark
+    return benchmark
+
+
+def benchmark_for_command(command: str) -> Benchmark | None:
+    """The benchmark whose command-line group is `command` (``bpp <command> ...``), if any."""
+    found = [b for b in map(get_benchmark, benchmark_names()) if b.command == command]
+    if len(found) > 1:
+        raise ValueError(f"benchmarks {', '.join(b.name for b in found)} all take the command {command!r}")
+    return found[0] if found else None
+
+
+def _check(name: str, benchmark) -> None:
+    if not isinstance(benchmark, Benchmark):
+        members = {*Benchmark.__annotations__, *(k for k, v in vars(Benchmark).items() if callable(v) and k[0] != "_")}
+        missing = sorted(a for a in members if not hasattr(benchmark, a))
+        raise TypeError(f"benchmark {name!r} does not satisfy bpp.benchmarks.contract.Benchmark; missing {missing}")
+    if benchmark.name != name:
+        raise ValueError(f"benchmark registered as {name!r} calls itself {benchmark.name!r}")
+    if benchmark.command in RESERVED_COMMANDS:
+        raise ValueError(f"benchmark {name!r} takes the command {benchmark.command!r}, which bpp reserves")
+
+
+def register_gym_envs() -> None:
+    import gymnasium as gym
+
+    for env_id, entry_point in GYM_ENVS.items():
+        if env_id not in gym.registry:
+            gym.register(env_id, entry_point=entry_point)
