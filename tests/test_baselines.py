@@ -81,6 +81,7 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
     assert (again.steps, again.best_chamfer) == (result.steps, result.best_chamfer)
 
 
+@pytest.mark.language
 @pytest.mark.parametrize(("text_encoder", "tokenizer"), [("scratch", "pretrained"), ("pretrained", "pretrained")])
 def test_language_text_encoder_choices_train_save_load_and_act(described_store, tmp_path, text_encoder, tokenizer):
     cfg = replace(config("language"), text_encoder=text_encoder, tokenizer=tokenizer)
@@ -102,6 +103,7 @@ def test_language_text_encoder_choices_train_save_load_and_act(described_store, 
     assert 0 < result.steps <= 12
 
 
+@pytest.mark.language
 def test_packaged_pretrained_text_encoder_loads_offline_and_knows_english(monkeypatch):
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     folder = pretrained_text_dir()

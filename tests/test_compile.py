@@ -179,7 +179,7 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
     assert lengths["compiled"] == {padded_tokens(n, 16, limit) for n in lengths["eager"]} != lengths["eager"], lengths
 
 
-@pytest.mark.parametrize("tokenizer", ["bytes", "pretrained"])
+@pytest.mark.parametrize("tokenizer", ["bytes", pytest.param("pretrained", marks=pytest.mark.language)])
 def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer):
     from bpp.nn.text import ByteTokenizer, PretrainedTokenizer, pretrained_text_dir
 

@@ -18,6 +18,8 @@ from bpp.cli import main
 from bpp.data.store import EpisodeStore, StoreError
 from bpp.evaluation.evaluate import resolve_tasks
 
+pytestmark = pytest.mark.libero
+
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):

@@ -9,6 +9,8 @@ from bpp.benchmarks.libero.rollouts import observe
 from bpp.benchmarks.libero.sim import make_env, place_object, problems_folder, spatial_problem
 from bpp.benchmarks.libero.suites import combination
 
+pytestmark = pytest.mark.libero
+
 
 def test_every_problem_libero_ships_survives_a_round_trip():
     files = sorted(problems_folder().rglob("*.bddl"))

@@ -11,15 +11,20 @@ import threading
 import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 from PIL import Image
 
-from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError
-from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints
-from bpp.train import TrainConfig, train
-from helpers import config
+from helpers import config, import_optional
+
+httpx = import_optional("httpx", "studio")
+import_optional("fastapi", "studio")
+
+from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
+from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints  # noqa: E402
+from bpp.train import TrainConfig, train  # noqa: E402
+
+pytestmark = pytest.mark.studio
 
 TOKEN = "test-token-0123456789abcdef"
 TRIANGLE = [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8], [0.2, 0.2]]]
@@ -264,6 +269,7 @@ def test_the_command_binds_loopback_by_default():
         StudioCommand(token="short")
 
 
+@pytest.mark.browser
 def test_a_person_draws_a_prompt_and_watches_the_policy(server, tmp_path):
     """Debian's chromium, driven by Playwright as a person would: draw, use the drawing, run, watch."""
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -8,3 +8,16 @@ its traceback. It subclasses ValueError so that library callers catching ValueEr
 class UserError(ValueError):
     """An input the user gave (flag, file, store, checkpoint, prompt) is wrong; the message names it and what was
     expected."""
+
+
+def require_extra(module: str, extra: str):
+    """Import `module`, which only optional extra `extra` installs; a missing one is a UserError saying what to
+    install (``pip install 'bpp[extra]'``) rather than an ImportError from deep inside a command."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ModuleNotFoundError as err:
+        if err.name is None or module.split(".")[0] != err.name.split(".")[0]:
+            raise  # the module is there but one of its own imports failed: a broken install, not a missing extra
+        raise UserError(f"this needs the {extra!r} extra, which is not installed: pip install 'bpp[{extra}]'") from err

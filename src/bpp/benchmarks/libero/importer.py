@@ -84,7 +84,9 @@ def import_files(
 ) -> EpisodeStore:
     """One task per file of `paths`; every demonstration's observations recomputed from its states; the final
     agent-view frame rendered at `goal_size` (0: none) as the Goal-Image baseline's goal."""
-    import h5py
+    from bpp.errors import require_extra
+
+    h5py = require_extra("h5py", "libero")
 
     from bpp.benchmarks.libero.sim import CAMERAS, make_env, render_now
 

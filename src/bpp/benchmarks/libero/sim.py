@@ -12,8 +12,10 @@ import contextlib
 import os
 from pathlib import Path
 
+from bpp.errors import UserError
 
-class LiberoUnavailable(RuntimeError):
+
+class LiberoUnavailable(UserError):
     """LIBERO (or its renderer) is missing; the message says what to install or set."""
 
 

@@ -49,8 +49,11 @@ class StudioCommand:
 
 def studio(args: StudioCommand) -> None:
     import torch
-    import uvicorn
 
+    from bpp.errors import require_extra
+
+    uvicorn = require_extra("uvicorn", "studio")
+    require_extra("fastapi", "studio")
     from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints
     from bpp.benchmarks.draw.studio.server import create_app
 
