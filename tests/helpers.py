@@ -98,7 +98,7 @@ def rollout(agent, store, episode, board_angle, seed=0, max_steps=400, record_fr
 
 def obs_config(**fields):
     """An ObsConfig observing DrawAnything's ``canvas`` state keys, plus `fields` (e.g. a camera)."""
-    from bpp.policies.common import ObsConfig
+    from bpp.policies.config import ObsConfig
 
     canvas = BENCHMARK.observations["canvas"]
     return ObsConfig(**{"lowdim_keys": canvas.lowdim_keys, "proprio_keys": canvas.proprio_keys, **fields})

@@ -11,10 +11,10 @@ from bpp.benchmarks.draw.procedural import describe_parts
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.common import ContextError
 from bpp.policies.goal_image import GoalImageModel
 from bpp.policies.language import LanguageModel
 from bpp.policies.registry import get_method
+from bpp.policies.validation import ContextError
 from bpp.train import TrainConfig, train
 from bpp.utils import from_dict, to_dict, to_torch
 from helpers import config, context_for, obs_config, rollout, rollout_batch

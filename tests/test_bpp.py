@@ -16,7 +16,7 @@ from bpp.data.prompt_dataset import DataSpec, PromptBatchDataset
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.config import PromptConfig
 from bpp.policies.bpp.model import BPPModel, PromptError
-from bpp.policies.common import count_parameters
+from bpp.policies.model import count_parameters
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
 from helpers import config, obs_config, prompt_from_store, rollout

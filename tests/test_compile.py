@@ -10,7 +10,9 @@ import torch
 from bpp.data.contexts import padded_length
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.nn.text import padded_tokens
-from bpp.policies.common import DEBUG_DIFFUSION, DiffusionHead, keep_eager
+from bpp.policies.config import DEBUG_DIFFUSION
+from bpp.policies.diffusion import DiffusionHead
+from bpp.policies.model import keep_eager
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch

@@ -13,7 +13,7 @@ from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import batch_context, task_context
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.nn.vision import ResNetGN
-from bpp.policies.common import ObsConfig
+from bpp.policies.config import ObsConfig
 from bpp.policies.registry import get_method
 from bpp.utils import to_torch
 from helpers import assert_same_batches, config, obs_config

@@ -378,7 +378,7 @@ def test_every_config_refuses_values_out_of_range_naming_the_field(make, field):
     from bpp.benchmarks.draw.procedural import ProceduralConfig  # noqa: F401
     from bpp.evaluation.evaluate import Protocol  # noqa: F401
     from bpp.policies.bpp.config import BPPConfig  # noqa: F401
-    from bpp.policies.common import DiffusionConfig, Horizons, ObsConfig  # noqa: F401
+    from bpp.policies.config import DiffusionConfig, Horizons, ObsConfig  # noqa: F401
     from bpp.policies.icrt.config import ICRTConfig  # noqa: F401
 
     with pytest.raises(ValueError, match=rf"{field}"):

@@ -6,9 +6,10 @@ import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.common import PromptError, count_parameters
 from bpp.policies.icrt import ICRTModel
 from bpp.policies.icrt.model import PROMPT, ROLLOUT
+from bpp.policies.model import count_parameters
+from bpp.policies.validation import PromptError
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
 from helpers import config, obs_config, prompt_from_store, rollout

@@ -25,7 +25,7 @@ from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
-from bpp.policies.common import count_parameters, keep_eager
+from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
 

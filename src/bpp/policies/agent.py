@@ -20,7 +20,7 @@ import torch
 
 from bpp.data.contexts import collate_contexts
 from bpp.data.spec import DataSpec
-from bpp.policies.common import DiffusionHead
+from bpp.policies.diffusion import DiffusionHead
 from bpp.policies.registry import PolicyModelContract
 from bpp.utils import to_torch
 

@@ -2,7 +2,7 @@
 
 Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`. A method's package exports
 ``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; it has ``obs``
-(:class:`~bpp.policies.common.ObsConfig`), ``action_key`` and ``horizons``), ``Model`` (tensor-only;
+(:class:`~bpp.policies.config.ObsConfig`), ``action_key`` and ``horizons``), ``Model`` (tensor-only;
 ``Model(config, stats)``, satisfying :class:`PolicyModelContract`) and ``PRESETS`` (size name -> Config, at least
 ``debug``, ``cpu`` and ``paper``). A size preset observes nothing yet: :meth:`Method.config` combines it with a
 benchmark's observation preset (keys, image size, action key).
@@ -18,7 +18,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from bpp.data.spec import ContextKind, DataSpec
-from bpp.policies.common import with_observation
+from bpp.policies.config import with_observation
 
 METHODS: dict[str, str] = {
     "bpp": "bpp.policies.bpp",

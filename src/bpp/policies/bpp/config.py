@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from bpp.policies.common import (
+from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
     DEBUG_OBS,
@@ -70,7 +70,7 @@ class BPPConfig:
     action_relative_to: str = ""
     """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
     are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     dim: int = 128
     """D: token width of the prompt encoder."""
     layers: int = 2

@@ -18,8 +18,9 @@ from torch import nn
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
 from bpp.nn.lowdim import FourierFeatures
 from bpp.policies.bpp.config import BPPConfig
-from bpp.policies.common import ContextDiffusionPolicy, validate_demo_context
-from bpp.policies.common import PromptError as PromptError  # raised by validate_context; importable from here
+from bpp.policies.model import ContextDiffusionPolicy
+from bpp.policies.validation import PromptError as PromptError  # raised by validate_context; importable from here
+from bpp.policies.validation import validate_demo_context
 
 
 @dataclass

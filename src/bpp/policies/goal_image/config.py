@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import (
+from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
     DEBUG_OBS,
@@ -35,7 +35,7 @@ class GoalImageConfig:
     action_relative_to: str = ""
     """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
     are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     goal_camera: str = "image"
     goal_image_size: int = 96
     """Goal images are (goal_image_size, goal_image_size, 3) uint8; with image observations, obs.image_size."""

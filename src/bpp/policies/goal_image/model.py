@@ -15,8 +15,10 @@ import numpy as np
 import torch
 
 from bpp.nn.vision import ResNetGN
-from bpp.policies.common import ContextDiffusionPolicy, ContextError, encode_images
 from bpp.policies.goal_image.config import GoalImageConfig
+from bpp.policies.model import ContextDiffusionPolicy
+from bpp.policies.observation import encode_images
+from bpp.policies.validation import ContextError
 
 
 class GoalImageModel(ContextDiffusionPolicy):

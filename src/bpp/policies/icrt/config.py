@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from bpp.policies.common import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig, transformer_rules
+from bpp.policies.config import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig, transformer_rules
 from bpp.utils import check_fields
 
 
@@ -22,7 +22,7 @@ class ICRTConfig:
     action_relative_to: str = ""
     """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
     are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     chunk_len: int = 10
     """N: actions per action token, and steps between observation tokens (BPP's prompt chunk Δt)."""
     max_tokens: int = 256

@@ -48,8 +48,9 @@ from torch.nn import functional as F
 
 from bpp.data.contexts import index_contexts
 from bpp.nn.causal import CausalTransformer, KVCache
-from bpp.policies.common import PolicyModel, validate_demo_context
 from bpp.policies.icrt.config import ICRTConfig
+from bpp.policies.model import PolicyModel
+from bpp.policies.validation import validate_demo_context
 
 # Token types: a segment (prompt or rollout) plus a kind (observation or action), indexing the type embedding.
 PROMPT, ROLLOUT = 0, 2

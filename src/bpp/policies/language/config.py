@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
-from bpp.policies.common import (
+from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
     DEBUG_OBS,
@@ -47,7 +47,7 @@ class LanguageConfig:
     action_relative_to: str = ""
     """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
     are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.common.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     text_encoder: Literal["scratch", "pretrained"] = "scratch"
     """scratch: a transformer sized by ``text``, trained from scratch with the policy. pretrained: the encoder at
     ``pretrained_text_model``, fine-tuned with the policy (the paper fine-tunes CLIP's text tower, which no

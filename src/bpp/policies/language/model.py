@@ -20,8 +20,9 @@ from bpp.nn.text import (
     TextTransformer,
     pretrained_text_dir,
 )
-from bpp.policies.common import ContextDiffusionPolicy, ContextError
 from bpp.policies.language.config import LanguageConfig
+from bpp.policies.model import ContextDiffusionPolicy
+from bpp.policies.validation import ContextError
 
 
 class LanguageModel(ContextDiffusionPolicy):
@@ -61,7 +62,7 @@ class LanguageModel(ContextDiffusionPolicy):
         return {"text": [text]}
 
     never_compiled = ("tokenize",)
-    """Left to Python by a compiled loss (:func:`bpp.policies.common.keep_eager`): traced, the instructions would be
+    """Left to Python by a compiled loss (:func:`bpp.policies.model.keep_eager`): traced, the instructions would be
     constants of the graph, and each new one would be compiled anew."""
 
     def tokenize(self, texts: list[str], multiple: int = 1) -> tuple[torch.Tensor, torch.Tensor]:

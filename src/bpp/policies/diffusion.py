@@ -1,0 +1,131 @@
+"""The diffusion action head: a FiLM 1D U-Net over action chunks, trained with DDPM, sampled with DDIM (or
+DDPM), optionally replayed from a CUDA graph."""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping
+from dataclasses import replace
+
+import torch
+from torch import nn
+
+from bpp.nn.unet1d import ConditionalUnet1D
+from bpp.policies.config import DiffusionConfig
+
+
+class DiffusionHead(nn.Module):
+    """Epsilon-prediction diffusion over normalised action chunks (B, T, A), conditioned on a vector (B, C)."""
+
+    def __init__(self, cfg: DiffusionConfig, action_dim: int, cond_dim: int):
+        super().__init__()
+        from diffusers import DDIMScheduler, DDPMScheduler
+
+        self.cfg = cfg
+        self.net = ConditionalUnet1D(action_dim, cond_dim, cfg.down_dims, cfg.kernel_size, cfg.step_embed_dim)
+        common = dict(
+            num_train_timesteps=cfg.num_train_steps,
+            beta_schedule=cfg.beta_schedule,
+            clip_sample=True,
+            prediction_type="epsilon",
+        )
+        self.train_scheduler = DDPMScheduler(**common)
+        # ᾱ_t for noising training samples, as a buffer: it moves with the model, so a compiled loss on a GPU reads
+        # no CPU tensor (one would keep it from being replayed as a CUDA graph). Not saved: the schedule defines it.
+        self.register_buffer("alphas_cumprod", self.train_scheduler.alphas_cumprod.clone(), persistent=False)
+        self.sample_scheduler = (DDIMScheduler if cfg.sampler == "ddim" else DDPMScheduler)(**common)
+        self.cuda_graphs = False
+        """Replay DDIM sampling on a GPU from a CUDA graph (see :meth:`sample`); the agent turns it on for CUDA."""
+        self._graphs: dict = {}
+
+    def draw_noise(
+        self, shape: tuple[int, ...], device: torch.device, generator: torch.Generator | None = None
+    ) -> dict[str, torch.Tensor]:
+        """The random draws of one loss evaluation for action chunks of `shape` (B, T, A): ``{"noise": (B, T, A),
+        "timesteps": (B,)}``."""
+        noise = torch.randn(shape, device=device, generator=generator)
+        steps = torch.randint(0, self.cfg.num_train_steps, (shape[0],), device=device, generator=generator)
+        return {"noise": noise, "timesteps": steps}
+
+    def loss(
+        self,
+        actions: torch.Tensor,
+        cond: torch.Tensor,
+        generator: torch.Generator | None = None,
+        noise: Mapping[str, torch.Tensor] | None = None,
+    ):
+        """Mean squared noise-prediction error for normalised actions (B, T, A), with the draws `noise` (see
+        :meth:`draw_noise`; made here from `generator` if None)."""
+        if noise is None:
+            noise = self.draw_noise(actions.shape, actions.device, generator)
+        eps, steps = noise["noise"], noise["timesteps"]
+        alpha = self.alphas_cumprod.to(actions.dtype)[steps][:, None, None]  # the DDPM scheduler's add_noise
+        noisy = alpha**0.5 * actions + (1 - alpha) ** 0.5 * eps
+        return nn.functional.mse_loss(self.net(noisy, steps, cond), eps)
+
+    def set_inference_steps(self, steps: int) -> None:
+        """Denoise in `steps` DDIM/DDPM steps at inference from now on (training is unaffected)."""
+        if not 1 <= steps <= self.cfg.num_train_steps:
+            raise ValueError(
+                f"inference steps must be in [1, {self.cfg.num_train_steps}] (the training steps), got {steps}"
+            )
+        self.cfg = replace(self.cfg, num_inference_steps=steps)
+
+    @torch.no_grad()
+    def sample(
+        self,
+        cond: torch.Tensor,
+        shape: tuple[int, int],
+        noise: torch.Tensor | None = None,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+    ):
+        """Denoise from `noise` (B, T, A) (drawn if None) to normalised actions (B, T, A).
+
+        `generator`: one for the batch, or a list of B, one per sample, so that a sample's result (including the
+        DDPM sampler's per-step noise) does not depend on which other samples share its batch. With
+        :attr:`cuda_graphs` set, a DDIM loop on a GPU is recorded once per shape as a CUDA graph and replayed."""
+        from diffusers.utils.torch_utils import randn_tensor
+
+        if noise is None:
+            noise = randn_tensor((cond.shape[0], *shape), generator=generator, device=cond.device)
+        # The time steps stay on the CPU and the loop reads them as Python ints: nothing waits for the GPU between
+        # denoising steps (a CUDA time step made the scheduler read it back three times per step).
+        self.sample_scheduler.set_timesteps(self.cfg.num_inference_steps)
+        if self.cuda_graphs and cond.is_cuda and self.cfg.sampler == "ddim":
+            try:
+                return self._graphed_denoise(cond, noise)
+            except RuntimeError as error:  # a GPU or driver that cannot record this loop: sample as before
+                warnings.warn(f"CUDA-graph sampling failed, sampling without it from now on: {error}", stacklevel=2)
+                self.cuda_graphs = False
+                self._graphs.clear()
+        return self._denoise(cond, noise, generator)
+
+    def _denoise(self, cond: torch.Tensor, x: torch.Tensor, generator=None) -> torch.Tensor:
+        for t in self.sample_scheduler.timesteps.tolist():
+            eps = self.net(x, torch.full((x.shape[0],), t, dtype=torch.long, device=x.device), cond)
+            x = self.sample_scheduler.step(eps, t, x, generator=generator).prev_sample
+        return x
+
+    def _graphed_denoise(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """The DDIM loop as one CUDA graph: launching a small network's kernels one by one costs more than running
+        them at batch 1. DDIM draws no noise, and the schedule's scalars are fixed per step count, so the whole loop
+        replays from new `cond` and `noise` copied into the recorded inputs."""
+        weights = next(self.net.parameters()).data_ptr()  # a moved model needs a new graph
+        key = (tuple(noise.shape), tuple(cond.shape), cond.dtype, self.cfg.num_inference_steps, weights)
+        if key not in self._graphs:
+            self._graphs.clear()
+            static_cond, static_noise = cond.clone(), noise.clone()
+            side = torch.cuda.Stream()
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):  # warm-up outside the graph (cuDNN's choices, the allocator)
+                self._denoise(static_cond, static_noise)
+            torch.cuda.current_stream().wait_stream(side)
+            graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(graph):
+                out = self._denoise(static_cond, static_noise)
+            self._graphs[key] = (graph, static_cond, static_noise, out)
+        graph, static_cond, static_noise, out = self._graphs[key]
+        static_cond.copy_(cond)
+        static_noise.copy_(noise)
+        graph.replay()
+        return out.clone()
