@@ -2,8 +2,10 @@
 with, build and train one step (the paper presets are too large for the suite; BPP's is checked for size in
 test_bpp)."""
 
+import json
 import math
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,10 +15,12 @@ from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import generate
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.policies.registry import METHODS, get_method
-from bpp.utils import to_torch
+from bpp.utils import from_dict, to_dict, to_torch
 
 SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "canvas-ink"), ("cpu", "board"), ("cpu", "image64")]
 CASES = [(m, size, obs) for m in METHODS for size, obs in SETTINGS]
+SAVED_CONFIGS = Path(__file__).parent / "data" / "method_configs.json"
+"""Every method's model config as runs and checkpoints save it (JSON): each size preset with one observation preset."""
 
 
 @pytest.fixture(scope="module")
@@ -43,3 +47,18 @@ def test_canvas_ink_is_canvas_with_the_ink_drawn():
     canvas, ink = BENCHMARK.observations["canvas"], BENCHMARK.observations["canvas-ink"]
     assert ink.lowdim_keys == canvas.lowdim_keys and ink.action_key == canvas.action_key == "action"
     assert ink.proprio_keys == (*canvas.proprio_keys, "ink_length")
+
+
+def test_saved_configs_keep_their_fields():
+    """What a run saves of its model config is the stored expectation, field for field, and rebuilds the same config:
+    the config classes' code can change without changing what runs and checkpoints record."""
+    expected = json.loads(SAVED_CONFIGS.read_text())
+    built = {}
+    for name in METHODS:
+        method = get_method(name)
+        for size, obs in (("debug", "canvas"), ("cpu", "canvas-ink"), ("paper", "paper")):
+            cfg = method.config(size, obs, BENCHMARK)
+            saved = json.loads(json.dumps(to_dict(cfg)))
+            built[f"{name}/{size}/{obs}"] = saved
+            assert from_dict(method.config_cls, saved) == cfg
+    assert built == expected

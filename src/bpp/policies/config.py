@@ -7,7 +7,7 @@ Plain dataclasses, no torch: a config is built, validated and saved without load
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 from bpp.utils import check_fields
 
@@ -136,6 +136,36 @@ class Horizons:
                 f"need 1 <= n_action_steps <= horizon - n_obs_steps + 1, got Ta={self.n_action_steps}, "
                 f"T={self.horizon}, To={self.n_obs_steps}"
             )
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """The fields every method's config has (the base of each method's ``Config``, which adds its own).
+
+    A method's config is everything that defines its model; every run and checkpoint saves it as JSON
+    (:func:`bpp.utils.to_dict`) and rebuilds it from there (:func:`bpp.utils.from_dict`), so a field's name is part of
+    the saved format.
+    """
+
+    obs: ObsConfig = field(default_factory=ObsConfig)
+    action_key: str = "action"
+    """The per-step key the policy predicts (set by a benchmark's observation preset)."""
+    action_relative_to: str = ""
+    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
+    are learned and predicted as offsets from its value at the current step (see
+    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+
+
+@dataclass(frozen=True)
+class ContextDiffusionConfig(PolicyConfig):
+    """The fields of a method with the diffusion action decoder (:class:`bpp.policies.model.ContextDiffusionPolicy`):
+    the horizons and the decoder, which must be able to halve the horizon at each of its levels."""
+
+    horizons: Horizons = field(default_factory=Horizons)
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
+
+    def __post_init__(self):
+        self.diffusion.check_horizon(self.horizons.horizon)
 
 
 # Size-preset parts that several methods share (each method's config.py names its own size presets; the keys come

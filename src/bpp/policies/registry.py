@@ -1,8 +1,9 @@
 """Methods by name, and the contract every method's model implements.
 
 Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`. A method's package exports
-``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; it has ``obs``
-(:class:`~bpp.policies.config.ObsConfig`), ``action_key`` and ``horizons``), ``Model`` (tensor-only;
+``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; a subclass of
+:class:`~bpp.policies.config.PolicyConfig`, or of :class:`~bpp.policies.config.ContextDiffusionConfig` for a method
+with the diffusion decoder, and with ``horizons``), ``Model`` (tensor-only;
 ``Model(config, stats)``, satisfying :class:`PolicyModelContract`) and ``PRESETS`` (size name -> Config, at least
 ``debug``, ``cpu`` and ``paper``). A size preset observes nothing yet: :meth:`Method.config` combines it with a
 benchmark's observation preset (keys, image size, action key).

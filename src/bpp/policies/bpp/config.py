@@ -11,9 +11,7 @@ from bpp.policies.config import (
     DEBUG_OBS,
     PAPER_DIFFUSION,
     PAPER_OBS,
-    DiffusionConfig,
-    Horizons,
-    ObsConfig,
+    ContextDiffusionConfig,
     transformer_rules,
 )
 from bpp.utils import check_fields
@@ -59,18 +57,11 @@ class PromptConfig:
 
 
 @dataclass(frozen=True)
-class BPPConfig:
-    """Everything that defines a BPP model (saved as JSON in every checkpoint)."""
+class BPPConfig(ContextDiffusionConfig):
+    """Everything that defines a BPP model (saved as JSON in every checkpoint): the shared fields
+    (:class:`~bpp.policies.config.ContextDiffusionConfig`), the prompt and the prompt encoder."""
 
-    obs: ObsConfig = field(default_factory=ObsConfig)
-    horizons: Horizons = field(default_factory=Horizons)
     prompt: PromptConfig = field(default_factory=PromptConfig)
-    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    action_key: str = "action"
-    action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
-    are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     dim: int = 128
     """D: token width of the prompt encoder."""
     layers: int = 2
@@ -79,8 +70,8 @@ class BPPConfig:
     dropout: float = 0.0
 
     def __post_init__(self):
+        super().__post_init__()
         check_fields(self, *transformer_rules(self))
-        self.diffusion.check_horizon(self.horizons.horizon)
 
 
 PRESETS: dict[str, BPPConfig] = {

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from bpp.policies.config import (
     CPU_OBS,
@@ -11,8 +11,7 @@ from bpp.policies.config import (
     IMAGE_WIDTHS_RULE,
     PAPER_DIFFUSION,
     PAPER_OBS,
-    DiffusionConfig,
-    Horizons,
+    ContextDiffusionConfig,
     ObsConfig,
     group_normable,
 )
@@ -20,22 +19,15 @@ from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
-class GoalImageConfig:
-    """Everything that defines a Goal-Image model (saved as JSON in every checkpoint).
+class GoalImageConfig(ContextDiffusionConfig):
+    """Everything that defines a Goal-Image model (saved as JSON in every checkpoint): the shared fields
+    (:class:`~bpp.policies.config.ContextDiffusionConfig`) and the goal image's.
 
     The goal is the final frame of the prompt demonstration from camera ``goal_camera``. With image observations
     it goes through that camera's own encoder (shared weights, as in the paper); with state-only observations
     through an encoder of its own, a ResNetGN of ``goal_widths`` x ``goal_blocks``.
     """
 
-    obs: ObsConfig = field(default_factory=ObsConfig)
-    horizons: Horizons = field(default_factory=Horizons)
-    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    action_key: str = "action"
-    action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
-    are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     goal_camera: str = "image"
     goal_image_size: int = 96
     """Goal images are (goal_image_size, goal_image_size, 3) uint8; with image observations, obs.image_size."""
@@ -45,6 +37,7 @@ class GoalImageConfig:
     goal_blocks: tuple[int, ...] = (1, 1, 1, 1)
 
     def __post_init__(self):
+        super().__post_init__()
         widths, blocks = self.goal_widths, self.goal_blocks
         check_fields(
             self,
@@ -53,7 +46,6 @@ class GoalImageConfig:
             ("goal_widths", len(widths) >= 1 and all(group_normable(w) for w in widths), IMAGE_WIDTHS_RULE),
             ("goal_blocks", len(blocks) == len(widths) and all(b >= 1 for b in blocks), "one count >= 1 per width"),
         )
-        self.diffusion.check_horizon(self.horizons.horizon)
         if self.obs.image_keys:
             if self.goal_camera not in self.obs.image_keys:
                 raise ValueError(

@@ -2,14 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from bpp.policies.config import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, ObsConfig, transformer_rules
+from bpp.policies.config import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, PolicyConfig, transformer_rules
 from bpp.utils import check_fields
 
 
 @dataclass(frozen=True)
-class ICRTConfig:
+class ICRTConfig(PolicyConfig):
     """Everything that defines an ICRT model (saved as JSON in every checkpoint).
 
     The token sequence is the prompt demonstration then the rollout, two tokens per chunk of N = `chunk_len`
@@ -17,12 +17,6 @@ class ICRTConfig:
     tokens holds ``max_tokens // 2`` chunks in all, prompt and rollout together.
     """
 
-    obs: ObsConfig = field(default_factory=ObsConfig)
-    action_key: str = "action"
-    action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
-    are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     chunk_len: int = 10
     """N: actions per action token, and steps between observation tokens (BPP's prompt chunk Δt)."""
     max_tokens: int = 256

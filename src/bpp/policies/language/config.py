@@ -11,9 +11,7 @@ from bpp.policies.config import (
     DEBUG_OBS,
     PAPER_DIFFUSION,
     PAPER_OBS,
-    DiffusionConfig,
-    Horizons,
-    ObsConfig,
+    ContextDiffusionConfig,
     transformer_rules,
 )
 from bpp.utils import check_fields
@@ -37,17 +35,10 @@ class TextEncoderConfig:
 
 
 @dataclass(frozen=True)
-class LanguageConfig:
-    """Everything that defines a Language model (saved as JSON in every checkpoint)."""
+class LanguageConfig(ContextDiffusionConfig):
+    """Everything that defines a Language model (saved as JSON in every checkpoint): the shared fields
+    (:class:`~bpp.policies.config.ContextDiffusionConfig`) and the instruction encoder's."""
 
-    obs: ObsConfig = field(default_factory=ObsConfig)
-    horizons: Horizons = field(default_factory=Horizons)
-    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)
-    action_key: str = "action"
-    action_relative_to: str = ""
-    """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
-    are learned and predicted as offsets from its value at the current step (see
-    :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
     text_encoder: Literal["scratch", "pretrained"] = "scratch"
     """scratch: a transformer sized by ``text``, trained from scratch with the policy. pretrained: the encoder at
     ``pretrained_text_model``, fine-tuned with the policy (the paper fine-tunes CLIP's text tower, which no
@@ -63,11 +54,11 @@ class LanguageConfig:
     text: TextEncoderConfig = field(default_factory=TextEncoderConfig)
 
     def __post_init__(self):
+        super().__post_init__()
         if self.text_encoder not in ("scratch", "pretrained"):
             raise ValueError(f"text_encoder must be 'scratch' or 'pretrained', got {self.text_encoder!r}")
         if self.tokenizer not in ("pretrained", "bytes"):
             raise ValueError(f"tokenizer must be 'pretrained' or 'bytes', got {self.tokenizer!r}")
-        self.diffusion.check_horizon(self.horizons.horizon)
         if self.text_encoder == "pretrained" and self.tokenizer != "pretrained":
             raise ValueError("a pretrained text encoder needs its own tokenizer: set tokenizer='pretrained'")
 
