@@ -15,7 +15,7 @@ def _circle(r):
 
 
 def test_parity_with_authors_metric():
-    # Values measured with the authors' implementation (../shared/ANCHORS.md).
+    # Values measured with the authors' implementation (docs/drawanything.md, "Parity with the authors' metric").
     assert chamfer_distance(ink_mask([_line(256)]), ink_mask([_line(266)])) == pytest.approx(9.18, abs=0.02)
     assert chamfer_distance(ink_mask([_circle(100)]), ink_mask([_circle(110)])) == pytest.approx(9.69, abs=0.03)
 

@@ -152,7 +152,7 @@ def test_generated_chain_candidates_hold_every_published_chain():
     from bpp.benchmarks.libero.chain import chain, chain_candidates, chain_candidates_suite, parse_instruction
 
     candidates = chain_candidates()
-    assert len(candidates) == len(set(candidates)) == 228  # chain-analysis.md's count
+    assert len(candidates) == len(set(candidates)) == 228  # docs/libero-gen/chain.md's count
     published = {t.label for t in (*chain().train, *chain().test) if t.view in ("seen_chains", "unseen_chains")}
     assert len(published) == 154 and published <= set(candidates)
     assert all(len(parse_instruction(label)) == 2 for label in candidates)
@@ -185,7 +185,7 @@ def test_chain_has_the_papers_size_held_out_chains_and_appendix_counts():
     assert {t.label: suite.similar_counts(t)["same_first_step_and_object"] for t in suite.test} == CHAIN_APPENDIX
     # The appendix's notes on the second step as a training task: from another start, present for all 10 (ours too);
     # from the first step's end state, not present for the middle drawer and the rack. Ours differ on one chain, whose
-    # start state depends on an order the authors did not publish (docs/liberogen/README.md).
+    # start state depends on an order the authors did not publish (docs/libero-gen/chain.md).
     notes = {t.label: suite.similar_counts(t) for t in suite.test}
     assert all(n["second_step_from_another_state"] for n in notes.values())
     absent = {label for label, n in notes.items() if not n["second_step_from_that_state"]}

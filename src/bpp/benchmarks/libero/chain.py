@@ -4,7 +4,7 @@ a stove and a wine rack).
 
 An instruction is one step ("put the bowl on the plate") or two ("open the top drawer and then put the bowl on
 the plate", "open the middle drawer of the cabinet and put the cream cheese inside"). A second-step task's label
-may end in a repeat number ("put the bowl on the stove 3"), which names no state (docs/liberogen/chain-analysis.md)
+may end in a repeat number ("put the bowl on the stove 3"), which names no state (docs/libero-gen/chain.md)
 and is dropped here. How the phrases map to BDDL follows LIBERO-Goal's own goals (the same document).
 
 **The suite** (:func:`chain`) is the authors' published task list (``chain_tasks.txt``: 21 first steps, 146
@@ -128,7 +128,7 @@ HOLDERS = ("akita_black_bowl_1", "cream_cheese_1")
 
 
 def may_follow(first: Step, second: Step) -> bool:
-    """What may follow what (the rule inferred from the published suite; chain-analysis.md): a second step moves
+    """What may follow what (the rule inferred from the published suite; docs/libero-gen/chain.md): a second step moves
     another object than the first step did, to a place the first step did not fill, and does not lift one of the
     :data:`HOLDERS` with something the first step put in or on it."""
     if first.moves is None:  # the stove, a drawer: nothing moved
@@ -405,13 +405,13 @@ SECOND_STEP_PLACES = {
         "on top of the cabinet",
     ),
 }  # fmt: skip
-"""Where a chain's second step may put each object (chain-analysis.md's candidate rule); also the home region the
+"""Where a chain's second step may put each object (docs/libero-gen/chain.md's candidate rule); also the home region the
 first step vacated, and inside the drawer it opened."""
 
 
 def chain_candidates() -> list[str]:
-    """Every two-step chain the candidate rule of chain-analysis.md allows from the 21 first steps, generated: the
-    second step puts an object at one of its :data:`SECOND_STEP_PLACES`, at the home region the first step vacated,
+    """Every two-step chain the candidate rule (docs/libero-gen/chain.md) allows from the 21 first steps, generated:
+    the second step puts an object at one of its :data:`SECOND_STEP_PLACES`, at the home region the first step vacated,
     or inside the drawer it opened, where :func:`may_follow` allows it, and not onto what the first step put in the
     bowl. 228 chains, a superset of the authors' 154 (no rule we know picks those)."""
     firsts = [label for view, label in published_tasks() if view == "first_step"]

@@ -306,7 +306,8 @@ def open_drawer(arm: Arm, rng: np.random.Generator, cabinet: str = "wooden_cabin
     The top drawer's handle is taken from above: the open hand comes down over it with its fingers closing along y,
     stops on it and closes. From above the middle handle cannot be reached (the fingers stop on the top handle,
     7.4 cm higher), and a level hand's palm hits the plate below: the hand comes at it pitched 65-75 degrees from
-    straight down, fingers towards the cabinet, closing across the bar nearly vertically (docs/liberogen/README.md)."""
+    straight down, fingers towards the cabinet, closing across the bar nearly vertically
+    (docs/libero-gen/demonstrator.md)."""
     handle = drawer_handle(arm.env, cabinet, drawer)
     grasp = handle + np.r_[rng.uniform(-0.02, 0.02), 0.0, 0.0]
     pose = None
@@ -371,7 +372,7 @@ def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarr
     With a drawer of the cabinet open, a bowl is taken on the rim away from the drawer, its fingers closing across
     the drawer's width: on the near rim the arm came down onto the pulled-out drawer's side wall and stalled 4 cm
     above the grasp, and a bowl put into the drawer (15 cm deep inside, the bowl about 12 cm wide) leaves room for the
-    fingers only along its width (docs/liberogen/README.md)."""
+    fingers only along its width (docs/libero-gen/demonstrator.md)."""
     if obj.startswith("akita_black_bowl"):
         across, side = np.array([0.0, 1.0]), rng.choice([-1.0, 1.0])
         drawer = open_drawer_body(arm.env)

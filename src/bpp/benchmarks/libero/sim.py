@@ -165,7 +165,7 @@ def render_states(env, states, camera: str = "agentview", size: int = 128):
     """(T, size, size, 3) uint8 upright frames of LIBERO camera `camera` for flattened simulator states (e.g. a
     stored episode's ``sim_state``), rendered by setting each state and drawing it. Training frames come from here,
     not from the env's observation dictionary: robosuite samples camera observables inside its control loop, so
-    those lag the state stored at the end of a step (see docs/liberogen/). `env` must be able to render (made with
+    those lag the state stored at the end of a step (see docs/libero-gen.md). `env` must be able to render (made with
     cameras or with ``render=True``); its state is restored afterwards."""
     import numpy as np
 

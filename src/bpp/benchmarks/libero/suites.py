@@ -13,7 +13,7 @@ evaluation, one task each, and no training task has a held-out combination. Twen
 authors' training set, and no rule we know explains why (perhaps failed demonstrations); they are listed
 explicitly in :data:`COMBINATION_ABSENT`. The result is exactly the authors' published 164 training tasks plus
 10 held out = 174. The appendix's counts hold under one reading: a bowl target's place key is the target bowl's
-identity, not its location (see ``docs/liberogen/``).
+identity, not its location (see ``docs/libero-gen/combination.md``).
 """
 
 from __future__ import annotations
