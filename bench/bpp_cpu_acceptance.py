@@ -15,12 +15,13 @@ import argparse
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult, run_prompted
+from bpp.benchmarks.contract import RolloutResult
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.env import DrawEnv
 from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE
 from bpp.benchmarks.draw.rollouts import prompt_target
 from bpp.benchmarks.draw.viz import contact_sheet, group_strokes, render_strokes
+from bpp.benchmarks.prompting import run_prompted
 from bpp.checkpoint import resolve_checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.policies.agent import PolicyAgent

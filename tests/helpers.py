@@ -11,8 +11,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pytest
 
-from bpp.benchmarks.contract import run_prompted
 from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.prompting import run_prompted
 from bpp.data.contexts import task_context
 from bpp.data.spec import DataSpec
 from bpp.policies.registry import get_method

@@ -43,6 +43,23 @@ def test_generation_stores_only_demonstrations_that_libero_accepts(store):
     assert not list(store.path.parent.glob(".*journal*"))  # the journal is gone once the store is written
 
 
+def test_a_spawned_process_reads_the_derived_keys_of_the_benchmark(store):
+    """A fresh interpreter that has imported nothing of LIBERO-Gen (a data-loader worker under the spawn start
+    method) sees the store's derived key ``eef``: it comes from the benchmark contract through the registry, not from
+    which modules the process happened to import. Whether given the path or a pickled store."""
+    import multiprocessing as mp
+
+    from spawned_reader import read_key
+
+    expected = store.array("proprio")[:, list(dataset.EEF_FEATURES)]
+    with mp.get_context("spawn").Pool(1, maxtasksperchild=1) as pool:  # a new process for each read
+        for source in (str(store.path), store):
+            before, keys, eef = pool.apply(read_key, (source, "eef"))
+            assert not [m for m in before if m.startswith("bpp.benchmarks.libero")], before
+            assert "eef" in keys and eef.shape == (store.num_steps, 9)
+            np.testing.assert_array_equal(eef, expected)
+
+
 def test_a_stored_step_renders_the_same_image_again(store):
     sl = store.episode_slice(1)
     states = store["sim_state"][sl][[0, 40, -1]]

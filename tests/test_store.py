@@ -5,15 +5,8 @@ import pickle
 import numpy as np
 import pytest
 
-from bpp.data.store import (
-    DERIVED_KEYS,
-    EpisodeStore,
-    EpisodeWriter,
-    StoreError,
-    derive_keys,
-    merge_stores,
-    with_derived,
-)
+from bpp.benchmarks import registry
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, merge_stores, with_derived
 
 
 def _write(path, episodes=3, **kw):
@@ -51,14 +44,21 @@ def test_round_trip(tmp_path):
 
 
 def test_derived_keys_read_and_normalise_like_stored_ones(tmp_path, monkeypatch):
-    monkeypatch.setitem(DERIVED_KEYS, "test", {})
+    import toy_reach
+
+    class WithDerived(toy_reach.Reach):
+        name, command = "test", "test"
+        derived_keys = {"ends": ("state", (2, 0))}
+
+    monkeypatch.setattr(registry, "BENCHMARKS", dict(registry.BENCHMARKS))
+    monkeypatch.setattr(registry, "_LOADED", dict(registry._LOADED))
     path = tmp_path / "s.zarr"
     with EpisodeWriter(path, benchmark="test", chunk_steps=4) as w:
         w.add_task("t")
         for e in range(2):
             w.add_episode({"state": np.arange(12.0 * (e + 1)).reshape(-1, 3) + 100 * e}, 0)
-    store = EpisodeStore(path)  # opened before the declaration: derived keys are looked up when used
-    derive_keys("test", {"ends": ("state", [2, 0])})
+    store = EpisodeStore(path)  # opened before its benchmark is registered: derived keys are looked up when used
+    registry.register_benchmark("test", WithDerived())
     assert store.keys == ["ends", "state"]
     np.testing.assert_array_equal(store.array("ends"), store.array("state")[:, [2, 0]])
     np.testing.assert_array_equal(store.episode(1, ["ends"])["ends"], store.episode(1)["state"][:, [2, 0]])
@@ -69,9 +69,14 @@ def test_derived_keys_read_and_normalise_like_stored_ones(tmp_path, monkeypatch)
     assert ends["min"] == [full["min"][2], full["min"][0]] and ends["std"] == [full["std"][2], full["std"][0]]
     obs = with_derived("test", {"state": np.array([[1.0, 2.0, 3.0]])})
     np.testing.assert_array_equal(obs["ends"], [[3.0, 1.0]])
-    assert with_derived("other", {"state": np.zeros(3)}).keys() == {"state"}
-    with pytest.raises(ValueError, match="indices"):
-        derive_keys("test", {"bad": ("state", [])})
+    assert with_derived("other", {"state": np.zeros(3)}).keys() == {"state"}  # no benchmark of that name
+    assert pickle.loads(pickle.dumps(store)).keys == ["ends", "state"]  # a copy looks its keys up again
+
+    class BadDerived(WithDerived):
+        derived_keys = {"bad": ("state", ())}
+
+    with pytest.raises(ValueError, match="feature indices"):
+        registry.register_benchmark("test", BadDerived())
 
 
 def test_refuses_to_clobber_and_overwrites_atomically(tmp_path):

@@ -74,6 +74,7 @@ class Reach:
     data_config = ReachDataConfig
     data_presets = {"debug": ReachDataConfig()}
     default_data_dir = Path("data/reach")
+    derived_keys: Mapping[str, tuple[str, tuple[int, ...]]] = {}
     observations: Mapping[str, ObservationPreset] = {"state": ObservationPreset(proprio_keys=("pos",))}
     metric = Metric("waypoint miss", lower_is_better=True, good_threshold=0.05, description="mean waypoint miss")
     max_steps = 100

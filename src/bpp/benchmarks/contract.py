@@ -21,13 +21,15 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from bpp.data.contexts import task_context
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
+
+if TYPE_CHECKING:  # annotations only: the store looks benchmarks up through the registry, which imports this module
+    from bpp.data.store import EpisodeStore
 
 
 @dataclass(frozen=True)
@@ -124,6 +126,14 @@ class Benchmark(Protocol):
         benchmark has no such camera."""
         ...
 
+    derived_keys: Mapping[str, tuple[str, tuple[int, ...]]]
+    """Per-step keys the benchmark's stores present without storing them: key -> (stored key, feature indices), each
+    some features of a stored key in the order given (e.g. the gripper's pose out of a robot's whole proprioception;
+    ``{}`` for none). A store reads and normalises them like stored keys (:attr:`bpp.data.store.EpisodeStore.derived`,
+    looked up through the registry by the store's benchmark name, in whichever process opens it), so stores
+    written before a key was declared have it too; :func:`bpp.data.store.with_derived` adds them to a rollout's
+    observations the same way."""
+
     # ---------------------------------------------------------- observations
     observations: Mapping[str, ObservationPreset]
     """Named observation/action settings (``bpp train --obs NAME``)."""
@@ -188,24 +198,8 @@ def device_frames(benchmark: Benchmark, store: EpisodeStore, device):
     :meth:`Benchmark.frames`. ValueError if it provides none."""
     make = getattr(benchmark, "device_frames", None)
     if make is None:
-        raise ValueError(
+        raise UserError(
             f"benchmark {benchmark.name!r} cannot render its frames on the training device (it has no "
             "device_frames); train with --frames-on loader"
         )
     return make(store, device)
-
-
-def run_prompted(
-    agent, benchmark: Benchmark, store: EpisodeStore, plan: Sequence[Mapping], max_steps: int, record_frames
-) -> tuple[list[RolloutResult], list[np.ndarray] | None]:
-    """Run `plan`'s rollouts in lockstep: each prompted with the task context of its ``prompt_episode`` (built by
-    :func:`~bpp.data.contexts.task_context`, as in training) and seeded by its ``seed``; the benchmark scores each
-    against its ``target_episode``. Returns the results and, if the agent records attention, each rollout's
-    attention over its inference calls ((calls, C) arrays; else None)."""
-    contexts = [task_context(store, int(p["prompt_episode"]), agent.data_spec, benchmark.frames) for p in plan]
-    agent.reset_batch(contexts, [int(p["seed"]) for p in plan])
-    results = benchmark.run_rollouts(agent, store, plan, max_steps, record_frames)
-    if not agent.attention_log:
-        return results, None
-    attention = np.stack(agent.attention_log, axis=1)  # (B, calls, C)
-    return results, [attention[i, : -(-r.steps // agent.n_action_steps)] for i, r in enumerate(results)]

@@ -8,9 +8,11 @@ test) through :func:`register_benchmark`.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from importlib.metadata import entry_points
 
 from bpp.benchmarks.contract import Benchmark
+from bpp.errors import UserError
 
 BENCHMARKS: dict[str, str] = {
     "drawanything": "bpp.benchmarks.draw.benchmark:BENCHMARK",
@@ -57,12 +59,20 @@ def get_benchmark(name: str) -> Benchmark:
         return _LOADED[name]
     target = BENCHMARKS.get(name) or _plugins().get(name)
     if target is None or ":" not in target or target.endswith(":<object>"):
-        raise ValueError(f"unknown benchmark {name!r}; registered: {', '.join(benchmark_names())}")
+        raise UserError(f"unknown benchmark {name!r}; registered: {', '.join(benchmark_names())}")
     module, attr = target.split(":", 1)
     benchmark = getattr(importlib.import_module(module), attr)
     _check(name, benchmark)
     _LOADED[name] = benchmark
     return benchmark
+
+
+def derived_keys(name: str) -> Mapping[str, tuple[str, tuple[int, ...]]]:
+    """The derived per-step keys of the benchmark registered as `name` (:attr:`Benchmark.derived_keys`); none for a
+    name nothing is registered as (a store of a benchmark this install lacks shows its stored keys only)."""
+    if name not in _LOADED and name not in BENCHMARKS and name not in _plugins():
+        return {}
+    return get_benchmark(name).derived_keys
 
 
 def benchmark_for_command(command: str) -> Benchmark | None:
@@ -80,6 +90,12 @@ def _check(name: str, benchmark) -> None:
         raise TypeError(f"benchmark {name!r} does not satisfy bpp.benchmarks.contract.Benchmark; missing {missing}")
     if benchmark.name != name:
         raise ValueError(f"benchmark registered as {name!r} calls itself {benchmark.name!r}")
+    for key, (source, features) in benchmark.derived_keys.items():
+        if not isinstance(source, str) or not features or not all(isinstance(i, int) and i >= 0 for i in features):
+            raise ValueError(
+                f"benchmark {name!r}: derived key {key!r} must be (a stored key, a non-empty tuple of feature indices "
+                f">= 0), got {(source, features)!r}"
+            )
     if benchmark.command in RESERVED_COMMANDS:
         raise ValueError(f"benchmark {name!r} takes the command {benchmark.command!r}, which bpp reserves")
 

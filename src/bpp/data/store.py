@@ -10,8 +10,9 @@ Layout (a zarr v3 directory)::
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
       tasks/<key>        ragged per-task arrays (e.g. a task's waypoints), with tasks/<key>__ends (K,)
 
-A benchmark may also declare *derived* per-step keys (:func:`derive_keys`): chosen features of a stored key, read
-and normalised like a stored key but never written.
+A benchmark may also declare *derived* per-step keys (:attr:`bpp.benchmarks.contract.Benchmark.derived_keys`):
+chosen features of a stored key, read and normalised like a stored key but never written. A store finds them through
+the registry from its own benchmark name, so every process that opens it sees the same keys.
 
 Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
 and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
@@ -27,12 +28,13 @@ import json
 import os
 import shutil
 import uuid
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from bpp.benchmarks.registry import derived_keys
 from bpp.utils import from_dict, read_json, to_dict
 
 FORMAT = "bpp-episodes"
@@ -43,27 +45,12 @@ class StoreError(RuntimeError):
     """A store is missing, incomplete, of another format/version, or used wrongly."""
 
 
-DERIVED_KEYS: dict[str, dict[str, tuple[str, tuple[int, ...]]]] = {}
-"""benchmark name -> {derived key: (stored key, feature indices)}; filled by :func:`derive_keys`."""
-
-
-def derive_keys(benchmark: str, keys: Mapping[str, tuple[str, Iterable[int]]]) -> None:
-    """Declare per-step keys that `benchmark`'s stores present without storing them: each is some features (by
-    index, in order) of a stored key, e.g. the gripper's pose out of a robot's whole proprioception. Reads and
-    normalisation statistics of a derived key are its source's, selected, so stores written before the declaration
-    have it too; :func:`with_derived` adds them to an observation dictionary the same way at evaluation."""
-    for key, (source, features) in keys.items():
-        features = tuple(int(i) for i in features)
-        if not features or min(features) < 0:
-            raise ValueError(f"derived key {key!r}: feature indices must be a non-empty list of indices >= 0")
-        DERIVED_KEYS.setdefault(benchmark, {})[key] = (source, features)
-
-
 def with_derived(benchmark: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """`obs` (per-step arrays, features last) plus every derived key of `benchmark` whose source it has."""
+    """`obs` (per-step arrays, features last) plus every derived key of the benchmark named `benchmark` whose source
+    it has (the same features a store of that benchmark presents)."""
     derived = {
         key: np.asarray(obs[source])[..., list(features)]
-        for key, (source, features) in DERIVED_KEYS.get(benchmark, {}).items()
+        for key, (source, features) in derived_keys(benchmark).items()
         if source in obs and key not in obs
     }
     return {**obs, **derived}
@@ -377,6 +364,7 @@ class EpisodeStore:
         except KeyError as err:
             raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
         self._cache: dict[str, np.ndarray] = {}
+        self._derived: dict[str, tuple[str, tuple[int, ...]]] | None = None
         try:
             self.episode_ends = self._read("meta/episode_ends")
         except KeyError:
@@ -417,17 +405,22 @@ class EpisodeStore:
         state = self.__dict__.copy()
         state.pop("_handle", None)
         state["_cache"] = {}
+        state["_derived"] = None  # each process looks them up itself, as when it opens the store
         return state
 
     # ---------------------------------------------------------------- queries
     @property
     def derived(self) -> dict[str, tuple[str, tuple[int, ...]]]:
-        """This store's derived keys (:func:`derive_keys`): key -> (stored source key, feature indices)."""
-        return {
-            key: (source, features)
-            for key, (source, features) in DERIVED_KEYS.get(self.benchmark, {}).items()
-            if source in self._stored_keys and key not in self._stored_keys
-        }
+        """This store's derived keys: key -> (stored source key, feature indices), its benchmark's
+        (:attr:`bpp.benchmarks.contract.Benchmark.derived_keys`) whose source it stores. Looked up on first use, in
+        the process that uses the store."""
+        if self._derived is None:
+            self._derived = {
+                key: (source, tuple(features))
+                for key, (source, features) in derived_keys(self.benchmark).items()
+                if source in self._stored_keys and key not in self._stored_keys
+            }
+        return self._derived
 
     @property
     def keys(self) -> list[str]:

@@ -27,7 +27,8 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp import __version__
-from bpp.benchmarks.contract import Benchmark, Metric, TaskSet, run_prompted
+from bpp.benchmarks.contract import Benchmark, Metric, TaskSet
+from bpp.benchmarks.prompting import run_prompted
 from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore

@@ -14,6 +14,7 @@ from bpp.benchmarks.draw import dataset
 from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, StoreError
+from bpp.errors import UserError
 
 CANVAS = ObservationPreset(
     lowdim_keys=("board_pose", "cursor_on_board"),
@@ -63,6 +64,7 @@ class DrawAnything:
     data_config = dataset.DrawDataConfig
     data_presets = dataset.PRESETS
     default_data_dir = Path("data/draw")
+    derived_keys: Mapping[str, tuple[str, tuple[int, ...]]] = {}
     observations: Mapping[str, ObservationPreset] = {
         "canvas": CANVAS,
         "canvas-ink": CANVAS_INK,
@@ -92,7 +94,7 @@ class DrawAnything:
         self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
     ) -> np.ndarray:
         if key != "image":
-            raise ValueError(f"DrawAnything has one camera, 'image'; got {key!r}")
+            raise UserError(f"DrawAnything has one camera, 'image'; got {key!r}")
         if last_only:
             return dataset.render_last_observation(store, episode, size)[None]
         if steps is not None:
@@ -109,7 +111,7 @@ class DrawAnything:
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:
         if name != "human":
-            raise ValueError(f"DrawAnything has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
+            raise UserError(f"DrawAnything has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         path = Path(data_dir) / "human.zarr"
         try:
             store = EpisodeStore(path)

@@ -16,6 +16,7 @@ import tyro
 
 from bpp.benchmarks.draw.dataset import PRESETS, DrawDataConfig
 from bpp.benchmarks.draw.studio.command import StudioCommand, studio
+from bpp.errors import UserError
 from bpp.utils import check_fields
 
 
@@ -103,8 +104,8 @@ class DrawRollout:
 
 
 def draw_rollout(args: DrawRollout) -> None:
-    from bpp.benchmarks.contract import run_prompted
     from bpp.benchmarks.draw.benchmark import BENCHMARK
+    from bpp.benchmarks.prompting import run_prompted
     from bpp.checkpoint import Checkpoint
     from bpp.data.store import EpisodeStore
     from bpp.media import contact_sheet, save_animation
@@ -114,7 +115,7 @@ def draw_rollout(args: DrawRollout) -> None:
     store.episode_slice(args.episode)  # an IndexError naming the store's episode count if out of range
     checkpoint = Checkpoint.load(args.checkpoint, use_ema=True)
     if checkpoint.benchmark != BENCHMARK.name:
-        raise ValueError(f"{checkpoint.path} was trained on {checkpoint.benchmark}, not {BENCHMARK.name}")
+        raise UserError(f"{checkpoint.path} was trained on {checkpoint.benchmark}, not {BENCHMARK.name}")
     agent = PolicyAgent(checkpoint.build_model(), record_attention=True)
     plan = [
         {
@@ -245,7 +246,7 @@ def demo(args: Demo) -> None:
         # Its model must be this one (how long or how it trained may differ: a finished run is reused as it is).
         differences = [d for d in run_differences(run, tc, model_cfg) if not d.startswith("train_config.")]
         if differences:
-            raise ValueError(
+            raise UserError(
                 f"{run} holds a policy trained with another model than --preset {args.preset} --obs {args.obs}; "
                 "pass another --run-dir, or the flags it was trained with: " + "; ".join(differences)
             )

@@ -18,6 +18,7 @@ from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
 from bpp.benchmarks.libero import dataset
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, stored_with
+from bpp.errors import UserError
 
 STATE = ObservationPreset(
     proprio_keys=("proprio",),
@@ -58,6 +59,8 @@ class LiberoGen:
     data_config = dataset.LiberoDataConfig
     data_presets = dataset.PRESETS
     default_data_dir = Path("data/libero")
+    derived_keys = {"eef": ("proprio", dataset.EEF_FEATURES)}
+    """``eef``: the gripper's pose and opening out of the robot's proprioception (the ``state-eef`` observations)."""
     observations: Mapping[str, ObservationPreset] = {"state": STATE, "state-eef": STATE_EEF, "image": IMAGE}
     metric = Metric(
         "success",
@@ -101,7 +104,7 @@ class LiberoGen:
         from bpp.benchmarks.libero.sim import CAMERAS
 
         if key not in CAMERAS:
-            raise ValueError(f"LIBERO-Gen has the cameras {', '.join(CAMERAS)}; got {key!r}")
+            raise UserError(f"LIBERO-Gen has the cameras {', '.join(CAMERAS)}; got {key!r}")
         if last_only and key == "agentview":
             try:
                 return _resize(store.column(dataset.GOAL_KEY)[episode][None], size)
@@ -121,7 +124,7 @@ class LiberoGen:
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:
         if name not in self.task_sets:
-            raise ValueError(f"LIBERO-Gen has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
+            raise UserError(f"LIBERO-Gen has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         cfg = dataset.PRESETS[name]
         path = Path(data_dir) / f"task-set-{name}.zarr"
         store = stored_with(path, cfg)
@@ -131,7 +134,7 @@ class LiberoGen:
         return TaskSet(store, self._task_sets[name][0])
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
-        raise ValueError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")
+        raise UserError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:
         return {"init_seed": int(rng.integers(0, 2**31 - 1))}

@@ -34,7 +34,7 @@ from bpp.benchmarks.libero.chain import ChainTask
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.sim import CAMERAS
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, matches
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, derive_keys
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
 from bpp.utils import check_fields, to_dict
 
 BENCHMARK = "libero_gen"
@@ -55,7 +55,8 @@ PROPRIO_LAYOUT = {
 EEF = ("eef_pos", "eef_quat", "gripper_qpos")
 """The derived key ``eef``: the gripper's pose and opening (9 of the 39 features), what LIBERO's own datasets and
 robomimic's low-dimensional policies observe of the robot; the joints' angles and velocities are left out."""
-derive_keys(BENCHMARK, {"eef": ("proprio", [i for part in EEF for i in PROPRIO_LAYOUT[part]])})
+EEF_FEATURES = tuple(i for part in EEF for i in PROPRIO_LAYOUT[part])
+"""The feature indices of ``eef`` in ``proprio``."""
 
 
 @dataclass(frozen=True)
