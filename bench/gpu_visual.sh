@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The paper's visual setting on DrawAnything (camera + proprioception, canvas actions), BPP against Goal-Image and
-# ICRT trained side by side on one GPU, then evaluated on the unseen human-made drawings (issue 17's second part).
-# One lent-GPU call (../shared/DEVICE.md); the table, the chart, the results and each process's log come back under
-# $OUT (7 files: a call returns at most 8); the evaluations' pictures and videos stay under /tmp/gpu-visual.
+# ICRT trained side by side on one GPU, then evaluated on the unseen human-made drawings. Made to fit one 10-minute
+# call on a GPU machine; the table, the chart, the results and each process's log are written under $OUT (7 files);
+# the evaluations' pictures and videos stay under /tmp/gpu-visual.
 #
 #   bash bench/gpu_visual.sh                                   # on the GPU machine: at most 9 minutes
 #   OUT=outputs/gpu-visual-small SMALL=1 bash bench/gpu_visual.sh    # here, on a CPU: the same steps at toy sizes
@@ -10,12 +10,12 @@
 # Each method is one bench/draw_cpu_benchmark.py process (train, then evaluate with CPU workers), all three at once,
 # so they share the GPU and the cores; a last --report-only call gathers the three into one table (it reuses the
 # evaluations). Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
-# The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md, "The
-# image-observation run"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
+# The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md,
+# "DrawAnything observation presets"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
 # about 5 minutes; at 3,000 samples/s each, about 3,500 steps). A run the time limit cuts off is not evaluated.
 # Each step draws TASKS_PER_BATCH tasks, each with its own prompt (8 on the GPU, 2 in the dry run; bpp demo and the
 # CPU benchmark also use 8, the paper's recipe is 1): at a budget this small more prompts per step learn faster
-# (BENCHMARKS.md, third session: 26.6 against 30.2 px at equal steps), and BPP's 8 prompts add about 5% to a
+# (BENCHMARKS.md, "Design checks on the validation split": 26.6 against 30.2 px at equal steps), and BPP's 8 prompts add about 5% to a
 # 256-window step's FLOPs. FRAMES_ON=device renders the camera frames on the GPU (`bpp train --frames-on device`),
 # which frees the loader processes' cores: set it if the throughput run measured it faster end to end.
 set -uo pipefail
