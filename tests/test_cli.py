@@ -1,10 +1,13 @@
 import subprocess
 import sys
+import textwrap
 
 import pytest
 
-from bpp.cli import main
+from bpp import cli
+from bpp.cli import StoreInfo, main
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 
 def _bpp(*args, cwd=None):
@@ -60,6 +63,86 @@ def test_user_errors_are_reported_without_traceback(tmp_path):
     assert "missing.json: no such file" in out.stderr and "Traceback" not in out.stderr
     assert "unknown preset" in _refused("draw", "generate", "--preset", "nope", "--out", str(tmp_path / "x.zarr"))
     assert "not an episode store" in _refused("store", "info", str(tmp_path))
+
+
+def _store_info_raising(monkeypatch, error: BaseException) -> None:
+    """Make `bpp store info` raise `error` from inside its command function."""
+
+    def run(args):
+        raise error
+
+    monkeypatch.setitem(cli.COMMANDS, ("store", "info"), (StoreInfo, run))
+
+
+@pytest.mark.parametrize(
+    "error, message",
+    [
+        (UserError("flag --x must be >= 0, got -1"), "flag --x must be >= 0, got -1"),
+        (FileNotFoundError("runs/typo: no such checkpoint"), "runs/typo: no such checkpoint"),
+        (PermissionError(13, "Permission denied", "out/results.json"), "out/results.json: Permission denied"),
+        (OSError(28, "No space left on device"), "No space left on device"),
+    ],
+)
+def test_user_and_file_system_errors_end_with_one_line_naming_the_command(monkeypatch, tmp_path, error, message):
+    _store_info_raising(monkeypatch, error)
+    with pytest.raises(SystemExit) as exited:
+        main(["store", "info", str(tmp_path)])
+    assert exited.value.code == f"bpp store info: error: {message}"  # a string: printed to stderr, exit status 1
+
+
+@pytest.mark.parametrize(
+    "error",
+    [KeyError("task"), IndexError("list index out of range"), ValueError("bad"), RuntimeError("x"), TypeError("y")],
+)
+def test_internal_errors_keep_their_traceback(monkeypatch, tmp_path, error):
+    """A bug (any exception but a UserError or an OSError) is not dressed up as a user's mistake: it propagates."""
+    _store_info_raising(monkeypatch, error)
+    with pytest.raises(type(error)) as raised:
+        main(["store", "info", str(tmp_path)])
+    assert raised.value is error
+
+
+def test_an_internal_error_in_a_process_prints_its_traceback(tmp_path):
+    script = textwrap.dedent(
+        """
+        from bpp import cli
+
+        def run(args):
+            return {}["no such key"]
+
+        cli.COMMANDS[("store", "info")] = (cli.StoreInfo, run)
+        cli.main(["store", "info", "."])
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert out.returncode == 1
+    assert "Traceback" in out.stderr and "KeyError: 'no such key'" in out.stderr
+    assert "bpp store info: error" not in out.stderr
+
+
+def test_a_user_error_in_a_process_is_one_line_without_traceback(tmp_path):
+    out = _bpp("eval", str(tmp_path / "typo"), "--out", str(tmp_path / "eval"))
+    assert out.returncode == 1 and not (tmp_path / "eval").exists()
+    assert out.stderr.strip().splitlines() == [
+        f"bpp eval: error: {tmp_path / 'typo'}: no such checkpoint or run directory"
+    ]
+    ckpt = tmp_path / "run" / "checkpoints" / "step_00000001"
+    ckpt.mkdir(parents=True)
+    (ckpt / "state.json").write_text('{"format": "bpp-checkpoint", "version": 1, "step": 1}')
+    (ckpt.parent / "last").write_text(ckpt.name)
+    out = _bpp("eval", str(tmp_path / "run"), "--out", str(tmp_path / "eval"))
+    assert out.returncode == 1 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines() == [
+        f"bpp eval: error: {ckpt / 'state.json'}: damaged checkpoint state (no optimizer, method, model_config, "
+        "train_config, stats, dataset)"
+    ]
+
+
+def test_bad_flag_values_are_reported_by_the_parser_naming_the_field(capsys):
+    with pytest.raises(SystemExit) as exited:
+        main(["eval", "runs/x", "--num-tasks", "-1"])
+    assert exited.value.code not in (0, None)
+    assert "num_tasks must be >= 0 (0: all), got -1" in capsys.readouterr().err
 
 
 def test_demo_main_job_runs_and_reuses(tmp_path):

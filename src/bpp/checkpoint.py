@@ -25,10 +25,13 @@ from typing import Any
 import torch
 from safetensors.torch import load, save_file
 
+from bpp.errors import UserError
 from bpp.utils import from_dict, read_json, write_json_atomic
 
 FORMAT = "bpp-checkpoint"
 VERSION = 1
+STATE_KEYS = ("step", "optimizer", "method", "model_config", "train_config", "stats", "dataset")
+"""What every checkpoint's ``state.json`` holds besides its format and version."""
 
 
 def _tensors(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -152,14 +155,17 @@ def _load_tensors(path: Path) -> tuple[dict[str, torch.Tensor], str]:
         data = path.read_bytes()
         return load(data), hashlib.sha256(data).hexdigest()
     except Exception as err:  # noqa: BLE001 - safetensors raises its own error types for truncated or foreign files
-        raise ValueError(f"{path}: unreadable weights ({type(err).__name__}: {err})") from None
+        raise UserError(f"{path}: unreadable weights ({type(err).__name__}: {err})") from None
 
 
 def read_state(path: str | Path) -> dict:
     ckpt = resolve_checkpoint(path)
     state = read_json(ckpt / "state.json", "checkpoint state")
     if not isinstance(state, dict) or state.get("format") != FORMAT or state.get("version") != VERSION:
-        raise ValueError(f"{ckpt}: not a bpp checkpoint of version {VERSION}")
+        raise UserError(f"{ckpt}: not a bpp checkpoint of version {VERSION}")
+    missing = [key for key in STATE_KEYS if key not in state]
+    if missing:
+        raise UserError(f"{ckpt / 'state.json'}: damaged checkpoint state (no {', '.join(missing)})")
     return state
 
 
@@ -174,7 +180,7 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
             tensors = {
                 name: _load_tensors(ckpt / f"{name}.safetensors")[0] for name in ("model", "ema", "optimizer", "rng")
             }
-        except (ValueError, OSError) as err:
+        except (UserError, OSError) as err:
             print(f"[checkpoint] skipping {ckpt.name}: {err}", file=sys.stderr)
             continue
         model.load_state_dict(tensors["model"])
@@ -184,7 +190,7 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
         if ckpt != newest:
             print(f"[checkpoint] resuming from {ckpt.name}, the newest intact checkpoint", file=sys.stderr)
         return int(state["step"])
-    raise ValueError(f"{path}: no intact checkpoint to resume from (see the lines above for each one's problem)")
+    raise UserError(f"{path}: no intact checkpoint to resume from (see the lines above for each one's problem)")
 
 
 class Checkpoint:

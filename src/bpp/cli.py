@@ -17,6 +17,7 @@ from typing import Annotated, Any, Literal
 import tyro
 
 from bpp.benchmarks.registry import DEFAULT_BENCHMARK, benchmark_for_command, benchmark_names, get_benchmark
+from bpp.errors import UserError
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig
 from bpp.utils import check_fields
@@ -251,7 +252,7 @@ def eval_cmd(args: Eval) -> None:
     checkpoints = [Checkpoint.load(path, use_ema=True) for path in args.checkpoints]
     benchmarks = {ckpt.benchmark for ckpt in checkpoints}
     if len(benchmarks) > 1:
-        raise ValueError(f"the checkpoints were trained on different benchmarks ({', '.join(sorted(benchmarks))})")
+        raise UserError(f"the checkpoints were trained on different benchmarks ({', '.join(sorted(benchmarks))})")
     for ckpt in checkpoints:
         PolicyAgent(ckpt.build_model(), **protocol.agent_options())
     tasks = args.tasks or _default_tasks(checkpoints[0])
@@ -316,7 +317,7 @@ def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | N
     if name == "generate":
         preset = _flag(argv[2:], "--preset", next(iter(benchmark.data_presets)))
         if preset not in benchmark.data_presets:
-            raise ValueError(
+            raise UserError(
                 f"unknown preset {preset!r} for {benchmark.name} data; choose from {', '.join(benchmark.data_presets)}"
             )
         cls = _generate_class(benchmark)
@@ -348,30 +349,35 @@ def _usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
+    """Run the command argv names. A :class:`~bpp.errors.UserError` or an OSError (a file that is missing, not
+    readable or not writable: its message names the path) ends the program with one line naming the command; any
+    other exception is a bug and keeps its traceback. tyro reports bad flags itself."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    prog = f"bpp {' '.join(argv[:2])}"
     try:
         found = _resolve(argv)
-    except ValueError as err:
-        sys.exit(f"bpp {' '.join(argv[:2])}: error: {err}")
-    if found is None:
-        print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
-        if argv and argv[0] not in ("-h", "--help"):
-            sys.exit(2)
-        return
-    words, cls, run, default = found
-    rest = argv[len(words) :]
-    prog = f"bpp {' '.join(words)}"
-    if cls is Train:
-        try:
+        if found is None:
+            print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
+            if argv and argv[0] not in ("-h", "--help"):
+                sys.exit(2)
+            return
+        words, cls, run, default = found
+        rest = argv[len(words) :]
+        prog = f"bpp {' '.join(words)}"
+        if cls is Train:
             cls, default = _train_default(rest)
-        except (ValueError, OSError, RuntimeError) as err:
-            sys.exit(f"{prog}: error: {err}")
-    args = tyro.cli(cls, args=rest, prog=prog, default=default)
-    try:
+        args = tyro.cli(cls, args=rest, prog=prog, default=default)
         run(args)
-    except (ValueError, OSError, RuntimeError, KeyError, IndexError) as err:
-        message = err.args[0] if isinstance(err, KeyError) and err.args else err  # str(KeyError) adds quotes
-        sys.exit(f"{prog}: error: {message}")
+    except (UserError, OSError) as err:
+        sys.exit(f"{prog}: error: {_message(err)}")
+
+
+def _message(err: Exception) -> str:
+    """What went wrong, in one line: an OSError raised by the system as "path: reason" (no errno number)."""
+    if isinstance(err, OSError) and err.strerror:
+        paths = [str(p) for p in (err.filename, err.filename2) if p is not None]
+        return ": ".join([" -> ".join(paths), err.strerror] if paths else [err.strerror])
+    return str(err)
 
 
 def _flag(argv: list[str], flag: str, default: str) -> str:

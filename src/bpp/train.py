@@ -25,6 +25,7 @@ from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
@@ -265,7 +266,7 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
     line per field (where the run lives, and whether a call resumes it, are not settings)."""
     recorded = read_json(run / "config.json", "run configuration")
     if not isinstance(recorded, dict):
-        raise ValueError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
+        raise UserError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
     differences = []
     # A run recorded before a setting existed ran as its default does.
@@ -294,10 +295,10 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
 
 def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
     """Refuse to resume `run` with settings other than those it was started with (a resumed run must continue
-    exactly as it would have): ValueError naming each differing field with both values."""
+    exactly as it would have): a UserError naming each differing field with both values."""
     differences = run_differences(run, cfg, model_cfg)
     if differences:
-        raise ValueError(
+        raise UserError(
             f"{run} was started with other settings, and --resume continues a run exactly as it began; drop the "
             "differing flags or train into another --out: " + "; ".join(differences)
         )

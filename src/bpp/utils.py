@@ -15,6 +15,8 @@ if TYPE_CHECKING:
 
 import numpy as np
 
+from bpp.errors import UserError
+
 
 def to_dict(obj: Any) -> Any:
     """A (nested) dataclass as plain JSON-able data."""
@@ -28,12 +30,13 @@ def to_dict(obj: Any) -> Any:
 
 
 def from_dict(cls: type, data: dict) -> Any:
-    """Rebuild a (nested, frozen) dataclass from :func:`to_dict` output; unknown keys are an error."""
+    """Rebuild a (nested, frozen) dataclass from :func:`to_dict` output (a saved config); unknown keys are a
+    :class:`~bpp.errors.UserError`."""
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
-        raise ValueError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
+        raise UserError(f"{cls.__name__}: unknown fields {sorted(unknown)}")
     kwargs = {}
     for name, value in data.items():
         kwargs[name] = _convert(hints[name], value)
@@ -55,12 +58,12 @@ def _convert(tp: Any, value: Any) -> Any:
 
 def check_fields(obj: Any, *rules: tuple[str, bool, str]) -> None:
     """Range checks for a config's ``__post_init__``: each rule is (field, whether it holds, what the field must
-    be; a dotted name reaches into a nested config). Raises ValueError naming the first field that fails, what it must
+    be; a dotted name reaches into a nested config). Raises a UserError naming the first field that fails, what it must
     be and the value given. Write rules as positive conditions (``x > 0``), so a NaN fails them."""
     for name, ok, expected in rules:
         if not ok:
             value = functools.reduce(getattr, name.split("."), obj)
-            raise ValueError(f"{name} must be {expected}, got {value!r}")
+            raise UserError(f"{name} must be {expected}, got {value!r}")
 
 
 def usable_cores() -> int:
@@ -73,23 +76,23 @@ MAX_JSON_BYTES = 64 << 20
 
 
 def read_json(path: str | Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
-    """Parse the JSON file `path`, or raise ValueError naming it and `what` it should be: unreadable, over
+    """Parse the JSON file `path`, or raise a UserError naming it and `what` it should be: unreadable, over
     `max_bytes`, not UTF-8, not JSON, or nested too deeply for the parser (Python's RecursionError)."""
     path = Path(path)
     try:
         size = path.stat().st_size
         if size > max_bytes:
             limit = max_bytes / 2**20
-            raise ValueError(f"{path}: {size / 2**20:.0f} MiB, more than the {limit:.0f} MiB a {what} may have")
+            raise UserError(f"{path}: {size / 2**20:.0f} MiB, more than the {limit:.0f} MiB a {what} may have")
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as err:
-        raise ValueError(f"{path}: cannot read the {what} ({err})") from None
+        raise UserError(f"{path}: cannot read the {what} ({err})") from None
     try:
         return json.loads(text)
     except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: the {what} is not valid JSON ({err})") from None
+        raise UserError(f"{path}: the {what} is not valid JSON ({err})") from None
     except RecursionError:
-        raise ValueError(f"{path}: the {what} is nested too deeply to parse") from None
+        raise UserError(f"{path}: the {what} is nested too deeply to parse") from None
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:

@@ -16,6 +16,7 @@ import numpy as np
 
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 FrameSource = Callable[..., np.ndarray]
 """``frames(store, episode, key, size, last_only=False, steps=None)``: (T, size, size, 3) uint8 frames of an
@@ -45,7 +46,7 @@ def task_context(
         return {"text": str(store.tasks[task].get("instruction") or "")}
     needs = spec.image_keys if kind == "demo" else (spec.context_image_key,)
     if needs and frames is None:
-        raise ValueError(f"{store.path}: benchmark {store.benchmark!r} provides no image observations")
+        raise UserError(f"{store.path}: benchmark {store.benchmark!r} provides no image observations")
     if kind == "goal_image":
         return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, last_only=True)[0]}
     sl = store.episode_slice(episode)

@@ -31,6 +31,7 @@ from bpp.data.frame_refs import frame_refs as reference_source
 from bpp.data.frame_refs import window_refs
 from bpp.data.spec import ContextKind, DataSpec
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 __all__ = ["ArrayCache", "ContextKind", "DataSpec", "FrameSource", "PromptBatchDataset", "index_contexts"]
 
@@ -118,7 +119,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         self.spec = spec
         missing = [k for k in [*spec.lowdim_keys, spec.action_key] if k not in self.store.keys]
         if missing:
-            raise KeyError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
+            raise UserError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
         self.frame_refs = frame_refs
         if frame_refs:
             frames = reference_source
@@ -128,21 +129,19 @@ class PromptBatchDataset(torch.utils.data.Dataset):
             frames = get_benchmark(self.store.benchmark).frames  # how the store's benchmark yields camera frames
         self.frames = frames
         if spec.context == "instruction" and not any(str(t.get("instruction") or "") for t in self.store.tasks):
-            raise ValueError(f"{self.store.path}: its tasks carry no instructions, so a language policy can't train")
+            raise UserError(f"{self.store.path}: its tasks carry no instructions, so a language policy can't train")
         if tasks_per_batch < 1 or batch_size % tasks_per_batch:
-            raise ValueError(
-                f"batch_size {batch_size} must be a positive multiple of tasks_per_batch {tasks_per_batch}"
-            )
+            raise UserError(f"batch_size {batch_size} must be a positive multiple of tasks_per_batch {tasks_per_batch}")
         self.batch_size, self.num_batches, self.tasks_per_batch = batch_size, num_batches, tasks_per_batch
         self.seed, self.rank = seed, rank
         if pad_to_multiple < 0:
-            raise ValueError(f"pad_to_multiple must be >= 0 (0: pad to the longest only), got {pad_to_multiple}")
+            raise UserError(f"pad_to_multiple must be >= 0 (0: pad to the longest only), got {pad_to_multiple}")
         self.pad_to_multiple = pad_to_multiple
         by_task = self.store.task_episodes()
         chosen = range(len(by_task)) if tasks is None else tasks
         self.tasks = [t for t in chosen if len(by_task[t]) >= 2]
         if not self.tasks:
-            raise ValueError(f"{self.store.path}: no task has the two demonstrations training needs")
+            raise UserError(f"{self.store.path}: no task has the two demonstrations training needs")
         self.task_episodes = by_task
         self.starts, self.ends = self.store.episode_starts, self.store.episode_ends
         self._arrays: dict[str, np.ndarray] | None = None

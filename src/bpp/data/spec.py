@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal, get_args
 
+from bpp.errors import UserError
+
 ContextKind = Literal["demo", "goal_image", "instruction"]
 """What a method is conditioned on: a whole demonstration (the prompt), its final frame, or the task's text."""
 CONTEXT_KINDS: tuple[str, ...] = get_args(ContextKind)
@@ -37,9 +39,9 @@ class ObservationPreset:
 
     def __post_init__(self):
         if not (self.proprio_keys or self.lowdim_keys or self.image_keys):
-            raise ValueError("an observation preset must observe at least one key")
+            raise UserError("an observation preset must observe at least one key")
         if self.image_size < 8:
-            raise ValueError(f"image_size must be >= 8, got {self.image_size}")
+            raise UserError(f"image_size must be >= 8, got {self.image_size}")
 
 
 @dataclass(frozen=True)
@@ -69,4 +71,4 @@ class DataSpec:
 
     def __post_init__(self):
         if self.context not in CONTEXT_KINDS:
-            raise ValueError(f"context must be one of {CONTEXT_KINDS}, got {self.context!r}")
+            raise UserError(f"context must be one of {CONTEXT_KINDS}, got {self.context!r}")

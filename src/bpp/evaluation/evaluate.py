@@ -32,6 +32,7 @@ from bpp.benchmarks.prompting import run_prompted
 from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 from bpp.utils import check_fields, read_json, usable_cores, write_json_atomic
 
 
@@ -72,7 +73,7 @@ class Protocol:
         and a seed."""
         episodes = store.task_episodes()
         if self.prompts == "other-task" and len(episodes) < 2:
-            raise ValueError("an other-task prompt control needs a store with at least 2 tasks")
+            raise UserError("an other-task prompt control needs a store with at least 2 tasks")
         demos = episodes[task]
         plan = []
         for r in range(self.rollouts):
@@ -245,7 +246,7 @@ def load_results(out: Path) -> dict | None:
         return None
     try:
         data = read_json(path, "results file")
-    except ValueError as err:
+    except UserError as err:
         print(f"[eval] ignoring {err}", file=sys.stderr)
         return None
     return data if isinstance(data, dict) else None
@@ -279,10 +280,10 @@ def resolve_tasks(
         task_set = TaskSet(EpisodeStore(tasks), f"tasks of {Path(tasks).name}")
     else:
         names = ", ".join(["train", *benchmark.task_sets])
-        raise ValueError(f"--tasks {tasks!r}: not a task set of {benchmark.name} ({names}) nor a store path")
+        raise UserError(f"--tasks {tasks!r}: not a task set of {benchmark.name} ({names}) nor a store path")
     store = task_set.store
     if store.benchmark != benchmark.name:
-        raise ValueError(f"{store.path} holds {store.benchmark} tasks; the checkpoint was trained on {benchmark.name}")
+        raise UserError(f"{store.path} holds {store.benchmark} tasks; the checkpoint was trained on {benchmark.name}")
     count = min(num_tasks or store.num_tasks, store.num_tasks)
     chosen = np.unique(np.linspace(0, store.num_tasks - 1, count).round().astype(int)).tolist()
     return benchmark, task_set, chosen

@@ -15,7 +15,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from bpp.errors import require_extra
+from bpp.errors import UserError, require_extra
 
 PACKAGED_MODEL = "all-MiniLM-L6-v2"
 """The pretrained text encoder used when no path is given: sentence-transformers' all-MiniLM-L6-v2 (Apache-2.0;
@@ -47,7 +47,7 @@ def padded_tokens(longest: int, multiple: int, max_tokens: int, unit: str = "tok
     """A batch's token length: its longest text's `longest` tokens (`unit`) rounded up to a multiple of `multiple`,
     at most `max_tokens`; a longer text is refused."""
     if longest > max_tokens:
-        raise ValueError(f"a text of {longest} tokens ({unit}) exceeds the encoder's {max_tokens}")
+        raise UserError(f"a text of {longest} tokens ({unit}) exceeds the encoder's {max_tokens}")
     return min(-(-longest // multiple) * multiple, max_tokens)
 
 

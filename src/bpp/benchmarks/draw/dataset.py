@@ -18,6 +18,7 @@ from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.benchmarks.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.benchmarks.draw.render import render_frames
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.errors import UserError
 from bpp.utils import check_fields
 
 BENCHMARK = "drawanything"
@@ -49,9 +50,9 @@ class DrawDataConfig:
             ("seed", self.seed >= 0, ">= 0"),
         )
         if self.source == "files" and not self.drawings:
-            raise ValueError("source=files needs at least one drawing file (--drawings FILE ...)")
+            raise UserError("source=files needs at least one drawing file (--drawings FILE ...)")
         if self.describe and self.source != "procedural":
-            raise ValueError(f"describe needs procedural drawings (their list of parts), not source={self.source}")
+            raise UserError(f"describe needs procedural drawings (their list of parts), not source={self.source}")
 
 
 PRESETS: dict[str, DrawDataConfig] = {

@@ -6,8 +6,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bpp.errors import UserError
 
-class DrawingError(ValueError):
+
+class DrawingError(UserError):
     """A drawing (or a drawing file) is not usable; the message names the source and the problem."""
 
 

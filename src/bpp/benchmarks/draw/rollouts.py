@@ -16,6 +16,7 @@ from bpp.benchmarks.draw.dataset import episode_paths
 from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.benchmarks.draw.geometry import canvas_to_upright
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 
 def prompt_target(store: EpisodeStore, episode: int) -> list[np.ndarray]:
@@ -40,7 +41,7 @@ def run_rollouts(
     record_frames = list(record_frames) if record_frames is not None else [False] * n
     frame = ACTION_FRAMES.get(spec.action_key)
     if frame is None:
-        raise ValueError(f"DrawAnything has no action frame for {spec.action_key!r}; known: {sorted(ACTION_FRAMES)}")
+        raise UserError(f"DrawAnything has no action frame for {spec.action_key!r}; known: {sorted(ACTION_FRAMES)}")
     envs, obs = [], []
     for row, rec in zip(rollouts, record_frames, strict=True):
         env = DrawEnv(

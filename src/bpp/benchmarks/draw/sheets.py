@@ -9,13 +9,14 @@ import numpy as np
 from bpp.benchmarks.draw.dataset import task_drawing
 from bpp.benchmarks.draw.viz import contact_sheet, group_strokes, render_drawing, render_strokes
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 
 def write_contact_sheet(store_path: str | Path, out: str | Path, tasks: int = 8, demos: int = 5, size: int = 160):
     """Rows: `tasks` tasks spread evenly over the store; columns: the task, then up to `demos` demonstrations."""
     store = EpisodeStore(store_path)
     if tasks < 1 or demos < 0:
-        raise ValueError(f"need tasks >= 1 and demos >= 0, got tasks={tasks}, demos={demos}")
+        raise UserError(f"need tasks >= 1 and demos >= 0, got tasks={tasks}, demos={demos}")
     chosen = np.unique(np.linspace(0, store.num_tasks - 1, min(tasks, store.num_tasks)).round().astype(int))
     by_task = store.task_episodes()
     angles = store.column("board_angle")

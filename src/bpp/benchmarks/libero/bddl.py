@@ -5,23 +5,22 @@ A BDDL problem is one S-expression: ``(define (problem NAME) (:domain robosuite)
 keeps every token as a string and the order of everything, so ``parse(dumps(parse(text))) == parse(text)``;
 :func:`dumps` writes one section per line group, indented, in the layout LIBERO's own files use.
 
-:func:`combination_problem` writes a LIBERO-Gen Combination task from its scene's LIBERO-Spatial problem: the
-bowls' initial placements, the instruction, the objects of interest and the goal change; everything else (the
-regions, fixtures and other objects) stays as LIBERO defines it.
+The suites build their problems with it (Combination's in :mod:`bpp.benchmarks.libero.suites`, Chain's in
+:mod:`bpp.benchmarks.libero.chain`); this module knows the language, not the tasks.
 """
 
 from __future__ import annotations
 
 import re
 
-from bpp.benchmarks.libero.suites import BOWL, PickPlace
+from bpp.errors import UserError
 
 Expr = str | list
 
 _TOKEN = re.compile(r"\(|\)|[^\s()]+")
 
 
-class BDDLError(ValueError):
+class BDDLError(UserError):
     """A BDDL text that is not a well-formed problem; the message says where."""
 
 
@@ -92,39 +91,3 @@ def objects(problem: list, sections: tuple[str, ...] = (":fixtures", ":objects")
         tokens = section(problem, name)[1:]
         names += [t for i, t in enumerate(tokens) if t != "-" and (i == 0 or tokens[i - 1] != "-")]
     return names
-
-
-# Where each location of the Combination suite is in LIBERO-Spatial's problems: as a placement target for the
-# BDDL predicate ``On`` (or ``In`` for the drawer).
-LOCATION_TARGETS = {
-    "BPR": ("On", "main_table_between_plate_ramekin_region"),
-    "NR": ("On", "main_table_next_to_ramekin_region"),
-    "TC": ("On", "main_table_table_center"),
-    "NP": ("On", "main_table_next_to_plate_region"),
-    "NB": ("On", "main_table_next_to_box_region"),
-    "TD": ("In", "wooden_cabinet_1_top_region"),
-    "WC": ("On", "wooden_cabinet_1_top_side"),
-    "ST": ("On", "flat_stove_1_cook_region"),
-    "CB": ("On", "cookies_1"),
-    "RK": ("On", "glazed_rim_porcelain_ramekin_1"),
-    "PL": ("On", "plate_1"),
-}
-BOWLS = ("akita_black_bowl_1", "akita_black_bowl_2")
-
-
-def combination_problem(task: PickPlace, base_text: str) -> str:
-    """The BDDL problem of a Combination task, from the LIBERO-Spatial problem of ``task.scene.base``."""
-    problem = parse(base_text)
-    init = section(problem, ":init")
-    kept = [p for p in init[1:] if not (isinstance(p, list) and len(p) == 3 and p[1] in BOWLS)]
-    if len(kept) != len(init) - 3:
-        raise BDDLError(f"{task.scene.base}: expected one initial placement per bowl in (:init ...)")
-    placements = zip(BOWLS, task.scene.bowls, strict=True)
-    bowls = [[LOCATION_TARGETS[where][0], bowl, LOCATION_TARGETS[where][1]] for bowl, where in placements]
-    set_section(problem, ":init", [*bowls, *kept])
-    picked, other = BOWLS[task.bowl - 1], BOWLS[2 - task.bowl]
-    target = other if task.place == BOWL else LOCATION_TARGETS[task.place][1]
-    set_section(problem, ":goal", [["And", ["On", picked, target]]])
-    set_section(problem, ":obj_of_interest", [picked, target] if target in objects(problem) else [picked])
-    set_section(problem, ":language", task.instruction.capitalize().split())
-    return dumps(problem)

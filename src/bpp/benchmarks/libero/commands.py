@@ -8,6 +8,7 @@ from pathlib import Path
 import tyro
 
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, view
+from bpp.errors import UserError
 from bpp.utils import check_fields
 
 
@@ -137,7 +138,7 @@ def _libero_store(path: Path):
 
     store = EpisodeStore(path)
     if store.benchmark != BENCHMARK.name:
-        raise ValueError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")
+        raise UserError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")
     return store
 
 

@@ -33,8 +33,9 @@ from tqdm import tqdm
 from bpp.benchmarks.libero.chain import ChainTask
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.sim import CAMERAS
-from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, matches
+from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.errors import UserError
 from bpp.utils import check_fields, to_dict
 
 BENCHMARK = "libero_gen"
@@ -117,18 +118,18 @@ class LiberoDataConfig:
         """(index in the split, task) of the tasks to demonstrate."""
         split = list(getattr(SUITES_BY_NAME[self.suite](), self.split))
         if not split:
-            raise ValueError(f"the {self.suite} suite has no {self.split} tasks")
+            raise UserError(f"the {self.suite} suite has no {self.split} tasks")
         if self.task_indices:
             bad = [i for i in self.task_indices if i >= len(split)]
             if bad:
-                raise ValueError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
+                raise UserError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
             outside = [i for i in self.task_indices if self.where and not matches(split[i], self.where)]
             if outside:
-                raise ValueError(f"task_indices {outside} are not in the view {self.where!r}")
+                raise UserError(f"task_indices {outside} are not in the view {self.where!r}")
             return [(i, split[i]) for i in sorted(set(self.task_indices))]
         chosen = [(i, t) for i, t in enumerate(split) if not self.where or matches(t, self.where)]
         if not chosen:
-            raise ValueError(f"no {self.split} task of {self.suite} is in the view {self.where!r}")
+            raise UserError(f"no {self.split} task of {self.suite} is in the view {self.where!r}")
         n = len(chosen) if not self.num_tasks else min(self.num_tasks, len(chosen))
         return [chosen[i] for i in np.unique(np.linspace(0, len(chosen) - 1, n).round().astype(int))]
 
@@ -158,7 +159,6 @@ def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:
 
 def problem_text(task: PickPlace | ChainTask, original: bool = False) -> str:
     """The BDDL problem of a task: its scene's LIBERO problem, edited (or as LIBERO ships it, for `original` tasks)."""
-    from bpp.benchmarks.libero.bddl import combination_problem
     from bpp.benchmarks.libero.sim import GOAL_BASE, libero_problem, spatial_problem
 
     if original:

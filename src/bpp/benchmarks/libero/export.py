@@ -23,6 +23,7 @@ import numpy as np
 
 from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 PROPRIO_PARTS = {
     "joint_states": "joint_pos",
@@ -43,7 +44,7 @@ def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> lis
 
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
-        raise ValueError(f"{out} exists and is not empty; pass --overwrite to write into it")
+        raise UserError(f"{out} exists and is not empty; pass --overwrite to write into it")
     out.mkdir(parents=True, exist_ok=True)
     by_task = store.task_episodes()
     cameras = [key for key in CAMERA_NAMES if key in store.keys]
@@ -51,7 +52,7 @@ def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> lis
     for index, task in enumerate(store.tasks):
         problem = task["info"].get("problem")
         if not problem:
-            raise ValueError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
+            raise UserError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
         (out / f"{task['id']}.bddl").write_text(problem)
         path = out / f"{task['id']}_demo.hdf5"
         tmp = path.with_name(f".{path.name}.partial")

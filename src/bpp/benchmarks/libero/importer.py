@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from bpp.benchmarks.libero.dataset import BENCHMARK, GOAL_KEY
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.errors import UserError
 
 
 def libero_problem_name(bddl_file_name: str) -> tuple[str, str] | None:
@@ -47,14 +48,14 @@ def read_task(f, path: Path) -> tuple[str, str, dict]:
     from bpp.benchmarks.libero.sim import has_initial_states, libero_problem
 
     if "data" not in f:
-        raise ValueError(f"{path}: not a LIBERO dataset file (no 'data' group)")
+        raise UserError(f"{path}: not a LIBERO dataset file (no 'data' group)")
     attrs = f["data"].attrs
     named = libero_problem_name(attrs.get("bddl_file_name", ""))
     problem = attrs.get("bddl_file_content")
     if problem is None and named is not None:
         problem = libero_problem(*named)
     if problem is None:
-        raise ValueError(
+        raise UserError(
             f"{path}: no BDDL problem (data.attrs has neither bddl_file_content nor a LIBERO bddl_file_name)"
         )
     problem = problem.decode() if isinstance(problem, bytes) else str(problem)
@@ -75,7 +76,7 @@ def read_task(f, path: Path) -> tuple[str, str, dict]:
 def _demo_names(f, path: Path) -> list[str]:
     names = sorted((k for k in f["data"] if k.startswith("demo_")), key=lambda k: int(k.split("_")[1]))
     if not names:
-        raise ValueError(f"{path}: no demonstrations (no data/demo_<i> groups)")
+        raise UserError(f"{path}: no demonstrations (no data/demo_<i> groups)")
     return names
 
 
@@ -91,10 +92,10 @@ def import_files(
     from bpp.benchmarks.libero.sim import CAMERAS, make_env, render_now
 
     if not paths:
-        raise ValueError("no files to import")
+        raise UserError("no files to import")
     missing = [str(p) for p in paths if not Path(p).is_file()]
     if missing:
-        raise ValueError(f"no such file: {', '.join(missing)}")
+        raise UserError(f"no such file: {', '.join(missing)}")
     with EpisodeWriter(
         out,
         benchmark=BENCHMARK,
@@ -119,7 +120,7 @@ def import_files(
                         actions = np.asarray(demo["actions"], dtype=np.float32)
                         states = np.asarray(demo["states"], dtype=np.float64)
                         if actions.ndim != 2 or actions.shape[1] != 7 or len(actions) != len(states):
-                            raise ValueError(
+                            raise UserError(
                                 f"{path}:{name}: expected (T, 7) actions and T states, got {actions.shape} and "
                                 f"{states.shape}"
                             )

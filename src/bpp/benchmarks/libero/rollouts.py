@@ -23,6 +23,7 @@ from bpp.benchmarks.libero.dataset import BENCHMARK
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.sim import CAMERAS, holds, initial_states, make_env, render_now
 from bpp.data.store import EpisodeStore, with_derived
+from bpp.errors import UserError
 
 LIFT = 0.05
 """Metres above its settled start that count an object as lifted."""
@@ -72,7 +73,7 @@ def task_problem(store: EpisodeStore, episode: int) -> str:
     task = store.tasks[int(store.column("task_index")[episode])]
     problem = task.get("info", {}).get("problem")
     if not problem:
-        raise ValueError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
+        raise UserError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
     return problem
 
 
@@ -91,7 +92,7 @@ def run_rollouts(
     cameras = tuple(spec.image_keys)
     unknown = sorted(set(cameras) - set(CAMERAS))
     if unknown:
-        raise ValueError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
+        raise UserError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
     n = len(rollouts)
     record = list(record_frames) if record_frames is not None else [False] * n
     envs, obs, heights, first_goals = [], [], [], []

@@ -66,7 +66,7 @@ def libero_problem(suite: str, name: str) -> str:
     """The text of LIBERO's problem `name` (a file stem) of its suite `suite` (e.g. ``libero_goal``)."""
     path = problems_folder() / suite / f"{name}.bddl"
     if not path.is_file():
-        raise ValueError(f"no {suite} problem {name!r} in {path.parent}")
+        raise UserError(f"no {suite} problem {name!r} in {path.parent}")
     return path.read_text()
 
 
@@ -91,7 +91,7 @@ def initial_states(name: str):
     path = Path(_libero().get_libero_path("init_states")) / name
     path = path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
     if not path.is_file():
-        raise ValueError(f"LIBERO has no initial states {name!r} ({path})")
+        raise UserError(f"LIBERO has no initial states {name!r} ({path})")
     with np.load(path, allow_pickle=False) as data:
         return data["states"]
 
@@ -117,7 +117,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
 
     path = Path(problem)
     if not path.is_file():
-        raise ValueError(f"{path}: no such BDDL problem")
+        raise UserError(f"{path}: no such BDDL problem")
     try:
         if not cameras:
             return ControlEnv(

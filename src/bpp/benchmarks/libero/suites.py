@@ -1,8 +1,9 @@
 """LIBERO-Gen task suites as data: every task's scene, pick and place, the training / held-out split, and the
 similarity counts the paper's appendix lists for each held-out task.
 
-This is the task layer of LIBERO-Gen (issue 16), with no simulator: writing each task as BDDL plus initial states
-and generating its demonstrations build on it.
+This is the task layer of LIBERO-Gen, with no simulator. A Combination task's BDDL problem is written here
+(:func:`combination_problem`, Chain's in :mod:`bpp.benchmarks.libero.chain`); initial states and demonstrations
+build on them.
 
 **Combination** (LIBERO-Spatial's scene: two identical black bowls, a plate, a cookie box, a ramekin, a stove and a
 wooden cabinet). A *scene* places the two bowls. There are the 10 LIBERO-Spatial initialisations (two of them put
@@ -10,7 +11,7 @@ the bowls in the same places with the bowls' roles swapped, so they count once) 
 A *task* picks either bowl and places it at one of the 10 places, or in the other bowl, but never where either bowl
 already is: nine options, as the paper says. That gives 200 tasks. Ten (pick, place) combinations are held out for
 evaluation, one task each, and no training task has a held-out combination. Twenty more tasks are not in the
-authors' training set, and no rule we know explains why (perhaps failed demonstrations); they are listed
+authors' training set, and no rule found explains why (perhaps failed demonstrations); they are listed
 explicitly in :data:`COMBINATION_ABSENT`. The result is exactly the authors' published 164 training tasks plus
 10 held out = 174. The appendix's counts hold under one reading: a bowl target's place key is the target bowl's
 identity, not its location (see ``docs/libero-gen/combination.md``).
@@ -22,7 +23,9 @@ import re
 from collections import Counter
 from dataclasses import dataclass, replace
 
+from bpp.benchmarks.libero.bddl import BDDLError, dumps, objects, parse, section, set_section
 from bpp.benchmarks.libero.chain import chain, chain_candidates_suite, chain_no_second_step, libero_goal
+from bpp.errors import UserError
 
 PICK_PHRASES = {
     "BPR": "between the plate and the ramekin",
@@ -130,6 +133,42 @@ class PickPlace:
     def code(self) -> tuple[str, str, str]:
         """(scene name, pick, place): unique within a suite."""
         return self.scene.name, self.pick, self.place
+
+
+# Where each location of the Combination suite is in LIBERO-Spatial's problems: as a placement target for the
+# BDDL predicate ``On`` (or ``In`` for the drawer).
+LOCATION_TARGETS = {
+    "BPR": ("On", "main_table_between_plate_ramekin_region"),
+    "NR": ("On", "main_table_next_to_ramekin_region"),
+    "TC": ("On", "main_table_table_center"),
+    "NP": ("On", "main_table_next_to_plate_region"),
+    "NB": ("On", "main_table_next_to_box_region"),
+    "TD": ("In", "wooden_cabinet_1_top_region"),
+    "WC": ("On", "wooden_cabinet_1_top_side"),
+    "ST": ("On", "flat_stove_1_cook_region"),
+    "CB": ("On", "cookies_1"),
+    "RK": ("On", "glazed_rim_porcelain_ramekin_1"),
+    "PL": ("On", "plate_1"),
+}
+BOWLS = ("akita_black_bowl_1", "akita_black_bowl_2")
+
+
+def combination_problem(task: PickPlace, base_text: str) -> str:
+    """The BDDL problem of a Combination task, from the LIBERO-Spatial problem of ``task.scene.base``."""
+    problem = parse(base_text)
+    init = section(problem, ":init")
+    kept = [p for p in init[1:] if not (isinstance(p, list) and len(p) == 3 and p[1] in BOWLS)]
+    if len(kept) != len(init) - 3:
+        raise BDDLError(f"{task.scene.base}: expected one initial placement per bowl in (:init ...)")
+    placements = zip(BOWLS, task.scene.bowls, strict=True)
+    bowls = [[LOCATION_TARGETS[where][0], bowl, LOCATION_TARGETS[where][1]] for bowl, where in placements]
+    set_section(problem, ":init", [*bowls, *kept])
+    picked, other = BOWLS[task.bowl - 1], BOWLS[2 - task.bowl]
+    target = other if task.place == BOWL else LOCATION_TARGETS[task.place][1]
+    set_section(problem, ":goal", [["And", ["On", picked, target]]])
+    set_section(problem, ":obj_of_interest", [picked, target] if target in objects(problem) else [picked])
+    set_section(problem, ":language", task.instruction.capitalize().split())
+    return dumps(problem)
 
 
 @dataclass(frozen=True)
@@ -260,7 +299,7 @@ def matches(task, where: str) -> bool:
     for clause in filter(None, (c.strip() for c in where.split(";"))):
         match = re.fullmatch(r"(\w+)\s*(!?)=(.*)", clause)
         if match is None or match.group(1) not in fields:
-            raise ValueError(f"view {where!r}: {clause!r} is not field=value[,value...] over {', '.join(fields)}")
+            raise UserError(f"view {where!r}: {clause!r} is not field=value[,value...] over {', '.join(fields)}")
         key, negated, values = match.groups()
         if (fields[key] in {v.strip() for v in values.split(",")}) == bool(negated):
             return False
@@ -275,5 +314,5 @@ def view(suite, where: str):
     train = tuple(t for t in suite.train if matches(t, where))
     test = tuple(t for t in suite.test if matches(t, where))
     if not train and not test:
-        raise ValueError(f"no task of {suite.name} is in the view {where!r}")
+        raise UserError(f"no task of {suite.name} is in the view {where!r}")
     return replace(suite, name=f"{suite.name} where {where}", train=train, test=test)

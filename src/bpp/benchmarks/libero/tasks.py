@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp.benchmarks.libero.suites import Suite
+from bpp.errors import UserError
 
 
 def sample_initial_states(problem: Path, count: int) -> np.ndarray:
@@ -46,9 +47,9 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False, init_states: i
 
     out = Path(out)
     if out.exists() and not overwrite:
-        raise ValueError(f"{out} exists; pass --overwrite to replace it")
+        raise UserError(f"{out} exists; pass --overwrite to replace it")
     if out.exists() and not (out / "tasks.json").is_file():
-        raise ValueError(f"{out} exists and is not a written suite (no tasks.json); only a suite is ever replaced")
+        raise UserError(f"{out} exists and is not a written suite (no tasks.json); only a suite is ever replaced")
     tmp = out.with_name(f".{out.name}.partial")
     shutil.rmtree(tmp, ignore_errors=True)
     (tmp / "problems").mkdir(parents=True)
