@@ -95,7 +95,7 @@ def train_run(
 ) -> float:
     """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
     `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
-    sessions)."""
+    interrupted and resumed runs)."""
     model_cfg = model_cfg or get_method(method).config(preset, obs, BENCHMARK)
     recorded = run / "config.json"
     if recorded.is_file():
