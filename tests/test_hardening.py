@@ -1,4 +1,6 @@
-"""Inputs a careful user or an attacker might give: refused with a message naming the input, or handled safely."""
+"""Inputs a careful user or an attacker might give: refused with a message naming the input, or handled safely.
+
+These test the library's checks; test_hardening_probes.py gives the same kinds of inputs to the command line."""
 
 import json
 import subprocess
@@ -33,34 +35,6 @@ def test_training_settings_out_of_range_are_refused_naming_the_field(field, valu
         TrainConfig(data=Path("x.zarr"), **{field: value})
 
 
-def _bpp(*args, cwd=None):
-    return subprocess.run(
-        [sys.executable, "-m", "bpp.cli", *args], capture_output=True, text=True, timeout=300, cwd=cwd
-    )
-
-
-def test_eval_of_a_missing_checkpoint_writes_nothing(tmp_path):
-    out = _bpp("eval", str(tmp_path / "typo"), "--data-dir", str(tmp_path / "data"), "--out", str(tmp_path / "eval"))
-    assert out.returncode != 0 and "typo: no such checkpoint" in out.stderr and "Traceback" not in out.stderr
-    assert not (tmp_path / "data").exists() and not (tmp_path / "eval").exists()
-
-
-def test_task_ids_never_become_paths_outside_the_output_folder(debug_store, tmp_path):
-    run = tmp_path / "run"
-    cfg = TrainConfig(data=debug_store.path, out=run, steps=1, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, config("bpp"), progress=False)
-    drawing = tmp_path / "evil.json"
-    strokes = [[[0.2, 0.2], [0.8, 0.2], [0.5, 0.8]]]
-    drawing.write_text(json.dumps({"drawings": [{"id": "x/../../../pwn", "strokes": strokes}]}))
-    out = tmp_path / "a" / "b" / "eval"
-    args = ("--files", str(drawing), "--rollouts", "1", "--max-steps", "12", "--workers", "1", "--videos", "1")
-    result = _bpp("eval", str(run), *args, "--out", str(out), "--data-dir", str(tmp_path / "data"))
-    assert result.returncode == 0, result.stderr[-2000:]
-    videos = list(out.glob("rollout_*"))
-    assert len(videos) == 1 and "/" not in videos[0].name[len("rollout_") :]
-    assert not list(tmp_path.rglob("pwn*"))
-
-
 def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     from dataclasses import replace
 
@@ -78,13 +52,6 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     before = (tmp_path / "run" / "config.json").read_text()
     train(resume, config("bpp"), progress=False)  # the same settings: resumes (nothing left to do)
     assert (tmp_path / "run" / "config.json").read_text() == before
-    # A run recorded before a setting existed ran as its default does, and resumes with it.
-    recorded = json.loads(before)
-    del recorded["train_config"]["pad_to_multiple"], recorded["train_config"]["compile"]
-    (tmp_path / "run" / "config.json").write_text(json.dumps(recorded))
-    train(resume, config("bpp"), progress=False)
-    with pytest.raises(ValueError, match="train_config.pad_to_multiple: absent in the run, 100 now"):
-        train(replace(resume, pad_to_multiple=100), config("bpp"), progress=False)
 
 
 def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
@@ -97,8 +64,6 @@ def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
     with pytest.raises(StoreError, match="is not an episode store; only a store is ever replaced"):
         generate(PRESETS["debug"], precious, workers=1, overwrite=True, progress=False)
     assert (precious / "chapter1.tex").read_text() == "years of work"
-    out = _bpp("draw", "generate", "--preset", "debug", "--out", str(precious), "--overwrite")
-    assert out.returncode != 0 and "not an episode store" in out.stderr and (precious / "chapter1.tex").exists()
     store = tmp_path / "store.zarr"
     generate(PRESETS["debug"], store, workers=1, progress=False)
     again = generate(PRESETS["debug"], store, workers=1, overwrite=True, progress=False)  # a store is replaced
@@ -133,9 +98,6 @@ def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one
     checkpoints = run / "checkpoints"
     weights = checkpoints / "step_00000004" / "ema.safetensors"
     weights.write_bytes(weights.read_bytes()[:1000])  # truncated, as by a full disk
-    quick = ("--tasks", str(debug_store.path), "--num-tasks", "1", "--rollouts", "1", "--max-steps", "5")
-    out = _bpp("eval", str(run), *quick, "--out", str(tmp_path / "eval"))
-    assert out.returncode != 0 and "ema.safetensors: unreadable weights" in out.stderr and "Traceback" not in out.stderr
     capsys.readouterr()
     more = replace(cfg, resume=True)
     train(more, config("bpp"), progress=False)  # the run's own settings: resumes from step 2, saves step 4 again
@@ -143,14 +105,13 @@ def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one
     assert "skipping step_00000004" in err and "ema.safetensors: unreadable weights" in err
     assert "resuming from step_00000002" in err
     (checkpoints / "last").write_text("step_00000009")  # a pointer to a folder that is gone
-    from bpp.checkpoint import resolve_checkpoint
+    from bpp.checkpoint import read_state, resolve_checkpoint
 
     assert resolve_checkpoint(run).name == "step_00000004"
     assert "names step_00000009, which is missing" in capsys.readouterr().err
     (checkpoints / "step_00000004" / "state.json").write_text('{"format": "bpp-check')  # truncated JSON
-    out = _bpp("eval", str(run), *quick, "--out", str(tmp_path / "eval"))
-    assert out.returncode != 0 and "Traceback" not in out.stderr
-    assert "state.json: the checkpoint state is not valid JSON" in out.stderr
+    with pytest.raises(ValueError, match="state.json: the checkpoint state is not valid JSON"):
+        read_state(checkpoints / "step_00000004")
 
 
 def test_training_warns_when_demonstrations_are_longer_than_the_model_s_prompts(debug_store, tmp_path, capsys):
@@ -230,8 +191,6 @@ def test_deeply_nested_json_is_refused_naming_the_file(tmp_path, debug_store):
     (ckpt / "state.json").write_text(deep)
     with pytest.raises(ValueError, match="state.json: the checkpoint state is nested too deeply"):
         read_state(ckpt)
-    out = _bpp("eval", str(ckpt), "--out", str(tmp_path / "eval"))
-    assert out.returncode != 0 and "nested too deeply" in out.stderr and "Traceback" not in out.stderr
 
 
 def test_svg_transforms_are_applied_in_document_order(tmp_path):
@@ -329,9 +288,6 @@ def test_damaged_stores_are_named_with_the_damaged_part(tmp_path, debug_store):
     part.write_bytes(part.read_bytes()[:20])
     with pytest.raises(StoreError, match="chunk.zarr: damaged store, cannot read data/action"):
         EpisodeStore(chunk).array("action")
-    for store in (header, chunk):
-        out = _bpp("train", "--data", str(store), "--out", str(tmp_path / "run"), "--preset", "debug", "--steps", "1")
-        assert out.returncode != 0 and "damaged store" in out.stderr and "Traceback" not in out.stderr
 
 
 @pytest.mark.parametrize("angle", [0.3, -0.7, 1.0, -np.pi / 4])
@@ -397,15 +353,3 @@ def test_damaged_store_tables_and_missing_episodes_name_the_store(tmp_path, debu
         EpisodeStore(store)
     with pytest.raises(IndexError, match=f"{debug_store.path}: episode 99999 out of range"):
         debug_store.episode(99999)
-    out = _bpp("draw", "video", str(debug_store.path), "--episode", "99999", "--out", str(tmp_path / "v.gif"))
-    assert out.returncode != 0 and "episode 99999 out of range" in out.stderr and "Traceback" not in out.stderr
-
-
-def test_a_drawing_too_long_to_demonstrate_is_refused_naming_its_file(tmp_path):
-    strokes = [[[float(j % 2), 0.1 + 0.8 * k / 99] for j in range(49)] for k in range(100)]
-    drawing = tmp_path / "long.json"
-    drawing.write_text(json.dumps({"drawings": [{"id": "zz", "strokes": strokes}]}))
-    out = _bpp("draw", "generate", "--source", "files", "--drawings", str(drawing), "--out", str(tmp_path / "s.zarr"))
-    assert out.returncode != 0 and "Traceback" not in out.stderr
-    assert f"{drawing}: drawing 'zz': drawing it takes more than 1200 steps" in out.stderr
-    assert not (tmp_path / "s.zarr").exists()
