@@ -73,19 +73,21 @@ def test_evaluate_with_the_control_records_both_episodes(debug_store, tmp_path):
     assert np.isfinite(data["summary"]["score_mean"])
 
 
-def test_evaluate_reuses_results_recorded_before_a_protocol_field_existed(debug_store, tmp_path, capsys):
+def test_evaluate_reuses_results_only_under_the_same_protocol(debug_store, tmp_path, capsys):
     run = tmp_path / "run"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
     train(cfg, config("bpp"), progress=False)
     protocol, out = Protocol(rollouts=1, max_steps=8), tmp_path / "eval"
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, protocol, workers=1, videos=0, progress=False)
-    results = out / "results.json"
-    data = json.loads(results.read_text())
-    del data["protocol"]["prompts"]  # as written by a version without the control
-    results.write_text(json.dumps(data))
     capsys.readouterr()
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, protocol, workers=1, videos=0, progress=False)
     assert "reusing" in capsys.readouterr().out
+    results = out / "results.json"
+    data = json.loads(results.read_text())
+    del data["protocol"]["prompts"]  # a record that does not state the whole protocol is run again
+    results.write_text(json.dumps(data))
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, protocol, workers=1, videos=0, progress=False)
+    assert "reusing" not in capsys.readouterr().out
     control = Protocol(rollouts=1, max_steps=8, prompts="other-task")
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out

@@ -26,8 +26,8 @@ def test_size_presets_observe_nothing_until_given_a_benchmarks_observations(debu
     bpp = get_method("bpp")
     with pytest.raises(ValueError, match="observes nothing"):
         BPPModel(bpp.preset("cpu"), debug_store.stats)
-    with pytest.raises(ValueError, match="--preset cpu --obs board"):
-        bpp.preset("cpu-board")
+    with pytest.raises(ValueError, match="^unknown bpp preset 'large'; choose from debug, cpu, paper$"):
+        bpp.preset("large")
     with pytest.raises(ValueError, match="no observation preset 'pixels'"):
         bpp.config("cpu", "pixels", BENCHMARK)
     assert bpp.config("paper", None, BENCHMARK).obs.image_size == 224  # the benchmark's default for that size
@@ -38,18 +38,18 @@ def test_size_presets_observe_nothing_until_given_a_benchmarks_observations(debu
     assert goal.shares_camera_encoder and goal.goal_image_size == 64
 
 
-def test_the_main_jobs_composed_preset_builds_the_model_of_the_old_cpu_board_preset(debug_store):
-    """`--preset cpu --obs board` is the former `cpu-board` preset: only the unused image-encoder widths differ,
-    and the model is the same, weight for weight (so the main job trains the same network)."""
-    old = BPPConfig(
+def test_the_main_jobs_preset_builds_exactly_its_model(debug_store):
+    """The main job's `--preset cpu --obs board` is this BPP config (the image-encoder widths aside, which a
+    state-only model does not use), weight for weight: its results hold only for this network."""
+    expected = BPPConfig(
         obs=ObsConfig(proprio_keys=("cursor_on_board", "pen_down", "ink_length"), lowdim_fourier_octaves=6),
         prompt=PromptConfig(action_fourier_octaves=6),
         action_key="action_on_board",
     )
-    new = config("bpp", "cpu", "board")
-    assert replace(new, obs=replace(new.obs, image_features=256, image_widths=(32, 64, 128, 256))) == old
+    main_job = config("bpp", "cpu", "board")
+    assert replace(main_job, obs=replace(main_job.obs, image_features=256, image_widths=(32, 64, 128, 256))) == expected
     models = []
-    for cfg in (old, new):
+    for cfg in (expected, main_job):
         torch.manual_seed(0)
         models.append(BPPModel(cfg, debug_store.stats).state_dict())
     assert models[0].keys() == models[1].keys()
@@ -91,5 +91,5 @@ def test_an_action_dimension_the_data_never_moves_stays_still_whatever_the_model
     assert out.tolist() == pytest.approx([0.3, 0.0, 0.5])  # not -0.9 and 1.5: the data never moved them
     # an observed constant is only centred: if it moves at test time, the model still sees it move
     assert normalizer.normalize("obs", torch.tensor([[0.2, 2.0]]))[0].tolist() == pytest.approx([0.2, 0.0])
-    # the constants come from the statistics, not the saved weights: checkpoints written before load unchanged
+    # the constants are derived from the statistics the checkpoint keeps, so the saved weights do not repeat them
     assert set(normalizer.state_dict()) == {"obs__scale", "obs__offset", "action__scale", "action__offset"}

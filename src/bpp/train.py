@@ -10,7 +10,7 @@ import copy
 import math
 import os
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
 
@@ -269,9 +269,6 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
         raise UserError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
     differences = []
-    # A run recorded before a setting existed ran as its default does.
-    defaults = {f"train_config.{f.name}": to_dict(f.default) for f in fields(TrainConfig)}
-
     absent = object()  # a key the run's record lacks
 
     def compare(path: str, old, new) -> None:
@@ -280,8 +277,6 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
                 compare(f"{path}.{key}" if path else key, old.get(key, absent), new.get(key, absent))
         elif path in ("train_config.out", "train_config.resume"):
             return  # where the run is now (it may have been moved), and whether this call resumes
-        elif old is absent and path in defaults and new == defaults[path]:
-            return
         elif path == "train_config.data" and old and new and old is not absent:
             if Path(old).resolve() != Path(new).resolve():
                 differences.append(f"{path}: {old!r} in the run, {new!r} now")

@@ -223,7 +223,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     def __getitem__(self, index: int) -> dict:
         rng = np.random.default_rng([self.seed, int(index), self.rank])
         groups, per_group = self.tasks_per_batch, self.batch_size // self.tasks_per_batch
-        if groups == 1:  # the draw of earlier versions, so their runs resume onto the same batches
+        if groups == 1:  # an index drawn as rng.integers: the draw BENCHMARKS.md's one-task runs reproduce with
             tasks = [self.tasks[int(rng.integers(len(self.tasks)))]]
         else:  # distinct tasks while there are enough of them
             tasks = rng.choice(self.tasks, size=groups, replace=groups > len(self.tasks)).tolist()

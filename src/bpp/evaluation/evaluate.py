@@ -7,8 +7,8 @@ then over tasks. Rollout ``r`` of task ``t`` draws its conditions and seed from 
 method and checkpoint sees the same rollouts.
 
 A control, ``prompts="other-task"``: each rollout is prompted with a demonstration of another task but scored
-against its own task's demonstration, exactly as before. A policy that follows its prompt scores far worse under
-it; one that does something generic scores about the same.
+against its own task's demonstration, as under the paper's protocol. A policy that follows its prompt scores far
+worse under it; one that does something generic scores about the same.
 
 A checkpoint is read from disk once (:class:`bpp.checkpoint.Checkpoint`) and handed to the worker processes.
 """
@@ -300,14 +300,6 @@ def _overrides(protocol: Protocol) -> str:
 
 
 # ------------------------------------------------------------------------------------------- one call
-def _same_protocol(recorded: dict | None, protocol: Protocol) -> bool:
-    """Whether results recorded under `recorded` were run with `protocol` (fields added since default as before)."""
-    try:
-        return recorded is not None and Protocol(**recorded) == protocol
-    except (TypeError, ValueError):  # a field this version does not know, or a value it refuses
-        return False
-
-
 def evaluate(
     checkpoint: Checkpoint | str | Path,
     task_set: TaskSet,
@@ -337,7 +329,7 @@ def evaluate(
         reuse
         and previous is not None
         and previous.get("fingerprint") == fingerprint
-        and _same_protocol(previous.get("protocol"), protocol)
+        and previous.get("protocol") == asdict(protocol)
         and [t.get("task") for t in previous.get("tasks", [])] == tasks
         and isinstance(previous.get("summary"), dict)
         and "score_mean" in previous["summary"]

