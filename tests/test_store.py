@@ -150,23 +150,31 @@ def test_store_pickles_and_reads_from_worker_processes(tmp_path):
     assert sums == [float(s.episode(i)["obs"].sum()) for i in range(6)]
 
 
-def test_a_store_is_reused_for_its_config_and_for_fields_added_since_with_their_defaults(tmp_path):
+def test_a_store_is_reused_only_for_exactly_its_config(tmp_path):
     from dataclasses import dataclass
+    from pathlib import Path
 
     from bpp.data.store import stored_with
 
     @dataclass(frozen=True)
     class Config:
         a: int = 1
-        noise: float = 0.0  # a field added after the store was written
+        noise: float = 0.0
+        files: tuple[Path, ...] = (Path("a.json"),)
 
     path = tmp_path / "s.zarr"
-    with EpisodeWriter(path, benchmark="test", config={"a": 1}) as w:
+    with EpisodeWriter(path, benchmark="test", config={"a": 1, "noise": 0.0, "files": ["a.json"]}) as w:
         w.add_task("t")
         w.add_episode({"x": np.zeros((5, 1))}, 0)
     assert stored_with(path, Config()) is not None
     assert stored_with(path, Config(noise=0.2)) is None and stored_with(path, Config(a=2)) is None
+    assert stored_with(path, Config(files=(Path("b.json"),))) is None
     assert stored_with(tmp_path / "missing.zarr", Config()) is None
+    short = tmp_path / "short.zarr"  # a header that does not state every field is not this config
+    with EpisodeWriter(short, benchmark="test", config={"a": 1}) as w:
+        w.add_task("t")
+        w.add_episode({"x": np.zeros((5, 1))}, 0)
+    assert stored_with(short, Config()) is None
 
 
 def _one_episode(path, benchmark, task_id, instruction="", **task_arrays):

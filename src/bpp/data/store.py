@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from bpp.benchmarks.registry import derived_keys
-from bpp.utils import from_dict, read_json, to_dict
+from bpp.utils import read_json, to_dict
 
 FORMAT = "bpp-episodes"
 VERSION = 1
@@ -94,19 +94,13 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
-def remove_stale_partials(path: Path, legacy_age_s: float = 3600.0) -> list[Path]:
+def remove_stale_partials(path: Path) -> list[Path]:
     """Delete the hidden ``.<name>.partial-<pid>-<id>`` folders that interrupted writers of `path` left behind: those
-    whose process no longer runs (and, for names without a pid, written by older versions, those untouched for
-    `legacy_age_s`). A writer still running keeps its folder. Returns what was deleted."""
-    import time
-
+    whose process no longer runs. A writer still running keeps its folder. Returns what was deleted."""
     removed = []
     for partial in path.parent.glob(f".{path.name}.partial-*"):
         tag = partial.name.rsplit(".partial-", 1)[1].split("-")
-        if len(tag) == 2 and tag[0].isdigit():
-            stale = not _process_alive(int(tag[0]))
-        else:
-            stale = time.time() - partial.stat().st_mtime > legacy_age_s
+        stale = len(tag) == 2 and tag[0].isdigit() and not _process_alive(int(tag[0]))
         if stale and partial.is_dir():
             shutil.rmtree(partial, ignore_errors=True)
             removed.append(partial)
@@ -535,14 +529,12 @@ class EpisodeStore:
 
 def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
     """The store at `path` if it loads and was generated from exactly the data config `cfg` (a dataclass), else
-    None: how scripts and named task sets reuse finished data. A field the config class gained after the store was
-    written counts as its default (what generation did before the field existed)."""
+    None: how scripts and named task sets reuse finished data."""
     try:
         store = EpisodeStore(path)
-        stored = to_dict(from_dict(type(cfg), store.config))
-    except (StoreError, ValueError, TypeError):
+    except (StoreError, ValueError):
         return None
-    same = json.loads(json.dumps(stored)) == json.loads(json.dumps(to_dict(cfg)))
+    same = json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg)))
     return store if same else None
 
 
