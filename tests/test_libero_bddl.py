@@ -2,8 +2,8 @@
 
 import pytest
 
-from bpp.benchmarks.libero.bddl import BDDLError, combination_problem, dumps, objects, parse, section
-from bpp.benchmarks.libero.suites import combination
+from bpp.benchmarks.libero.bddl import BDDLError, dumps, objects, parse, section
+from bpp.benchmarks.libero.suites import combination, combination_problem
 
 # A small problem in LIBERO-Spatial's layout, written for this test (not one of LIBERO's files).
 SCENE = """

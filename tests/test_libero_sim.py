@@ -4,10 +4,10 @@ problem LIBERO ships, and a generated Combination problem loads in the simulator
 import numpy as np
 import pytest
 
-from bpp.benchmarks.libero.bddl import combination_problem, dumps, parse, section
+from bpp.benchmarks.libero.bddl import dumps, parse, section
 from bpp.benchmarks.libero.rollouts import observe
 from bpp.benchmarks.libero.sim import make_env, place_object, problems_folder, spatial_problem
-from bpp.benchmarks.libero.suites import combination
+from bpp.benchmarks.libero.suites import combination, combination_problem
 
 pytestmark = pytest.mark.libero
 

@@ -79,7 +79,7 @@ class Reach:
     metric = Metric("waypoint miss", lower_is_better=True, good_threshold=0.05, description="mean waypoint miss")
     max_steps = 100
     task_sets: Mapping[str, str] = {}
-    commands: Mapping = {}
+    command_table = ""
 
     def default_observation(self, size: str) -> str:
         return "state"

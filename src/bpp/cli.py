@@ -16,7 +16,13 @@ from typing import Annotated, Any, Literal
 
 import tyro
 
-from bpp.benchmarks.registry import DEFAULT_BENCHMARK, benchmark_for_command, benchmark_names, get_benchmark
+from bpp.benchmarks.registry import (
+    DEFAULT_BENCHMARK,
+    benchmark_commands,
+    benchmark_for_command,
+    benchmark_names,
+    get_benchmark,
+)
 from bpp.errors import UserError
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig
@@ -303,7 +309,7 @@ COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
 def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | None:
     """(words, command class, function, tyro default) for the command argv starts with, or None."""
     if argv[:1] in (["demo"], ["studio"]):  # the main job and the studio: the default benchmark's
-        cls, run = get_benchmark(DEFAULT_BENCHMARK).commands[argv[0]]
+        cls, run = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))[argv[0]]
         return (argv[0],), cls, run, None
     for n in (2, 1):
         words = tuple(argv[:n])
@@ -323,8 +329,8 @@ def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | N
         cls = _generate_class(benchmark)
         default = cls(out=tyro.MISSING, preset=preset, data=benchmark.data_presets[preset])
         return (argv[0], name), cls, lambda args: generate_cmd(args, benchmark), default
-    if name in benchmark.commands:
-        cls, run = benchmark.commands[name]
+    if name in benchmark_commands(benchmark):
+        cls, run = benchmark_commands(benchmark)[name]
         return (argv[0], name), cls, run, None
     return None
 
@@ -338,12 +344,13 @@ def _usage() -> str:
 
     for words, (cls, _) in COMMANDS.items():
         line(words, cls)
-    line(("demo",), get_benchmark(DEFAULT_BENCHMARK).commands["demo"][0])
-    line(("studio",), get_benchmark(DEFAULT_BENCHMARK).commands["studio"][0])
+    main_job = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))
+    line(("demo",), main_job["demo"][0])
+    line(("studio",), main_job["studio"][0])
     for name in benchmark_names():
         benchmark = get_benchmark(name)
         line((benchmark.command, "generate"), _generate_class(benchmark))
-        for command, (cls, _) in benchmark.commands.items():
+        for command, (cls, _) in benchmark_commands(benchmark).items():
             line((benchmark.command, command), cls)
     return "\n".join(lines)
 

@@ -188,8 +188,11 @@ class Benchmark(Protocol):
         """A short caption of a rollout's conditions for pictures (e.g. "board +30°")."""
         ...
 
-    commands: CommandTable
-    """The benchmark's own commands besides ``generate`` (e.g. pictures of a store, a demo job)."""
+    command_table: str
+    """Where the benchmark's own commands besides ``generate`` are (e.g. pictures of a store, a demo job): the
+    ``module:attribute`` of a :data:`CommandTable` ("" for none), which
+    :func:`bpp.benchmarks.registry.benchmark_commands` imports. Named rather than held, so that the commands module
+    may import the benchmark object and not the other way round."""
 
 
 def device_frames(benchmark: Benchmark, store: EpisodeStore, device):

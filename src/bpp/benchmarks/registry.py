@@ -11,7 +11,7 @@ import importlib
 from collections.abc import Mapping
 from importlib.metadata import entry_points
 
-from bpp.benchmarks.contract import Benchmark
+from bpp.benchmarks.contract import Benchmark, CommandTable
 from bpp.errors import UserError
 
 BENCHMARKS: dict[str, str] = {
@@ -75,6 +75,14 @@ def derived_keys(name: str) -> Mapping[str, tuple[str, tuple[int, ...]]]:
     return get_benchmark(name).derived_keys
 
 
+def benchmark_commands(benchmark: Benchmark) -> CommandTable:
+    """`benchmark`'s own commands (``bpp <its command> <name> ...``): the table its ``command_table`` names."""
+    if not benchmark.command_table:
+        return {}
+    module, attr = benchmark.command_table.split(":", 1)
+    return getattr(importlib.import_module(module), attr)
+
+
 def benchmark_for_command(command: str) -> Benchmark | None:
     """The benchmark whose command-line group is `command` (``bpp <command> ...``), if any."""
     found = [b for b in map(get_benchmark, benchmark_names()) if b.command == command]
@@ -96,6 +104,10 @@ def _check(name: str, benchmark) -> None:
                 f"benchmark {name!r}: derived key {key!r} must be (a stored key, a non-empty tuple of feature indices "
                 f">= 0), got {(source, features)!r}"
             )
+    if benchmark.command_table and ":" not in benchmark.command_table:
+        raise ValueError(
+            f"benchmark {name!r}: command_table must be 'module:attribute', got {benchmark.command_table!r}"
+        )
     if benchmark.command in RESERVED_COMMANDS:
         raise ValueError(f"benchmark {name!r} takes the command {benchmark.command!r}, which bpp reserves")
 

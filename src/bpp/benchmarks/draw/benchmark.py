@@ -60,6 +60,7 @@ class DrawAnything:
 
     name = dataset.BENCHMARK
     command = "draw"
+    command_table = "bpp.benchmarks.draw.commands:COMMANDS"
     description = "DrawAnything-Sim: draw a drawing on a rotated board from one demonstration (Chamfer, px)"
     data_config = dataset.DrawDataConfig
     data_presets = dataset.PRESETS
@@ -84,7 +85,7 @@ class DrawAnything:
 
     def default_observation(self, size: str) -> str:
         # State-only with canvas actions, as the paper acts; with the ink drawn so far, which its camera sees: without
-        # it, half the rollouts never stop (BENCHMARKS.md, twenty-second and twenty-fourth sessions).
+        # it, half the rollouts never stop (BENCHMARKS.md, "DrawAnything observation presets").
         return "paper" if size == "paper" else "canvas-ink"
 
     def generate(self, cfg, out: Path, *, workers: int = 0, overwrite: bool = False, progress: bool = True):
@@ -142,12 +143,6 @@ class DrawAnything:
 
     def describe_rollout(self, row: Mapping) -> str:
         return f"board {np.degrees(row['board_angle']):+.0f}°"
-
-    @property
-    def commands(self):
-        from bpp.benchmarks.draw.commands import COMMANDS
-
-        return COMMANDS
 
 
 BENCHMARK = DrawAnything()

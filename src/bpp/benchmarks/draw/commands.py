@@ -1,7 +1,8 @@
 """DrawAnything's own commands: ``bpp draw sheet|video|rollout|demo`` (``bpp draw generate`` is generic).
 
 ``demo`` is the main job (``bpp demo``): it drives the generic training loop and evaluator, so unlike the rest of
-this folder it imports them (inside the functions, at run time).
+this folder it uses them. They, the checkpoints and the policies load torch, so they are imported when a command
+runs: ``bpp --help`` lists this table without loading torch.
 """
 
 from __future__ import annotations
@@ -14,9 +15,15 @@ from pathlib import Path
 import numpy as np
 import tyro
 
-from bpp.benchmarks.draw.dataset import PRESETS, DrawDataConfig
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.dataset import PRESETS, DrawDataConfig, generate
+from bpp.benchmarks.draw.sheets import write_contact_sheet
 from bpp.benchmarks.draw.studio.command import StudioCommand, studio
+from bpp.benchmarks.draw.viz import episode_frames
+from bpp.benchmarks.prompting import run_prompted
+from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
+from bpp.media import contact_sheet, save_animation
 from bpp.utils import check_fields
 
 
@@ -42,8 +49,6 @@ class DrawSheet:
 
 
 def draw_sheet(args: DrawSheet) -> None:
-    from bpp.benchmarks.draw.sheets import write_contact_sheet
-
     print(f"wrote {write_contact_sheet(args.store, args.out, args.tasks, args.demos, args.size)}")
 
 
@@ -66,10 +71,6 @@ class DrawVideo:
 
 
 def draw_video(args: DrawVideo) -> None:
-    from bpp.benchmarks.draw.viz import episode_frames
-    from bpp.data.store import EpisodeStore
-    from bpp.media import save_animation
-
     store = EpisodeStore(args.store)
     ep = store.episode(args.episode, ("state", "action"))
     angle = float(store.column("board_angle")[args.episode])
@@ -104,11 +105,7 @@ class DrawRollout:
 
 
 def draw_rollout(args: DrawRollout) -> None:
-    from bpp.benchmarks.draw.benchmark import BENCHMARK
-    from bpp.benchmarks.prompting import run_prompted
     from bpp.checkpoint import Checkpoint
-    from bpp.data.store import EpisodeStore
-    from bpp.media import contact_sheet, save_animation
     from bpp.policies.agent import PolicyAgent
 
     store = EpisodeStore(args.store)
@@ -199,11 +196,7 @@ class Demo:
 
 
 def demo(args: Demo) -> None:
-
-    from bpp.benchmarks.draw.benchmark import BENCHMARK
-    from bpp.benchmarks.draw.dataset import generate
     from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
-    from bpp.data.store import EpisodeStore, stored_with
     from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
     from bpp.policies.registry import get_method
     from bpp.train import TrainConfig, run_differences, train

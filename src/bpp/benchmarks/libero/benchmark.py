@@ -52,6 +52,7 @@ class LiberoGen:
 
     name = dataset.BENCHMARK
     command = "libero"
+    command_table = "bpp.benchmarks.libero.commands:COMMANDS"
     description = (
         "LIBERO-Gen: pick-and-place tasks (Combination) and two-step chains (Chain) in LIBERO from one demonstration "
         "(success by LIBERO's predicates)"
@@ -149,12 +150,6 @@ class LiberoGen:
 
     def describe_rollout(self, row: Mapping) -> str:
         return f"initial state {row['init_seed']}"
-
-    @property
-    def commands(self):
-        from bpp.benchmarks.libero.commands import COMMANDS
-
-        return COMMANDS
 
 
 def _resize(frames: np.ndarray, size: int) -> np.ndarray:

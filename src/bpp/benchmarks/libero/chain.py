@@ -25,6 +25,8 @@ from dataclasses import dataclass
 from functools import cache, cached_property
 from pathlib import Path
 
+from bpp.benchmarks.libero.bddl import BDDLError, dumps, parse, section, set_section
+
 OBJECTS = {
     "bowl": "akita_black_bowl_1",
     "cream cheese": "cream_cheese_1",
@@ -184,8 +186,6 @@ def goal_problem(instruction: str, base_text: str) -> str:
     """A LIBERO-Goal problem (`base_text`, any of the ten: they share one scene and initial state) with
     `instruction` as its language and the conjunction of its steps' goals as its goal. BDDL has no order: the
     steps' order is the instruction's."""
-    from bpp.benchmarks.libero.bddl import dumps, parse, set_section
-
     problem = parse(base_text)
     goals = [step.goal.strip("()").split() for step in parse_instruction(instruction)]
     set_section(problem, ":language", re.sub(r" \d+$", "", instruction).split())
@@ -255,8 +255,6 @@ class ChainTask:
     def problem(self, base_text: str) -> str:
         """Its BDDL problem, from a LIBERO-Goal problem (any: they share scene and initial state): the steps' goals,
         and for a second-step task the first step's effect in ``:init``."""
-        from bpp.benchmarks.libero.bddl import BDDLError, dumps, parse, section, set_section
-
         problem = parse(goal_problem(self.label, base_text))
         if self.start is None:
             return dumps(problem)

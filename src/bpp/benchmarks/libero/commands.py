@@ -7,8 +7,14 @@ from pathlib import Path
 
 import tyro
 
+from bpp.benchmarks.libero.benchmark import BENCHMARK
+from bpp.benchmarks.libero.export import export_store
+from bpp.benchmarks.libero.importer import import_files
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, view
+from bpp.benchmarks.libero.tasks import write_suite
+from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.media import save_animation
 from bpp.utils import check_fields
 
 
@@ -42,8 +48,6 @@ class LiberoTasks:
 
 
 def libero_tasks(args: LiberoTasks) -> None:
-    from bpp.benchmarks.libero.tasks import write_suite
-
     suite = view(SUITES_BY_NAME[args.suite](), args.where)
     print(suite.report())
     if args.out is not None:
@@ -73,9 +77,6 @@ class LiberoVideo:
 
 
 def libero_video(args: LiberoVideo) -> None:
-    from bpp.benchmarks.libero.benchmark import BENCHMARK
-    from bpp.media import save_animation
-
     store = _libero_store(args.store)
     store.episode_slice(args.episode)  # an IndexError naming the store's episode count if out of range
     frames = BENCHMARK.frames(store, args.episode, args.camera, args.size)
@@ -96,8 +97,6 @@ class LiberoExport:
 
 
 def libero_export(args: LiberoExport) -> None:
-    from bpp.benchmarks.libero.export import export_store
-
     store = _libero_store(args.store)
     paths = export_store(store, args.out, args.overwrite)
     print(f"wrote {len(paths)} HDF5 files ({store.num_episodes} demonstrations) into {args.out}")
@@ -126,16 +125,11 @@ class LiberoImport:
 
 
 def libero_import(args: LiberoImport) -> None:
-    from bpp.benchmarks.libero.importer import import_files
-
     store = import_files(args.files, args.out, overwrite=args.overwrite, goal_size=args.goal_size)
     print(f"wrote {store}")
 
 
 def _libero_store(path: Path):
-    from bpp.benchmarks.libero.benchmark import BENCHMARK
-    from bpp.data.store import EpisodeStore
-
     store = EpisodeStore(path)
     if store.benchmark != BENCHMARK.name:
         raise UserError(f"{store.path} is a {store.benchmark} store, not {BENCHMARK.name}")

@@ -26,10 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bpp.benchmarks.libero.bddl import BOWLS, LOCATION_TARGETS
 from bpp.benchmarks.libero.chain import parse_step
 from bpp.benchmarks.libero.sim import holds
-from bpp.benchmarks.libero.suites import BOWL, PickPlace
+from bpp.benchmarks.libero.suites import BOWL, BOWLS, LOCATION_TARGETS, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
 """Table regions: LIBERO's goal check wants the bowl's centre inside a range of a few centimetres."""
