@@ -20,39 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gpu_throughput import train_subprocess  # this folder's script, on the path when run as a script
-
-
-def add_main_job_arguments(parser: argparse.ArgumentParser, steps: int) -> None:
-    """The flags of a `bpp train` run in the main job's setting (:func:`train_rate` reads them)."""
-    parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--obs", default="board")
-    parser.add_argument("--steps", type=int, default=steps)
-    parser.add_argument("--log-every", type=int, default=25)
-    parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
-    parser.add_argument("--batch-size", type=int, default=64)
-    parser.add_argument("--tasks-per-batch", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=1)
-
-
-def train_rate(store: Path, args, extra: list[str], env: dict | None = None) -> dict:
-    """One `bpp train` on `store` with :func:`add_main_job_arguments`' flags and `extra` (in environment `env`): its
-    wall time, first interval (which holds any compilation), median samples/s after two intervals, and losses."""
-    arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
-    arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
-    arguments += ["--threads", str(args.threads), "--log-every", str(args.log_every)]
-    arguments += ["--save-every", str(10 * args.steps), *extra]
-    wall, logged, _ = train_subprocess(arguments, ("train/samples_per_s", "train/loss"), env=env)
-    rates = [value for _, value in logged["train/samples_per_s"]]
-    losses = dict(logged["train/loss"])
-    steady = rates[2:] if len(rates) > 2 else rates[-1:]
-    first = args.log_every * args.batch_size / rates[0]  # seconds of the first interval (rates are per interval)
-    return {
-        "wall_s": round(wall, 1),
-        "first_interval_s": round(first, 1),
-        "samples_per_s": round(float(np.median(steady)), 1),
-        "losses": {int(k): round(v, 5) for k, v in losses.items()},
-    }
+from common import add_main_job_arguments, train_rate
 
 
 def main() -> None:

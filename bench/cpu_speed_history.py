@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from compile_speed import add_main_job_arguments, train_rate  # this folder's, on the path when run as a script
+from common import add_main_job_arguments, train_rate
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -44,7 +44,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
-from draw_cpu_benchmark import train_run
+from common import train_run
 
 PARTS = {"1-3": ProceduralConfig(min_parts=1, max_parts=3), "4-6": ProceduralConfig(min_parts=4, max_parts=6)}
 

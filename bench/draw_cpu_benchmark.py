@@ -22,8 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,15 +29,14 @@ import numpy as np
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
-from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
+from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore, StoreError
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
-from bpp.train import TrainConfig, train
-from bpp.utils import to_dict, write_json_atomic
+from bpp.utils import write_json_atomic
+from common import NAMES, add_budget_arguments, budgets, train_run, trained_to
 
-NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
 OLD_PRESETS = {
     ("debug", "canvas"): "debug",
     ("cpu", "canvas"): "cpu",
@@ -56,89 +53,10 @@ def preset_label(preset: str, obs: str) -> str:
     return OLD_PRESETS.get((preset, obs), f"{preset}-{obs}")
 
 
-IMAGE_ENCODER_FIELDS = ("image_features", "image_widths", "image_blocks")
-
-
-def comparable_config(model_config: dict | None) -> dict | None:
-    """A serialised model configuration, less what may differ between runs of the same model. Runs trained before
-    presets were split into sizes and observations stored their state-only presets' image-encoder sizes
-    (``obs.image_features``, ``obs.image_widths``; ``obs.image_blocks`` too for ``debug``), which differ from today's
-    size presets' but build nothing when no camera is observed, so they are left out when ``obs.image_keys`` is
-    empty: runs trained before the split are still accepted."""
-    obs = model_config.get("obs") if isinstance(model_config, dict) else None
-    if not isinstance(obs, dict) or obs.get("image_keys"):
-        return model_config
-    return {**model_config, "obs": {k: v for k, v in obs.items() if k not in IMAGE_ENCODER_FIELDS}}
-
-
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
     with contextlib.suppress(StoreError):
         return EpisodeStore(path)
     return generate(cfg, path, overwrite=True)
-
-
-def train_run(
-    method: str,
-    preset: str,
-    obs: str,
-    store: EpisodeStore,
-    run: Path,
-    steps: int,
-    seed: int,
-    batch_size: int = 64,
-    tasks_per_batch: int = 1,
-    threads: int = 0,
-    model_cfg=None,
-    loader_workers: int = 0,
-    compile: str = "off",
-    frames_on: str = "loader",
-) -> float:
-    """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
-    `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
-    interrupted and resumed runs)."""
-    model_cfg = model_cfg or get_method(method).config(preset, obs, BENCHMARK)
-    recorded = run / "config.json"
-    if recorded.is_file():
-        stored = json.loads(recorded.read_text()).get("model_config")
-        if comparable_config(stored) != comparable_config(to_dict(model_cfg)):
-            raise SystemExit(
-                f"{run} was trained with another {method} configuration than today's `{preset}` preset observing "
-                f"`{obs}` (a preset changed since); delete it or pass another --runs folder"
-            )
-    timing = run / "train_seconds.json"
-    spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
-    if trained_to(run, steps):
-        return spent
-    resume = (run / "checkpoints" / "last").is_file()
-    t0 = time.perf_counter()
-    cfg = TrainConfig(
-        data=store.path,
-        out=run,
-        method=method,
-        steps=steps,
-        batch_size=batch_size,
-        tasks_per_batch=tasks_per_batch,
-        seed=seed,
-        threads=threads,
-        workers=loader_workers,
-        compile=compile,
-        frames_on=frames_on,
-        resume=resume,
-        save_every=500,
-    )
-    try:
-        train(cfg, model_cfg)
-    finally:  # an interrupted run (Ctrl-C) keeps its time too, including steps it will redo from the last checkpoint
-        spent += time.perf_counter() - t0
-        write_json_atomic(timing, {"seconds": spent})
-    return spent
-
-
-def trained_to(run: Path, steps: int) -> bool:
-    """Whether `run` holds a checkpoint of at least `steps` training steps."""
-    with contextlib.suppress(OSError, ValueError):
-        return read_state(resolve_checkpoint(run))["step"] >= steps
-    return False
 
 
 def _sd(x: np.ndarray) -> float:
@@ -166,29 +84,6 @@ def _paired(a: str, b: str, drawings: dict[str, dict[str, float]]) -> str:
         f"{a} minus {b}, paired over the {len(diff)} unseen drawings (each averaged over seeds): "
         f"{diff.mean():+.2f} ± {sem:.2f} px (s.e.m.); {a} is better on {int((diff < 0).sum())} of them"
     )
-
-
-def _per_method(items: list[str]) -> dict[str, int]:
-    """["bpp=6000", "icrt=4000"] -> {"bpp": 6000, "icrt": 4000}."""
-    return {k: int(v) for k, v in (item.split("=", 1) for item in items)}
-
-
-def add_budget_arguments(parser: argparse.ArgumentParser) -> None:
-    """--steps, --default-steps and --batch: each method's training steps and batch size (see :func:`budgets`)."""
-    parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
-    parser.add_argument("--default-steps", type=int, default=6000)
-    parser.add_argument(
-        "--batch",
-        nargs="*",
-        default=["icrt=16"],
-        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations)",
-    )
-
-
-def budgets(args) -> tuple[dict[str, int], dict[str, int]]:
-    """(steps, batch size) of each of ``args.methods`` from the flags :func:`add_budget_arguments` adds."""
-    steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
-    return steps, {m: 64 for m in args.methods} | _per_method(args.batch)
 
 
 def main() -> None:

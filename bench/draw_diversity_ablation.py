@@ -20,7 +20,8 @@ from bpp.checkpoint import Checkpoint
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.utils import write_json_atomic
-from draw_cpu_benchmark import preset_label, store_for, train_run
+from common import train_run
+from draw_cpu_benchmark import preset_label, store_for
 
 
 def main() -> None:

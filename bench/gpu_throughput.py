@@ -41,9 +41,7 @@ import functools
 import json
 import os
 import platform
-import subprocess
 import sys
-import tempfile
 import time
 import traceback
 from dataclasses import replace
@@ -64,7 +62,7 @@ from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import COMPILE_MODES, TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
 from bpp.utils import to_torch, usable_cores
-from step_ops import step_flops  # this folder's script, on the path when run as a script
+from common import step_flops, train_subprocess
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
 """Preset name -> (method size preset, DrawAnything observation preset)."""
@@ -297,25 +295,6 @@ def model_rate(
     if device.type == "cuda":
         torch.cuda.empty_cache()
     return out
-
-
-def train_subprocess(
-    arguments: list[str], scalars: tuple[str, ...], env: dict | None = None
-) -> tuple[float, dict, str]:
-    """Run `bpp train ARGUMENTS --out <temporary run>` as a subprocess (in environment `env`, default this one's):
-    (wall seconds, {scalar tag: [(step, value)]} read back from its TensorBoard log, its standard output)."""
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
-
-    with tempfile.TemporaryDirectory(prefix="bpp-train-") as run:
-        command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
-        t0 = time.perf_counter()
-        done = subprocess.run(command, capture_output=True, text=True, env=env)
-        wall = time.perf_counter() - t0
-        if done.returncode:
-            raise RuntimeError(f"bpp train {' '.join(arguments)} failed ({done.returncode}): {done.stderr[-3000:]}")
-        events = EventAccumulator(f"{run}/run/tb")
-        events.Reload()
-        return wall, {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in scalars}, done.stdout
 
 
 def end_to_end_rate(store_path: Path, size: str, obs: str, batch_size: int, steps: int, log_every: int, extra=()):

@@ -34,7 +34,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
-from draw_cpu_benchmark import NAMES, add_budget_arguments, budgets, train_run
+from common import NAMES, add_budget_arguments, budgets, train_run
 
 PAPER = {
     "combination": {"goal_image": (59.1, 47.9), "language": (80.0, 69.9), "bpp": (88.4, 79.1)},

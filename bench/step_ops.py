@@ -38,6 +38,7 @@ from bpp.data.store import EpisodeStore
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, _ema_update, build_training
 from bpp.utils import to_torch
+from common import step_flops
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64"), "cpu-state": ("cpu", "board")}
 TARGETS = {"paper": 2000, "cpu-image": 10000}  # issue 17's end-to-end goals on one GPU, samples/s
@@ -94,20 +95,6 @@ def count(name: str, store: EpisodeStore, method_name: str, amp: bool, top: int)
     for op, n in totals.most_common(top):
         print(f"  {n:6d}  {op}")
     return parts
-
-
-def step_flops(model, batch: dict, amp: bool) -> int:
-    """FLOPs (``FlopCounterMode``) of one forward and backward of `model`'s training loss on `batch`, which is on the
-    model's device; bf16 autocast there if `amp`. The gradients are cleared after."""
-    device = batch["action"].device
-    noise = model.draw_noise(batch, torch.Generator(device).manual_seed(0))
-    counter = FlopCounterMode(display=False)
-    with counter:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
-            loss = model(batch, noise=noise)
-        loss.backward()
-    model.zero_grad(set_to_none=True)
-    return counter.get_total_flops()
 
 
 def first_samples(batch: dict, n: int) -> dict:

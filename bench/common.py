@@ -1,0 +1,197 @@
+"""Helpers that several scripts in bench/ share: DrawAnything and LIBERO-Gen training runs that are reused, finished
+or resumed; training budgets per method; `bpp train` as a subprocess and its logged rates; a training step's FLOPs.
+
+The scripts import it as a sibling module (``from common import train_run``): ``python bench/<script>.py`` puts
+bench/ first on the module path, so nothing needs to change ``sys.path``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.checkpoint import read_state, resolve_checkpoint
+from bpp.data.store import EpisodeStore
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, train
+from bpp.utils import to_dict, write_json_atomic
+
+NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
+"""Each method's name in reports and figures."""
+
+IMAGE_ENCODER_FIELDS = ("image_features", "image_widths", "image_blocks")
+
+
+def comparable_config(model_config: dict | None) -> dict | None:
+    """A serialised model configuration, less what may differ between runs of the same model. Runs trained before
+    presets were split into sizes and observations stored their state-only presets' image-encoder sizes
+    (``obs.image_features``, ``obs.image_widths``; ``obs.image_blocks`` too for ``debug``), which differ from today's
+    size presets' but build nothing when no camera is observed, so they are left out when ``obs.image_keys`` is
+    empty: runs trained before the split are still accepted."""
+    obs = model_config.get("obs") if isinstance(model_config, dict) else None
+    if not isinstance(obs, dict) or obs.get("image_keys"):
+        return model_config
+    return {**model_config, "obs": {k: v for k, v in obs.items() if k not in IMAGE_ENCODER_FIELDS}}
+
+
+def train_run(
+    method: str,
+    preset: str,
+    obs: str,
+    store: EpisodeStore,
+    run: Path,
+    steps: int,
+    seed: int,
+    batch_size: int = 64,
+    tasks_per_batch: int = 1,
+    threads: int = 0,
+    model_cfg=None,
+    loader_workers: int = 0,
+    compile: str = "off",
+    frames_on: str = "loader",
+) -> float:
+    """Train (or finish, or reuse) one run of size preset `preset` observing DrawAnything's observation preset
+    `obs` (or of `model_cfg`, a variation of it); returns its training wall time in seconds (summed over
+    interrupted and resumed runs)."""
+    model_cfg = model_cfg or get_method(method).config(preset, obs, BENCHMARK)
+    recorded = run / "config.json"
+    if recorded.is_file():
+        stored = json.loads(recorded.read_text()).get("model_config")
+        if comparable_config(stored) != comparable_config(to_dict(model_cfg)):
+            raise SystemExit(
+                f"{run} was trained with another {method} configuration than today's `{preset}` preset observing "
+                f"`{obs}` (a preset changed since); delete it or pass another --runs folder"
+            )
+    timing = run / "train_seconds.json"
+    spent = json.loads(timing.read_text())["seconds"] if timing.is_file() else 0.0
+    if trained_to(run, steps):
+        return spent
+    resume = (run / "checkpoints" / "last").is_file()
+    t0 = time.perf_counter()
+    cfg = TrainConfig(
+        data=store.path,
+        out=run,
+        method=method,
+        steps=steps,
+        batch_size=batch_size,
+        tasks_per_batch=tasks_per_batch,
+        seed=seed,
+        threads=threads,
+        workers=loader_workers,
+        compile=compile,
+        frames_on=frames_on,
+        resume=resume,
+        save_every=500,
+    )
+    try:
+        train(cfg, model_cfg)
+    finally:  # an interrupted run (Ctrl-C) keeps its time too, including steps it will redo from the last checkpoint
+        spent += time.perf_counter() - t0
+        write_json_atomic(timing, {"seconds": spent})
+    return spent
+
+
+def trained_to(run: Path, steps: int) -> bool:
+    """Whether `run` holds a checkpoint of at least `steps` training steps."""
+    with contextlib.suppress(OSError, ValueError):
+        return read_state(resolve_checkpoint(run))["step"] >= steps
+    return False
+
+
+def _per_method(items: list[str]) -> dict[str, int]:
+    """["bpp=6000", "icrt=4000"] -> {"bpp": 6000, "icrt": 4000}."""
+    return {k: int(v) for k, v in (item.split("=", 1) for item in items)}
+
+
+def add_budget_arguments(parser: argparse.ArgumentParser) -> None:
+    """--steps, --default-steps and --batch: each method's training steps and batch size (see :func:`budgets`)."""
+    parser.add_argument("--steps", nargs="*", default=[], help="per-method training steps, e.g. bpp=6000 icrt=4000")
+    parser.add_argument("--default-steps", type=int, default=6000)
+    parser.add_argument(
+        "--batch",
+        nargs="*",
+        default=["icrt=16"],
+        help="per-method batch sizes (default 64 windows; ICRT's samples are whole demonstrations)",
+    )
+
+
+def budgets(args) -> tuple[dict[str, int], dict[str, int]]:
+    """(steps, batch size) of each of ``args.methods`` from the flags :func:`add_budget_arguments` adds."""
+    steps = {m: args.default_steps for m in args.methods} | _per_method(args.steps)
+    return steps, {m: 64 for m in args.methods} | _per_method(args.batch)
+
+
+def train_subprocess(
+    arguments: list[str], scalars: tuple[str, ...], env: dict | None = None
+) -> tuple[float, dict, str]:
+    """Run `bpp train ARGUMENTS --out <temporary run>` as a subprocess (in environment `env`, default this one's):
+    (wall seconds, {scalar tag: [(step, value)]} read back from its TensorBoard log, its standard output)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    with tempfile.TemporaryDirectory(prefix="bpp-train-") as run:
+        command = [sys.executable, "-m", "bpp.cli", "train", *arguments, "--out", f"{run}/run"]
+        t0 = time.perf_counter()
+        done = subprocess.run(command, capture_output=True, text=True, env=env)
+        wall = time.perf_counter() - t0
+        if done.returncode:
+            raise RuntimeError(f"bpp train {' '.join(arguments)} failed ({done.returncode}): {done.stderr[-3000:]}")
+        events = EventAccumulator(f"{run}/run/tb")
+        events.Reload()
+        return wall, {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in scalars}, done.stdout
+
+
+def add_main_job_arguments(parser: argparse.ArgumentParser, steps: int) -> None:
+    """The flags of a `bpp train` run in the main job's setting (:func:`train_rate` reads them)."""
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--obs", default="board")
+    parser.add_argument("--steps", type=int, default=steps)
+    parser.add_argument("--log-every", type=int, default=25)
+    parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--tasks-per-batch", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=1)
+
+
+def train_rate(store: Path, args, extra: list[str], env: dict | None = None) -> dict:
+    """One `bpp train` on `store` with :func:`add_main_job_arguments`' flags and `extra` (in environment `env`): its
+    wall time, first interval (which holds any compilation), median samples/s after two intervals, and losses."""
+    arguments = ["--data", str(store), "--preset", args.preset, "--obs", args.obs, "--steps", str(args.steps)]
+    arguments += ["--batch-size", str(args.batch_size), "--tasks-per-batch", str(args.tasks_per_batch)]
+    arguments += ["--threads", str(args.threads), "--log-every", str(args.log_every)]
+    arguments += ["--save-every", str(10 * args.steps), *extra]
+    wall, logged, _ = train_subprocess(arguments, ("train/samples_per_s", "train/loss"), env=env)
+    rates = [value for _, value in logged["train/samples_per_s"]]
+    losses = dict(logged["train/loss"])
+    steady = rates[2:] if len(rates) > 2 else rates[-1:]
+    first = args.log_every * args.batch_size / rates[0]  # seconds of the first interval (rates are per interval)
+    return {
+        "wall_s": round(wall, 1),
+        "first_interval_s": round(first, 1),
+        "samples_per_s": round(float(np.median(steady)), 1),
+        "losses": {int(k): round(v, 5) for k, v in losses.items()},
+    }
+
+
+def step_flops(model, batch: dict, amp: bool) -> int:
+    """FLOPs (``FlopCounterMode``) of one forward and backward of `model`'s training loss on `batch`, which is on the
+    model's device; bf16 autocast there if `amp`. The gradients are cleared after."""
+    device = batch["action"].device
+    noise = model.draw_noise(batch, torch.Generator(device).manual_seed(0))
+    counter = FlopCounterMode(display=False)
+    with counter:
+        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=amp):
+            loss = model(batch, noise=noise)
+        loss.backward()
+    model.zero_grad(set_to_none=True)
+    return counter.get_total_flops()
