@@ -35,14 +35,25 @@ from typing import Any
 import numpy as np
 
 from bpp.benchmarks.registry import derived_keys
+from bpp.errors import UserError
 from bpp.utils import read_json, to_dict
 
 FORMAT = "bpp-episodes"
 VERSION = 1
 
 
-class StoreError(RuntimeError):
+class StoreError(UserError):
     """A store is missing, incomplete, of another format/version, or used wrongly."""
+
+
+class StoreKeyError(StoreError, KeyError):
+    """A per-step key or episode column the store does not have (a KeyError too, for callers that look one up)."""
+
+    __str__ = Exception.__str__  # the message as written, not KeyError's quoted form
+
+
+class EpisodeIndexError(StoreError, IndexError):
+    """An episode index outside the store."""
 
 
 def with_derived(benchmark: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -444,7 +455,7 @@ class EpisodeStore:
 
     def __getitem__(self, key: str):
         if key not in self.keys:
-            raise KeyError(f"{self.path}: no per-step key {key!r}; available: {self.keys}")
+            raise StoreKeyError(f"{self.path}: no per-step key {key!r}; available: {self.keys}")
         derived = self.derived.get(key)
         if derived:
             return _DerivedArray(self._root()[f"data/{derived[0]}"], derived[1])
@@ -468,12 +479,12 @@ class EpisodeStore:
             try:
                 self._cache[key] = self._read(key)
             except KeyError:
-                raise KeyError(f"{self.path}: no episode column {name!r}") from None
+                raise StoreKeyError(f"{self.path}: no episode column {name!r}") from None
         return self._cache[key]
 
     def episode_slice(self, index: int) -> slice:
         if not 0 <= index < self.num_episodes:
-            raise IndexError(f"{self.path}: episode {index} out of range (the store has {self.num_episodes})")
+            raise EpisodeIndexError(f"{self.path}: episode {index} out of range (the store has {self.num_episodes})")
         return slice(int(self.episode_starts[index]), int(self.episode_ends[index]))
 
     def episode(self, index: int, keys: Iterable[str] | None = None) -> dict[str, np.ndarray]:

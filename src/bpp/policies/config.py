@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from bpp.errors import UserError
 from bpp.utils import check_fields
 
 
@@ -111,7 +112,7 @@ class DiffusionConfig:
         """The U-Net halves the time axis between levels: refuse a horizon it cannot halve that often."""
         factor = 2 ** (len(self.down_dims) - 1)
         if horizon % factor:
-            raise ValueError(
+            raise UserError(
                 f"horizons.horizon {horizon} must be a multiple of {factor} for a decoder with "
                 f"{len(self.down_dims)} levels (diffusion.down_dims {self.down_dims})"
             )
@@ -132,7 +133,7 @@ class Horizons:
             ("horizon", self.n_obs_steps <= self.horizon <= 1024, "in [n_obs_steps, 1024]"),
         )
         if not 1 <= self.n_action_steps <= self.horizon - self.n_obs_steps + 1:
-            raise ValueError(
+            raise UserError(
                 f"need 1 <= n_action_steps <= horizon - n_obs_steps + 1, got Ta={self.n_action_steps}, "
                 f"T={self.horizon}, To={self.n_obs_steps}"
             )

@@ -10,6 +10,7 @@ from dataclasses import replace
 import torch
 from torch import nn
 
+from bpp.errors import UserError
 from bpp.nn.unet1d import ConditionalUnet1D
 from bpp.policies.config import DiffusionConfig
 
@@ -66,7 +67,7 @@ class DiffusionHead(nn.Module):
     def set_inference_steps(self, steps: int) -> None:
         """Denoise in `steps` DDIM/DDPM steps at inference from now on (training is unaffected)."""
         if not 1 <= steps <= self.cfg.num_train_steps:
-            raise ValueError(
+            raise UserError(
                 f"inference steps must be in [1, {self.cfg.num_train_steps}] (the training steps), got {steps}"
             )
         self.cfg = replace(self.cfg, num_inference_steps=steps)

@@ -10,6 +10,7 @@ import torch
 from torch import nn
 
 from bpp.data.spec import DataSpec
+from bpp.errors import UserError
 from bpp.policies.diffusion import DiffusionHead
 from bpp.policies.normalizer import Normalizer
 from bpp.policies.observation import ObsEncoder
@@ -49,7 +50,7 @@ class PolicyModel(nn.Module):
         self.cfg = cfg
         obs = cfg.obs
         if not obs.entries:
-            raise ValueError(
+            raise UserError(
                 f"{type(self).__name__}: the config observes nothing; combine the size preset with a benchmark's "
                 "observation preset (bpp.policies.registry.Method.config, or bpp train --obs NAME)"
             )
@@ -60,9 +61,9 @@ class PolicyModel(nn.Module):
         origin = cfg.action_relative_to
         if origin:
             if origin not in (*obs.lowdim_keys, *obs.proprio_keys):
-                raise ValueError(f"action_relative_to {origin!r} must be an observed low-dimensional key")
+                raise UserError(f"action_relative_to {origin!r} must be an observed low-dimensional key")
             if self.normalizer.width(origin) > self.action_dim:
-                raise ValueError(f"action_relative_to {origin!r} is wider than the actions ({self.action_dim})")
+                raise UserError(f"action_relative_to {origin!r} is wider than the actions ({self.action_dim})")
         self.relative_dims = self.normalizer.width(origin) if origin else 0
 
     # ----------------------------------------------------------------- actions
@@ -141,13 +142,13 @@ class PolicyModel(nn.Module):
 
     def set_inference_steps(self, steps: int) -> None:
         """Denoise in `steps` steps per inference from now on; models without a diffusion decoder refuse."""
-        raise ValueError(f"{type(self).__name__} has no diffusion decoder: it takes no inference steps")
+        raise UserError(f"{type(self).__name__} has no diffusion decoder: it takes no inference steps")
 
     def check_action_steps(self, n_action_steps: int) -> None:
         """Refuse (ValueError) an agent that would execute `n_action_steps` actions of each predicted chunk."""
         h = self.cfg.horizons
         if not 1 <= n_action_steps <= h.horizon - h.n_obs_steps + 1:
-            raise ValueError(
+            raise UserError(
                 f"n_action_steps must be in [1, {h.horizon - h.n_obs_steps + 1}] (horizon T={h.horizon}, "
                 f"To={h.n_obs_steps}), got {n_action_steps}"
             )

@@ -7,8 +7,10 @@ from collections.abc import Mapping
 import torch
 from torch import nn
 
+from bpp.errors import UserError
 
-class NormalizationError(ValueError):
+
+class NormalizationError(UserError):
     """Statistics and data disagree (a missing key or a different width): never silently passed through."""
 
 

@@ -19,6 +19,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 
 from bpp.data.spec import ContextKind, DataSpec
+from bpp.errors import UserError
 from bpp.policies.config import with_observation
 
 METHODS: dict[str, str] = {
@@ -104,7 +105,7 @@ class Method:
     def preset(self, name: str):
         """A size preset (observing nothing yet: see :meth:`config`)."""
         if name not in self.presets:
-            raise ValueError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}")
+            raise UserError(f"unknown {self.name} preset {name!r}; choose from {', '.join(self.presets)}")
         return self.presets[name]
 
     def config(self, size: str, obs: str | None, benchmark) -> Any:
@@ -113,7 +114,7 @@ class Method:
         base = self.preset(size)
         name = obs or benchmark.default_observation(size)
         if name not in benchmark.observations:
-            raise ValueError(
+            raise UserError(
                 f"{benchmark.name} has no observation preset {name!r}; choose from {', '.join(benchmark.observations)}"
             )
         return with_observation(base, benchmark.observations[name])
@@ -121,6 +122,6 @@ class Method:
 
 def get_method(name: str) -> Method:
     if name not in METHODS:
-        raise ValueError(f"unknown method {name!r}; available: {', '.join(METHODS)}")
+        raise UserError(f"unknown method {name!r}; available: {', '.join(METHODS)}")
     module = importlib.import_module(METHODS[name])
     return Method(name, module.Config, module.Model, module.PRESETS)

@@ -7,11 +7,12 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from bpp.errors import UserError
 from bpp.policies.config import ObsConfig
 from bpp.policies.normalizer import Normalizer
 
 
-class ContextError(ValueError):
+class ContextError(UserError):
     """A task context (demonstration prompt, goal image or instruction) that a model cannot use.
 
     Raised by ``validate_context``; the message names the input and what was expected.

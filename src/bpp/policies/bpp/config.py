@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from bpp.errors import UserError
 from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
@@ -47,9 +48,9 @@ class PromptConfig:
             ("max_steps", self.max_steps >= 1, ">= 1"),
         )
         if not (self.use_obs or self.use_proprio or self.use_action):
-            raise ValueError("the prompt must use at least one of obs, proprio, action")
+            raise UserError("the prompt must use at least one of obs, proprio, action")
         if self.pooling not in ("all", "obs", "none"):
-            raise ValueError(f"pooling must be all, obs or none, got {self.pooling!r}")
+            raise UserError(f"pooling must be all, obs or none, got {self.pooling!r}")
 
     @property
     def max_chunks(self) -> int:

@@ -15,6 +15,7 @@ import torch
 from einops import rearrange, repeat
 from torch import nn
 
+from bpp.errors import UserError
 from bpp.nn.attention import AttentionPooling, CrossAttentionDecoder
 from bpp.nn.lowdim import FourierFeatures
 from bpp.policies.bpp.config import BPPConfig
@@ -92,7 +93,7 @@ class BPPModel(ContextDiffusionPolicy):
         bp, steps = valid.shape
         n = -(-steps // dt)
         if n > self.cfg.prompt.max_chunks:
-            raise ValueError(f"prompt of {steps} steps exceeds the model's limit of {self.cfg.prompt.max_steps}")
+            raise UserError(f"prompt of {steps} steps exceeds the model's limit of {self.cfg.prompt.max_steps}")
         chunk_valid = valid[:, ::dt]  # (Bp, n): a chunk exists where its first step does
         modality = []
         chunk_obs = self.chunk_obs(prompt, dt)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from bpp.errors import UserError
 from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
@@ -48,12 +49,12 @@ class GoalImageConfig(ContextDiffusionConfig):
         )
         if self.obs.image_keys:
             if self.goal_camera not in self.obs.image_keys:
-                raise ValueError(
+                raise UserError(
                     f"goal_camera {self.goal_camera!r} is not among the observed cameras {self.obs.image_keys}; "
                     "the goal image shares that camera's encoder"
                 )
             if self.goal_image_size != self.obs.image_size:
-                raise ValueError(
+                raise UserError(
                     f"goal_image_size {self.goal_image_size} must equal obs.image_size {self.obs.image_size}: "
                     "with image observations the goal image goes through the camera's own encoder"
                 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from bpp.errors import UserError
 from bpp.policies.config import CPU_OBS, DEBUG_OBS, PAPER_OBS, Horizons, PolicyConfig, transformer_rules
 from bpp.utils import check_fields
 
@@ -39,7 +40,7 @@ class ICRTConfig(PolicyConfig):
             *transformer_rules(self),
         )
         if self.max_tokens < 2 * (1 + self.min_rollout_chunks):
-            raise ValueError(
+            raise UserError(
                 f"max_tokens {self.max_tokens} can't hold a one-chunk prompt and {self.min_rollout_chunks} rollout "
                 f"chunks (2 tokens each)"
             )

@@ -47,6 +47,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bpp.data.contexts import index_contexts
+from bpp.errors import UserError
 from bpp.nn.causal import CausalTransformer, KVCache
 from bpp.policies.icrt.config import ICRTConfig
 from bpp.policies.model import PolicyModel
@@ -193,7 +194,7 @@ class ICRTModel(PolicyModel):
     def check_action_steps(self, n_action_steps: int) -> None:
         """All N actions of a chunk must run: the context records each chunk's N predicted actions as executed."""
         if n_action_steps != self.cfg.chunk_len:
-            raise ValueError(
+            raise UserError(
                 f"ICRT executes all N={self.cfg.chunk_len} actions of each chunk (its context records them as "
                 f"executed, so replanning earlier would feed it actions that never ran); got n_action_steps="
                 f"{n_action_steps}"

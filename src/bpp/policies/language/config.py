@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Literal
 
+from bpp.errors import UserError
 from bpp.policies.config import (
     CPU_OBS,
     DEBUG_DIFFUSION,
@@ -56,11 +57,11 @@ class LanguageConfig(ContextDiffusionConfig):
     def __post_init__(self):
         super().__post_init__()
         if self.text_encoder not in ("scratch", "pretrained"):
-            raise ValueError(f"text_encoder must be 'scratch' or 'pretrained', got {self.text_encoder!r}")
+            raise UserError(f"text_encoder must be 'scratch' or 'pretrained', got {self.text_encoder!r}")
         if self.tokenizer not in ("pretrained", "bytes"):
-            raise ValueError(f"tokenizer must be 'pretrained' or 'bytes', got {self.tokenizer!r}")
+            raise UserError(f"tokenizer must be 'pretrained' or 'bytes', got {self.tokenizer!r}")
         if self.text_encoder == "pretrained" and self.tokenizer != "pretrained":
-            raise ValueError("a pretrained text encoder needs its own tokenizer: set tokenizer='pretrained'")
+            raise UserError("a pretrained text encoder needs its own tokenizer: set tokenizer='pretrained'")
 
 
 PRESETS: dict[str, LanguageConfig] = {
