@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-import bpp.benchmarks.contract as contract
 import bpp.benchmarks.draw.rollouts as draw_rollouts
+import bpp.benchmarks.prompting as prompting
 from bpp.benchmarks.contract import TaskSet
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.evaluation.evaluate import Protocol, evaluate
@@ -47,8 +47,8 @@ def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(
     same = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=targets)
     assert [r.best_chamfer for r in plain] == [r.best_chamfer for r in same]
     prompted, scored = [], []
-    task_context, prompt_target = contract.task_context, draw_rollouts.prompt_target
-    monkeypatch.setattr(contract, "task_context", lambda st, ep, *a: prompted.append(ep) or task_context(st, ep, *a))
+    task_context, prompt_target = prompting.task_context, draw_rollouts.prompt_target
+    monkeypatch.setattr(prompting, "task_context", lambda st, ep, *a: prompted.append(ep) or task_context(st, ep, *a))
     monkeypatch.setattr(draw_rollouts, "prompt_target", lambda st, ep: scored.append(ep) or prompt_target(st, ep))
     swapped = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=[9, 30])
     assert prompted == [9, 30] and scored == targets  # contexts from the prompt episodes, scores on the targets
