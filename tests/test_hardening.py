@@ -35,6 +35,7 @@ def test_training_settings_out_of_range_are_refused_naming_the_field(field, valu
         TrainConfig(data=Path("x.zarr"), **{field: value})
 
 
+@pytest.mark.slow
 def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     from dataclasses import replace
 
@@ -126,6 +127,7 @@ def test_training_warns_when_demonstrations_are_longer_than_the_model_s_prompts(
     )
 
 
+@pytest.mark.slow
 def test_eval_reuses_results_only_for_the_same_weights_and_task_content(debug_store, tmp_path, capsys):
     import shutil
 
@@ -211,6 +213,7 @@ def test_svg_transforms_are_applied_in_document_order(tmp_path):
         np.testing.assert_allclose(p, q, atol=1e-9)
 
 
+@pytest.mark.slow
 def test_any_drawing_file_is_read_and_demonstrated_in_bounded_time(tmp_path):
     import time
 

@@ -477,6 +477,7 @@ def _kill_when(proc: subprocess.Popen, ready: Callable[[], bool], timeout: float
     assert ready(), "the process ended or timed out before the moment to kill it"
 
 
+@pytest.mark.slow
 def test_a_generation_killed_midway_leaves_no_store_and_its_rerun_cleans_up(tmp_path):
     out = tmp_path / "killed.zarr"
     proc = _bpp_process(
@@ -488,6 +489,7 @@ def test_a_generation_killed_midway_leaves_no_store_and_its_rerun_cleans_up(tmp_
     assert sorted(p.name for p in tmp_path.iterdir()) == ["killed.zarr"]
 
 
+@pytest.mark.slow
 def test_a_training_killed_midway_resumes_to_its_last_step(debug_store, tmp_path):
     run = tmp_path / "run"
     command = ["train", "--data", str(debug_store.path), "--out", str(run), "--preset", "debug", "--steps", "40"]
