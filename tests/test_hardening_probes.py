@@ -242,7 +242,11 @@ FLAGS = [
         "episode 99999 out of range",
         "draw video --episode 99999",
     ),
-    _case(lambda i: ["draw", "video", str(i.store), "--out", str(i.tmp / "v.txt")], "out", "draw video --out x.txt"),
+    _case(
+        lambda i: ["draw", "video", str(i.store), "--out", str(i.tmp / "v.txt")],
+        "out must be a .gif or .mp4 file",
+        "draw video --out x.txt",
+    ),
 ]
 
 PATHS = [
