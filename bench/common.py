@@ -30,20 +30,6 @@ from bpp.utils import to_dict, write_json_atomic
 NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
 """Each method's name in reports and figures."""
 
-IMAGE_ENCODER_FIELDS = ("image_features", "image_widths", "image_blocks")
-
-
-def comparable_config(model_config: dict | None) -> dict | None:
-    """A serialised model configuration, less what may differ between runs of the same model. Runs trained before
-    presets were split into sizes and observations stored their state-only presets' image-encoder sizes
-    (``obs.image_features``, ``obs.image_widths``; ``obs.image_blocks`` too for ``debug``), which differ from today's
-    size presets' but build nothing when no camera is observed, so they are left out when ``obs.image_keys`` is
-    empty: runs trained before the split are still accepted."""
-    obs = model_config.get("obs") if isinstance(model_config, dict) else None
-    if not isinstance(obs, dict) or obs.get("image_keys"):
-        return model_config
-    return {**model_config, "obs": {k: v for k, v in obs.items() if k not in IMAGE_ENCODER_FIELDS}}
-
 
 def train_run(
     method: str,
@@ -68,7 +54,7 @@ def train_run(
     recorded = run / "config.json"
     if recorded.is_file():
         stored = json.loads(recorded.read_text()).get("model_config")
-        if comparable_config(stored) != comparable_config(to_dict(model_cfg)):
+        if stored != to_dict(model_cfg):
             raise SystemExit(
                 f"{run} was trained with another {method} configuration than today's `{preset}` preset observing "
                 f"`{obs}` (a preset changed since); delete it or pass another --runs folder"

@@ -37,21 +37,6 @@ from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
 from common import NAMES, add_budget_arguments, budgets, train_run, trained_to
 
-OLD_PRESETS = {
-    ("debug", "canvas"): "debug",
-    ("cpu", "canvas"): "cpu",
-    ("cpu", "board"): "cpu-board",
-    ("cpu", "image64"): "cpu-image",
-    ("paper", "paper"): "paper",
-}
-"""(size preset, observation preset) -> the single preset name it had before presets were split in two."""
-
-
-def preset_label(preset: str, obs: str) -> str:
-    """The name of size preset `preset` observing `obs` in run folders and reports: its old single preset name where
-    it had one (e.g. ``cpu-board``), so runs trained before the split are still found; else ``{preset}-{obs}``."""
-    return OLD_PRESETS.get((preset, obs), f"{preset}-{obs}")
-
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
     with contextlib.suppress(StoreError):
@@ -126,7 +111,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     steps, batch = budgets(args)
-    label = preset_label(args.preset, args.obs)
+    label = f"{args.preset}-{args.obs}"
 
     train_store = store_for(args.data_dir / f"train-{args.num_tasks}.zarr", DrawDataConfig(num_tasks=args.num_tasks))
     store_for(args.data_dir / "human.zarr", DATA_PRESETS["human"])
