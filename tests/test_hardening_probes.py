@@ -345,8 +345,8 @@ DRAWINGS = [
 
 DAMAGED = [
     # Damaged stores, refused naming the store.
-    # Training makes its run folder (config.json, TensorBoard log) before it reads the store's arrays, so these two
-    # refusals leave a run without checkpoints; a new `bpp train` into that folder starts it afresh.
+    # A chunk is read when the first batch is loaded, after the run folder exists: this refusal leaves a run without
+    # checkpoints, and a new `bpp train` into that folder starts it afresh.
     _case(
         _damaged_store(_truncated_chunk, "train"),
         "damaged.zarr: damaged store",
@@ -365,7 +365,6 @@ DAMAGED = [
         _damaged_store(lambda s: shutil.rmtree(s / "data" / "action"), "train"),
         "damaged.zarr: the policy needs keys ['action']",
         "train on a store without actions",
-        leaves="new-run",
     ),
     # Damaged runs, refused naming the damaged file.
     _case(

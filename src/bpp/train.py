@@ -331,9 +331,6 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     }
     spec = model.data_spec()
     if main:
-        run.mkdir(parents=True, exist_ok=True)
-        if not cfg.resume:  # a resumed run keeps the record of how it began (check_resume made sure it matches)
-            write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
         print(f"[train] {cfg.method}: {count_parameters(model) / 1e6:.2f}M parameters; {store}")
         print(
             f"[train] run dir {run}; steps {start} -> {cfg.steps}; world size {world}; device {device}; "
@@ -374,7 +371,10 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     )
     loader = batch_loader(dataset, range(start, cfg.steps), workers, pin_memory=cuda)
     writer = None
-    if main:
+    if main:  # only now, once the store has given what the model needs: a refused run leaves no folder behind
+        run.mkdir(parents=True, exist_ok=True)
+        if not cfg.resume:  # a resumed run keeps the record of how it began (check_resume made sure it matches)
+            write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
         from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(run / "tb"), purge_step=start)
