@@ -45,7 +45,7 @@ format: $(ALL)
 	$(BIN)/ruff check --fix src tests bench
 
 docs: $(ALL)
-	$(BIN)/mkdocs build --strict --quiet --site-dir .site
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir .site
 
 # BPP_REQUIRE_ALL: a test whose optional part is missing fails here instead of being skipped.
 test: lint docs

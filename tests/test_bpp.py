@@ -240,6 +240,7 @@ def test_checkpoint_round_trip_acts_in_the_env(debug_store, tmp_path):
     assert again.best_chamfer == result.best_chamfer and again.steps == result.steps
 
 
+@pytest.mark.slow
 def test_ddp_two_processes_on_cpu(debug_store, tmp_path):
     out = tmp_path / "ddp"
     cmd = [
@@ -287,6 +288,7 @@ def test_ddp_two_processes_on_cpu(debug_store, tmp_path):
     assert '"world_size": 2' in state
 
 
+@pytest.mark.slow
 def test_rollout_command_writes_pictures(debug_store, tmp_path):
     _train(debug_store, tmp_path / "run", steps=2, save_every=2)
     out = tmp_path / "rollout"

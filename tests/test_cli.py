@@ -31,6 +31,7 @@ def test_help_lists_commands():
     assert _refused("frobnicate") == "2"
 
 
+@pytest.mark.slow
 def test_generate_sheet_video_info(tmp_path, capsys):
     store = tmp_path / "d.zarr"
     out = _bpp("draw", "generate", "--preset", "debug", "--num-tasks", "4", "--out", str(store), "--workers", "2")
@@ -145,6 +146,7 @@ def test_bad_flag_values_are_reported_by_the_parser_naming_the_field(capsys):
     assert "num_tasks must be >= 0 (0: all), got -1" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_demo_main_job_runs_and_reuses(tmp_path):
     args = (
         "demo",
@@ -168,6 +170,7 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     assert "Traceback" not in other.stderr
 
 
+@pytest.mark.slow
 def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
     for seed in (0, 1):
         train = _bpp(

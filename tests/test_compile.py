@@ -73,6 +73,7 @@ def test_auto_padding_is_off_eager_and_an_eighth_of_the_prompt_limit_compiled(de
         TrainConfig(data=tmp_path, compile="fast")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("method", "overrides"),
     [("bpp", {}), ("goal_image", {}), ("icrt", {"max_tokens": 20})],  # ICRT: rollouts longer than fit after the prompt
@@ -107,6 +108,7 @@ def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, met
 FACTORIES = {torch.arange, torch.full, torch.zeros, torch.ones, torch.empty, torch.tensor, torch.randn, torch.rand}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["bpp", "goal_image", "language", "icrt"])
 def test_the_compiled_loss_reads_only_the_model_and_the_batch(debug_store, described_store, method):
     """What keeps a compiled loss on a GPU from being replayed as a CUDA graph: a CPU tensor read from outside the
@@ -149,6 +151,7 @@ def test_training_noise_is_the_ddpm_schedulers():
     torch.testing.assert_close(head.loss(actions, cond, noise=noise), expected, rtol=0, atol=0)
 
 
+@pytest.mark.slow
 def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(described_store):
     """Instructions are tokenized outside the compiled graph (`keep_eager`, which `bpp train --compile` applies):
     were the strings traced, each new instruction would be a constant of a new graph. Four batches of different
@@ -195,6 +198,7 @@ def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer):
     assert tokenize(texts, ids.shape[1] + 1, multiple=16)[0].shape[1] == ids.shape[1] + 1  # never past the limit
 
 
+@pytest.mark.slow
 def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
     """`bpp train --compile default` on this CPU (inductor's C++ kernels), and `--compile cudagraphs` (no GPU here to
     record on: the captured graph runs eagerly): the same losses as eager, to float

@@ -94,6 +94,7 @@ def test_references_built_in_loader_processes_render_to_the_same_batches(debug_s
         assert_same_batches(here[i], render_batch(batch, spec, table), f"batch {i}")
 
 
+@pytest.mark.slow
 def test_training_with_frames_rendered_on_the_device_is_training_with_the_loader_s(debug_store, tmp_path):
     weights = {}
     for frames_on in ("loader", "device"):

@@ -79,6 +79,7 @@ def test_the_last_observation_renders_alone_exactly(debug_store):
             )
 
 
+@pytest.mark.slow
 def test_human_evaluation_set(tmp_path):
     s = generate(PRESETS["human"], tmp_path / "human.zarr", workers=1, progress=False)
     assert s.num_tasks >= 50 and s.num_episodes == 5 * s.num_tasks

@@ -93,6 +93,7 @@ def test_evaluate_reuses_results_only_under_the_same_protocol(debug_store, tmp_p
     assert "reusing" not in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_agent_overrides_set_denoising_steps_and_replanning(debug_store, tmp_path, capsys):
     from bpp.policies.icrt import ICRTModel
 
@@ -140,6 +141,7 @@ def test_bpp_eval_reads_each_checkpoint_once(debug_store, tmp_path, monkeypatch)
     assert sorted(reads) == ["ema.safetensors", "state.json"]
 
 
+@pytest.mark.slow
 def test_bad_agent_options_are_refused_before_any_worker_starts(debug_store, tmp_path):
     """A worker that fails to start would be restarted forever by a process pool: the parent checks first."""
     import subprocess

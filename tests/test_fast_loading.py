@@ -93,6 +93,7 @@ def test_the_paper_encoder_has_resnet_stem_and_the_cpu_one_keeps_its_own():
         ObsConfig(image_stem="vit")
 
 
+@pytest.mark.slow
 def test_image_encoder_trains_on_frames_of_any_batch_size_with_several_threads():
     """Frames arrive channels-last; PyTorch's multi-threaded CPU backward of a strided 1x1 convolution on such input
     corrupts memory at some batch sizes (the crash first seen on the GPU machine's 16 cores), so the residual blocks'

@@ -55,6 +55,7 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     assert (tmp_path / "run" / "config.json").read_text() == before
 
 
+@pytest.mark.slow
 def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
     from bpp.benchmarks.draw.dataset import PRESETS, generate
     from bpp.data.store import EpisodeStore, StoreError
@@ -87,6 +88,7 @@ def test_interrupted_writers_leave_no_hidden_folders_behind(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, "d.zarr"])
 
 
+@pytest.mark.slow
 def test_runs_with_a_damaged_newest_checkpoint_resume_from_the_newest_intact_one(debug_store, tmp_path, capsys):
     from dataclasses import replace
 
