@@ -29,10 +29,17 @@ REQUIRE_ALL = bool(os.environ.get("BPP_REQUIRE_ALL"))
 """Set by `make test`, which installs every part and must run every test: a missing part fails instead of skipping."""
 
 
+def _importable(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ImportError:  # an import hook that refuses it
+        return False
+
+
 def missing_parts(marker: str) -> list[str]:
     """What optional part `marker` needs and this environment lacks (module names, or ``chromium``)."""
     modules, _ = OPTIONAL_PARTS[marker]
-    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    missing = [m for m in modules if not _importable(m)]
     if marker == "browser" and shutil.which("chromium") is None:
         missing.append("chromium")
     return missing
