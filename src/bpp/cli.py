@@ -329,8 +329,9 @@ def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | N
         cls = _generate_class(benchmark)
         default = cls(out=tyro.MISSING, preset=preset, data=benchmark.data_presets[preset])
         return (argv[0], name), cls, lambda args: generate_cmd(args, benchmark), default
-    if name in benchmark_commands(benchmark):
-        cls, run = benchmark_commands(benchmark)[name]
+    commands = benchmark_commands(benchmark)
+    if name in commands:
+        cls, run = commands[name]
         return (argv[0], name), cls, run, None
     return None
 

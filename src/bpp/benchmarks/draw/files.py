@@ -159,7 +159,7 @@ def save_json(drawings, path: str | Path) -> Path:
 
 
 # ------------------------------------------------------------------------------------------------ SVG
-_NOT_DRAWN = {"defs", "clipPath", "mask", "symbol", "marker", "pattern", "metadata", "title", "desc", "style"}
+_HIDDEN_ELEMENTS = {"defs", "clipPath", "mask", "symbol", "marker", "pattern", "metadata", "title", "desc", "style"}
 
 
 def _svg_elements(path: Path):
@@ -194,7 +194,7 @@ def _svg_elements(path: Path):
     while stack:  # depth-first, children pushed in reverse so they pop in document order; no recursion limit
         elem, matrix = stack.pop()
         tag = elem.tag.rsplit("}", 1)[-1] if isinstance(elem.tag, str) else ""
-        if tag in _NOT_DRAWN:
+        if tag in _HIDDEN_ELEMENTS:
             continue
         try:
             matrix = matrix @ parse_transform(elem.get("transform"))
