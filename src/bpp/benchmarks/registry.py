@@ -28,7 +28,7 @@ GYM_ENVS: dict[str, str] = {
 }
 """Gymnasium ids registered by ``import bpp.benchmarks`` (entry points are imported lazily, on ``gym.make``)."""
 
-RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio")
+RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio", "serve", "robot-client")
 """The generic command-line groups a benchmark's `command` may not take."""
 
 _LOADED: dict[str, Benchmark] = {}

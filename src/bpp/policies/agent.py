@@ -114,15 +114,28 @@ class PolicyAgent:
     def predict_chunk(self) -> np.ndarray:
         """Run the model on the current history: the full (B, T, A) action chunks."""
         stacked = {k: np.stack([o[k] for o in self.history], axis=1) for k in self.obs_keys}
-        shape = (self.horizon, self.model.action_dim)
-        noise = torch.stack([torch.randn(shape, generator=g, device=self.device) for g in self.generators])
-        out = self.model.predict_action(
-            to_torch(stacked, self.device),
-            self.context,
-            noise=noise,
-            generator=self.generators,  # each rollout its own: a rollout must not depend on its batch
-            return_attention=self.record_attention,
-        )
-        if self.record_attention and "attention" in out:
-            self.attention_log.append(out["attention"].cpu().numpy())
-        return out["action"].cpu().numpy()
+        chunk, attention = predict_chunks(self.model, stacked, self.context, self.generators, self.record_attention)
+        if attention is not None:
+            self.attention_log.append(attention)
+        return chunk
+
+
+def predict_chunks(
+    model: PolicyModelContract,
+    history: Mapping[str, np.ndarray],
+    context,
+    generators: Sequence[torch.Generator],
+    return_attention: bool = False,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One inference call for B rollouts: observation histories ``{key: (B, To, ...)}`` and their encoded contexts
+    -> action chunks (B, T, A) and, with `return_attention` where the model has it, the prompt attention
+    (B, n_chunks + 1). Rollout i's noise comes from ``generators[i]`` alone, so its actions do not depend on the
+    other rows (up to float sums, which differ with the batch size)."""
+    device = next(model.parameters()).device
+    shape = (model.cfg.horizons.horizon, model.action_dim)
+    noise = torch.stack([torch.randn(shape, generator=g, device=device) for g in generators])
+    out = model.predict_action(
+        to_torch(history, device), context, noise=noise, generator=list(generators), return_attention=return_attention
+    )
+    attention = out["attention"].cpu().numpy() if return_attention and "attention" in out else None
+    return out["action"].cpu().numpy(), attention

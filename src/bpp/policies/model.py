@@ -153,6 +153,13 @@ class PolicyModel(nn.Module):
                 f"To={h.n_obs_steps}), got {n_action_steps}"
             )
 
+    @staticmethod
+    def merge_contexts(contexts: list):
+        """Encoded contexts of separately started rollouts -> one batch, for a joint inference call (a policy
+        server's concurrent clients); None where this model's contexts cannot be joined (they hold state that each
+        inference call extends, as ICRT's key-value cache does)."""
+        return None
+
     def obs_keys(self) -> list[str]:
         """Per-step observation keys the policy reads (and a demonstration prompt must provide)."""
         return self.cfg.obs.entries
@@ -234,6 +241,10 @@ class ContextDiffusionPolicy(PolicyModel):
     def encode_context(self, context: Mapping):
         """A batched, validated context (tensors) -> whatever :meth:`condition` takes; once per rollout."""
         raise NotImplementedError
+
+    @staticmethod
+    def merge_contexts(contexts: list) -> torch.Tensor:
+        return torch.cat(contexts)
 
     @staticmethod
     def select_context(ctx: torch.Tensor, index: torch.Tensor) -> torch.Tensor:

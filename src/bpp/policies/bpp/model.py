@@ -37,6 +37,24 @@ class PromptContext:
         """One prompt per sample: sample i takes prompt ``index[i]`` (index (B,) into the Bp prompts)."""
         return PromptContext(self.tokens[index], self.valid[index], self.token_chunk, self.num_chunks)
 
+    @staticmethod
+    def merge(contexts: list[PromptContext]) -> PromptContext:
+        """Encoded prompts of different lengths -> one batch: tokens past a prompt's end are padded and invalid, so
+        attention ignores them (the longest prompt's chunk map covers every shorter one's)."""
+        longest = max(contexts, key=lambda c: c.tokens.shape[1])
+        m = longest.tokens.shape[1]
+
+        def pad(x: torch.Tensor) -> torch.Tensor:
+            extra = m - x.shape[1]
+            return torch.cat([x, x.new_zeros((x.shape[0], extra, *x.shape[2:]))], dim=1) if extra else x
+
+        return PromptContext(
+            torch.cat([pad(c.tokens) for c in contexts]),
+            torch.cat([pad(c.valid) for c in contexts]),
+            longest.token_chunk,
+            longest.num_chunks,
+        )
+
     def expand(self, batch: int) -> PromptContext:
         if self.tokens.shape[0] == batch:
             return self
@@ -162,6 +180,10 @@ class BPPModel(ContextDiffusionPolicy):
 
     def encode_context(self, context: Mapping) -> PromptContext:
         return self.encode_prompt(context)
+
+    @staticmethod
+    def merge_contexts(contexts: list[PromptContext]) -> PromptContext:
+        return PromptContext.merge(contexts)
 
     @staticmethod
     def select_context(ctx: PromptContext, index: torch.Tensor) -> PromptContext:
