@@ -6,6 +6,8 @@ PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
 LOCK   := requirements.lock
+ROBOT  := .venv-robot
+ROBOT_LOCK := requirements-robot.lock
 CORE   := $(VENV)/.core-installed
 ALL    := $(VENV)/.all-installed
 XDIST  := --numprocesses auto --maxprocesses 4 --dist loadfile
@@ -23,11 +25,19 @@ $(CORE): pyproject.toml $(LOCK) | $(BIN)/python
 
 # Every extra: the studio, the Language baseline's MiniLM, LIBERO (2.1 GB), tests, docs. The studio's browser test
 # drives Debian's chromium (pip's playwright cannot download its own browser offline); nothing else needs it.
-$(ALL): $(CORE)
+$(ALL): $(CORE) $(ROBOT)/.installed
 	$(BIN)/pip install --quiet -c $(LOCK) -e ".[all]"
 	command -v chromium >/dev/null || apt-get install -y -q chromium >/dev/null || \
 		(apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null) || \
 		sudo apt-get install -y -q chromium >/dev/null || echo "warning: could not install chromium (apt)"
+	touch $@
+
+# A robot computer's environment for the tests of `bpp serve`: openpi's client (numpy < 2) and bpp without torch.
+$(ROBOT)/.installed: $(ROBOT_LOCK) pyproject.toml
+	$(PYTHON) -m venv $(ROBOT)
+	$(ROBOT)/bin/pip install --quiet --upgrade pip
+	$(ROBOT)/bin/pip install --quiet -r $(ROBOT_LOCK)
+	$(ROBOT)/bin/pip install --quiet --no-deps -e .
 	touch $@
 
 install: $(CORE)
@@ -61,3 +71,5 @@ lock: | $(BIN)/python
 	$(BIN)/pip install --quiet "uv>=0.9,<1"
 	$(BIN)/uv pip compile pyproject.toml --all-extras --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
 		--annotation-style line -o $(LOCK)
+	$(BIN)/uv pip compile requirements-robot.in --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
+		--annotation-style line -o $(ROBOT_LOCK)

@@ -89,7 +89,7 @@ class PromptLibrary:
         elif isinstance(prompt, str) and prompt.startswith("episode:") and prompt[8:].lstrip("-").isdigit():
             episode = int(prompt[8:])
         elif isinstance(prompt, str):
-            task_id, _, k = prompt.rpartition("#") if "#" in prompt else (prompt, "", "0")
+            task_id, _, k = (prompt, "", "0") if prompt in self._task_ids else prompt.rpartition("#")
             if task_id not in self._task_ids:
                 raise PromptLookupError(
                     f"prompt {prompt!r}: no such task in {self.store.path.name} (ids: 'episode:<i>', '<task id>', "

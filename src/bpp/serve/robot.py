@@ -173,6 +173,7 @@ def robot_client(args: RobotClient) -> dict:
     protocol = replace(protocol, max_steps=args.max_steps or benchmark.max_steps)
     use_openpi = {"auto": None, "openpi": True, "bpp": False}[args.client]
     agent = RemoteAgent(args.server, args.api_key or os.environ.get("BPP_SERVE_TOKEN") or None, use_openpi)
+    client = type(agent.clients[0]).__module__
     try:
         check_same_tasks(agent.metadata, store)
         count = min(args.num_tasks or store.num_tasks, store.num_tasks)
@@ -185,7 +186,7 @@ def robot_client(args: RobotClient) -> dict:
     lat = np.array(agent.latencies_ms)
     meta = {
         "server": args.server,
-        "client": type(agent.clients[0]).__module__ if agent.clients else args.client,
+        "client": client,
         "served": {k: agent.metadata.get(k) for k in ("method", "checkpoint", "train_step", "benchmark")},
         "benchmark": benchmark.name,
         "metric": asdict(benchmark.metric),

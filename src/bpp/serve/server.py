@@ -172,7 +172,11 @@ class ModelWorker:
             if len(batch) == 1:
                 self._run_batch(batch, batch[0].session.context)
             elif batch:
-                merged = self.model.merge_contexts([j.session.context for j in batch])
+                try:
+                    merged = self.model.merge_contexts([j.session.context for j in batch])
+                except Exception:  # noqa: BLE001 - contexts that do not join (a bug) are served one at a time
+                    log.error("could not join contexts into one batch:\n%s", traceback.format_exc())
+                    merged = None
                 if merged is not None:
                     self._run_batch(batch, merged)
                 else:  # contexts with per-rollout state (ICRT's cache) are served one at a time
