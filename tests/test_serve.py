@@ -79,28 +79,28 @@ def test_the_wire_format_is_openpis_and_round_trips_every_array():
 
 
 # ----------------------------------------------------------------------------------------------- exactness
-def test_the_robot_client_reproduces_bpp_eval_exactly_rollout_for_rollout(debug_store):
-    """Served one rollout at a time, as ``bpp eval`` runs a task of one rollout, the actions are the same bits."""
-    from bpp.evaluation.protocol import Protocol, rollout_rows
-    from bpp.serve.robot import run_remote
+def test_the_robot_client_reproduces_bpp_eval_exactly_rollout_for_rollout(debug_store, tmp_path):
+    """A served checkpoint, driven through the socket one rollout per task (as `bpp eval` then runs each task as a
+    batch of one), gives every rollout `bpp eval` gives, to the last bit."""
+    from bpp.benchmarks.contract import TaskSet
+    from bpp.evaluation.evaluate import Protocol, evaluate
+    from bpp.serve.command import build_server
+    from bpp.serve.robot import RobotClient, robot_client
+    from bpp.train import TrainConfig, train
 
-    model = _model("bpp", debug_store)
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
     protocol = Protocol(rollouts=1, seed=3, max_steps=40)
-    tasks = [0, 5]
-    agent = PolicyAgent(model)
-    local = []
-    for task in tasks:
-        plan = protocol.plan(debug_store, task, BENCHMARK)
-        results, _ = run_prompted(agent, BENCHMARK, debug_store, plan, protocol.max_steps, [False])
-        local.append(rollout_rows(BENCHMARK, plan, results))
-    with ServerThread(_server(model, debug_store)) as url:
-        remote = RemoteAgent(url, use_openpi=False)
-        try:
-            served = run_remote(remote, BENCHMARK, debug_store, tasks, protocol, progress=False)
-        finally:
-            remote.close()
-    assert [r.rollouts for r in served] == local
-    assert all(row["steps"] > 8 for rows in local for row in rows)  # several replanning requests each
+    tasks = [0, 2, 4, 7, 9, 11]  # what --num-tasks 6 spreads over the store's 12
+    local = evaluate(run, TaskSet(debug_store, "debug"), tasks, tmp_path / "eval", protocol, 1, 0, progress=False)
+    with ServerThread(build_server(run, str(debug_store.path))) as url:
+        args = RobotClient(
+            tasks=debug_store.path, server=url, num_tasks=6, rollouts=1, seed=3, max_steps=40, client="bpp"
+        )
+        served = robot_client(args)
+    assert served["rollouts"] == local["rollouts"] and served["summary"] == local["summary"]
+    assert all(row["steps"] > 8 for row in local["rollouts"])  # several replanning requests each
 
 
 def test_concurrent_clients_are_batched_and_act_as_in_process(debug_store):
@@ -141,8 +141,8 @@ def test_one_client_drives_every_method_by_prompt_id(debug_store, described_stor
         assert reply["prompt"] == f"episode:{store.task_episodes()[1][1]}"
         assert reply["actions"].shape == tuple(meta["action"]["shape"]) and np.isfinite(reply["actions"]).all()
         client.close()
-    # the same prompt and seed in process: the same first Ta actions
-    agent = PolicyAgent(model)
+    # the same prompt and seed in process, as `bpp eval` runs it: the same first Ta actions
+    agent = PolicyAgent(model, record_attention=True)
     agent.reset(task_context(store, int(store.task_episodes()[1][1]), agent.data_spec, BENCHMARK.frames), seed=4)
     first = agent.act(_obs(store, 3, 0, keys))
     expected = np.stack([first, *(q[0] for q in agent.queue)])
@@ -299,34 +299,70 @@ def test_the_robot_side_runs_without_torch(debug_store, tmp_path):
 
 
 @pytest.mark.openpi
-def test_openpis_own_client_drives_the_server_to_bpp_evals_score(debug_store, tmp_path):
-    """The robot environment of `make test` has openpi's client (numpy < 2) and no torch; its rollouts, one per
-    task as in ``bpp eval`` with one rollout per task, score exactly as in process."""
+def test_openpis_own_client_drives_a_served_checkpoint_to_bpp_evals_scores(debug_store, tmp_path):
+    """A robot environment with openpi's client (numpy < 2) and no torch (`make install-all` builds it) runs the
+    protocol against `bpp serve`'s server for a trained checkpoint; with one rollout per task, so that `bpp eval`
+    batches nothing either, every rollout matches `bpp eval`'s."""
     import json
 
-    from bpp.evaluation.protocol import Protocol, rollout_rows
+    from bpp.benchmarks.contract import TaskSet
+    from bpp.evaluation.evaluate import Protocol, evaluate
+    from bpp.serve.command import build_server
+    from bpp.train import TrainConfig, train
 
-    model = _model("bpp", debug_store)
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
     protocol = Protocol(rollouts=1, seed=0, max_steps=30)
-    tasks = [0, 6, 11]
-    agent = PolicyAgent(model)
-    local = []
-    for task in tasks:
-        plan = protocol.plan(debug_store, task, BENCHMARK)
-        results, _ = run_prompted(agent, BENCHMARK, debug_store, plan, protocol.max_steps, [False])
-        local += rollout_rows(BENCHMARK, plan, results)
+    tasks = list(range(debug_store.num_tasks))
+    local = evaluate(run, TaskSet(debug_store, "debug"), tasks, tmp_path / "eval", protocol, 1, 0, progress=False)
     out = tmp_path / "robot.json"
-    with ServerThread(_server(model, debug_store, token="t0ken")) as url:
+    with ServerThread(build_server(run, str(debug_store.path), token="t0ken")) as url:
         env = {**os.environ, "BPP_SERVE_TOKEN": "t0ken"}
-        args = ["--server", url, "--tasks", str(debug_store.path), "--num-tasks", "12", "--rollouts", "1"]
-        args += ["--seed", "0", "--max-steps", "30", "--client", "openpi", "--out", str(out)]
+        args = ["--server", url, "--tasks", str(debug_store.path), "--rollouts", "1", "--seed", "0"]
+        args += ["--max-steps", "30", "--client", "openpi", "--out", str(out)]
         done = subprocess.run(
             [str(ROBOT_PYTHON), "-m", "bpp.serve.robot", *args], capture_output=True, text=True, env=env, timeout=600
         )
     assert done.returncode == 0, done.stderr
-    data = json.loads(out.read_text())
-    assert data["client"].startswith("openpi_client")
-    served = {row["task"]: row for row in data["rollouts"]}
-    for task, row in zip(tasks, local, strict=True):
-        got = {k: served[task][k] for k in row}
-        assert got == json.loads(json.dumps(row)), task
+    served = json.loads(out.read_text())
+    assert served["client"].startswith("openpi_client") and served["served"]["train_step"] == 2
+    # The robot environment simulates with numpy 1.26 (openpi's client needs numpy < 2), `bpp eval` here with numpy 2,
+    # whose float functions differ in the last bits: the same rollouts, scores equal to 1e-9.
+    assert len(served["rollouts"]) == len(local["rollouts"]) == debug_store.num_tasks
+    for got, want in zip(served["rollouts"], local["rollouts"], strict=True):
+        assert got.keys() == want.keys()
+        for key in got:
+            assert got[key] == (pytest.approx(want[key], rel=1e-9) if isinstance(want[key], float) else want[key])
+    assert served["summary"]["score_mean"] == pytest.approx(local["summary"]["score_mean"], rel=1e-9)
+
+
+def test_bpp_serve_starts_serves_and_stops_on_ctrl_c(debug_store, tmp_path):
+    import re
+    import signal
+
+    from bpp.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bpp.cli", "serve", str(run), "--prompts", str(debug_store.path), "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        line = proc.stdout.readline()
+        found = re.search(r"on (ws://127\.0\.0\.1:\d+) \(no token: loopback only\); prompts: 36 demonstrations", line)
+        assert found, line + proc.stderr.read() if proc.poll() is not None else line
+        client = PolicyClient(found.group(1))
+        assert client.get_server_metadata()["train_step"] == 1
+        keys = list(client.get_server_metadata()["observation"])
+        assert client.infer({**_obs(debug_store, 0, 0, keys), "prompt": 0})["actions"].ndim == 2
+        client.close()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and "stopped after 1 requests" in out and "Traceback" not in err

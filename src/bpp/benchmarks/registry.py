@@ -17,6 +17,7 @@ from bpp.errors import UserError
 BENCHMARKS: dict[str, str] = {
     "drawanything": "bpp.benchmarks.draw.benchmark:BENCHMARK",
     "libero_gen": "bpp.benchmarks.libero.benchmark:BENCHMARK",
+    "lerobot_dataset": "bpp.benchmarks.lerobot.benchmark:BENCHMARK",
 }
 """Benchmark name (as stored in every store) -> ``module:object`` implementing the contract."""
 

@@ -163,14 +163,15 @@ class PromptLibrary:
                 raise PromptLookupError(
                     f"upload obs {key!r} must be (steps, {size}, {size}, 3) uint8, got {frames.shape} {frames.dtype}"
                 )
-            return {"image": frames[-1]}
+            return {"image": frames[-1].copy()}
         if "action" not in demo:
             raise PromptLookupError("upload lacks 'action', (steps, action dim)")
         keys = (*self.spec.lowdim_keys, *self.spec.image_keys)
         missing = [k for k in keys if k not in obs]
         if missing:
             raise PromptLookupError(f"upload obs lacks {missing}; this method's prompt needs {list(keys)}")
-        return {"obs": {k: np.asarray(obs[k]) for k in keys}, "action": np.asarray(demo["action"])}
+        # copies: arrays decoded from a frame are read-only views of it
+        return {"obs": {k: np.array(obs[k]) for k in keys}, "action": np.array(demo["action"])}
 
 
 def _hash_into(digest, value) -> None:

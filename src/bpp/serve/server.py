@@ -192,7 +192,10 @@ class ModelWorker:
             history = {
                 k: np.stack([np.stack([o[k] for o in s.history]) for s in sessions]) for k in self.model.obs_keys()
             }
-            chunks, _ = predict_chunks(self.model, history, context, [s.generator for s in sessions])
+            # with the prompt attention, as `bpp eval` records it: the same arithmetic, so the same actions
+            chunks, attention = predict_chunks(
+                self.model, history, context, [s.generator for s in sessions], return_attention=True
+            )
         except Exception as err:  # noqa: BLE001 - every waiting client gets the error, the server lives on
             for job in group:
                 _resolve(job.future, exception=err)
@@ -201,7 +204,10 @@ class ModelWorker:
         self.batches.append(len(group))
         for i, job in enumerate(group):
             timing = {"infer_ms": 1e3 * elapsed, "queue_ms": 1e3 * (start - job.submitted), "batch": len(group)}
-            _resolve(job.future, result=(chunks[i], timing))
+            weights = None
+            if attention is not None:  # (n_chunks + 1,) of this session's own prompt (a batch pads to its longest)
+                weights = attention[i, : getattr(job.session.context, "num_chunks", attention.shape[1] - 1) + 1]
+            _resolve(job.future, result=(chunks[i], weights, timing))
 
 
 def _settle(future: asyncio.Future, call: Callable) -> None:
@@ -370,17 +376,20 @@ class PolicyServer:
             context = await self.worker.call(self._encode, entry.context)
             session.start(entry.id, context, seed, self.n_obs_steps, self.device)
         session.push(steps)
-        chunk, timing = await self.worker.infer(session)
+        chunk, attention, timing = await self.worker.infer(session)
         session.requests += 1
         self.served += 1
         start = self.n_obs_steps - 1
-        return {
+        reply = {
             "actions": chunk[start:],
             "n_action_steps": self.n_action_steps,
             "prompt": session.prompt,
             "episode_step": session.steps - 1,
             "server_timing": {**timing, "total_ms": 1e3 * (time.perf_counter() - received)},
         }
+        if attention is not None:
+            reply["attention"] = attention.astype(np.float32)
+        return reply
 
     def _encode(self, context: Mapping):
         batch = self.model.validate_context(context)

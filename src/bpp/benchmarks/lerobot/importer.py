@@ -1,0 +1,374 @@
+"""Import a LeRobot v3 dataset on disk into an episode store (and optionally a held-out store beside it).
+
+    bpp lerobot import ~/data/my_robot --out data/lerobot/my_robot.zarr --image-size 96 --holdout-episodes 2
+
+The dataset is read with LeRobot's own dataset library (its metadata, tasks, episodes and per-frame table) from a
+local folder, or from a dataset LeRobot or the Hugging Face Hub already cached on this machine; nothing is downloaded.
+Each LeRobot task becomes a task (its text the task's instruction, so same-task prompts work), each episode an
+episode, and the features map to store keys as :mod:`bpp.benchmarks.lerobot.features` says; camera frames are decoded
+and resized to one square size when imported.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from bpp.benchmarks.lerobot.features import FeatureMap, Mapped, map_features
+from bpp.benchmarks.lerobot.library import (
+    FITS,
+    READ_MAJOR,
+    VideoFile,
+    dataset_library,
+    decode_png,
+    fit_image,
+    offline_and_quiet,
+)
+from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.errors import UserError
+from bpp.utils import check_fields, read_json
+
+BENCHMARK = "lerobot_dataset"
+"""The benchmark name written into imported stores (the registry's key)."""
+
+
+@dataclass(frozen=True)
+class ImportSettings:
+    """What to import and how (the flags of ``bpp lerobot import`` besides the source and the output)."""
+
+    image_size: int = 96
+    """Side of the square camera frames stored (px)."""
+    fit: Literal["stretch", "pad"] = "stretch"
+    """How a camera frame becomes square: stretch (resize to the square) or pad (scale to fit, black borders)."""
+    cameras: tuple[str, ...] = ()
+    """Cameras to import, in the order they become camera0, camera1, ... (full feature names or their last part;
+    default: every camera, in the dataset's order)."""
+    skip: tuple[str, ...] = ()
+    """Features to leave out (e.g. a depth camera or a text column)."""
+    action: str = "action"
+    """The feature that holds the actions."""
+    episodes: str = ""
+    """Episodes to import: "" (all), a range "START:STOP" or a list "0,3,7" of LeRobot episode indices."""
+    holdout_episodes: int = 0
+    """Per task, its last N episodes go to the held-out store (tasks with N or fewer stay whole in training)."""
+    holdout_tasks: int = 0
+    """The last N tasks (by LeRobot task index) go whole to the held-out store: tasks the policy never trains on."""
+
+    def __post_init__(self):
+        check_fields(
+            self,
+            ("image_size", 8 <= self.image_size <= 1024, "in [8, 1024] px"),
+            ("fit", self.fit in FITS, f"one of {', '.join(FITS)}"),
+            ("holdout_episodes", self.holdout_episodes >= 0, ">= 0"),
+            ("holdout_tasks", self.holdout_tasks >= 0, ">= 0"),
+        )
+
+
+# ------------------------------------------------------------------------------------------------ where it is
+def lerobot_home() -> Path:
+    """LeRobot's own dataset cache: ``$HF_LEROBOT_HOME``, else ``$HF_HOME/lerobot``."""
+    if os.environ.get("HF_LEROBOT_HOME"):
+        return Path(os.environ["HF_LEROBOT_HOME"]).expanduser()
+    from huggingface_hub.constants import HF_HOME
+
+    return Path(HF_HOME) / "lerobot"
+
+
+def _hub_snapshot(repo_id: str) -> Path | None:
+    """The dataset `repo_id` in the Hugging Face Hub's cache: the snapshot ``refs/main`` names, else the newest."""
+    from huggingface_hub.constants import HF_HUB_CACHE
+
+    folder = Path(HF_HUB_CACHE) / ("datasets--" + repo_id.replace("/", "--"))
+    ref = folder / "refs" / "main"
+    if ref.is_file() and (folder / "snapshots" / ref.read_text().strip()).is_dir():
+        return folder / "snapshots" / ref.read_text().strip()
+    snapshots = sorted((folder / "snapshots").glob("*"), key=lambda p: p.stat().st_mtime) if folder.is_dir() else []
+    return snapshots[-1] if snapshots else None
+
+
+def locate(source: str | Path) -> Path:
+    """The dataset's root folder: `source` itself if it is a folder, else the repo id `source` in LeRobot's cache or
+    the Hugging Face Hub's cache. Nothing is downloaded."""
+    path = Path(source).expanduser()
+    if path.is_dir():
+        return path
+    name = str(source)
+    if re.fullmatch(r"[\w.-]+/[\w.-]+", name):
+        for candidate in (lerobot_home() / name, _hub_snapshot(name)):
+            if candidate is not None and candidate.is_dir():
+                return candidate
+    raise UserError(
+        f"{source}: no such folder, and no dataset of that name in LeRobot's cache ({lerobot_home()}) or the Hugging "
+        "Face Hub's; nothing is downloaded: fetch it first (e.g. hf download --repo-type dataset REPO_ID --local-dir "
+        "DIR) and import the folder"
+    )
+
+
+def read_info(root: Path) -> dict:
+    """The dataset's ``meta/info.json``, checked to be a LeRobot v3 dataset whose metadata is all there."""
+    info_path = root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise UserError(f"{root}: not a LeRobot dataset (no meta/info.json)")
+    info = read_json(info_path, "LeRobot dataset info")
+    version = str(info.get("codebase_version", "")) if isinstance(info, dict) else ""
+    major = re.match(r"v?(\d+)\.", version)
+    if not major or int(major.group(1)) != READ_MAJOR:
+        raise UserError(
+            f"{info_path}: codebase_version {version or 'missing'}; bpp reads LeRobot v{READ_MAJOR} datasets "
+            "(v3.0). Convert an older one with LeRobot's converter first (lerobot.datasets.v30."
+            "convert_dataset_v21_to_v30)"
+        )
+    for field in ("fps", "features", "data_path"):
+        if field not in info:
+            raise UserError(f"{info_path}: no {field!r} entry; the dataset's metadata is damaged")
+    for needed in ("meta/tasks.parquet", "meta/episodes"):
+        if not (root / needed).exists():
+            raise UserError(f"{root}: missing {needed}; the dataset is incomplete")
+    return info
+
+
+def parse_episodes(text: str, total: int) -> list[int]:
+    """``""`` (all), ``"START:STOP"`` or ``"0,3,7"`` -> sorted LeRobot episode indices, each checked."""
+    text = text.strip()
+    if not text:
+        return list(range(total))
+    try:
+        if ":" in text:
+            start, stop = (int(part) if part.strip() else None for part in text.split(":", 1))
+            chosen = list(range(total))[slice(start, stop)]
+        else:
+            chosen = sorted({int(part) for part in text.split(",") if part.strip()})
+    except ValueError:
+        raise UserError(f"--episodes {text!r}: expected START:STOP or a comma-separated list of indices") from None
+    outside = [e for e in chosen if not 0 <= e < total]
+    if outside or not chosen:
+        raise UserError(f"--episodes {text!r}: the dataset has episodes 0 to {total - 1}, selected {outside or 'none'}")
+    return chosen
+
+
+def split_episodes(by_task: dict[int, list[int]], holdout_episodes: int, holdout_tasks: int):
+    """(training episodes, held-out episodes, tasks too small to hold episodes out of) for episodes grouped by task."""
+    tasks = sorted(by_task)
+    if holdout_tasks >= len(tasks) and holdout_tasks:
+        raise UserError(f"--holdout-tasks {holdout_tasks} leaves no task to train on (the selection has {len(tasks)})")
+    held_tasks = set(tasks[len(tasks) - holdout_tasks :]) if holdout_tasks else set()
+    train, held, whole = [], [], []
+    for task in tasks:
+        episodes = sorted(by_task[task])
+        if task in held_tasks:
+            held += episodes
+        elif holdout_episodes and len(episodes) > holdout_episodes:
+            train += episodes[:-holdout_episodes]
+            held += episodes[-holdout_episodes:]
+        else:
+            train += episodes
+            whole += [task] if holdout_episodes else []
+    return sorted(train), sorted(held), whole
+
+
+def heldout_path(out: Path) -> Path:
+    """``data/x.zarr`` -> ``data/x-heldout.zarr``."""
+    return out.with_name(f"{out.stem}-heldout{out.suffix}")
+
+
+# ------------------------------------------------------------------------------------------------ reading
+def _as_numpy(column, rows: int, item: Mapped) -> np.ndarray:
+    """An Arrow column of a numeric feature -> (rows, width) in the store's dtype."""
+    import pyarrow as pa
+
+    array = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    if isinstance(array.type, pa.ExtensionType):
+        array = array.storage
+    nested = (pa.types.is_list, pa.types.is_fixed_size_list, pa.types.is_large_list)
+    while any(is_nested(array.type) for is_nested in nested):
+        array = array.flatten()
+    values = array.to_numpy(zero_copy_only=False)
+    if values.size != rows * item.width:
+        raise UserError(f"feature {item.feature!r}: {values.size} values for {rows} frames of shape {item.shape}")
+    return values.reshape(rows, item.width).astype(item.store_dtype)
+
+
+class _Reader:
+    """Reads episodes of one dataset through LeRobot's library: per-frame arrays, frames and tasks."""
+
+    def __init__(self, root: Path, fmap: FeatureMap, settings: ImportSettings):
+        self.root, self.fmap, self.settings = root, fmap, settings
+        lib = dataset_library()
+        repo_id = f"local/{root.name}"
+        self.meta = lib.LeRobotDatasetMetadata(repo_id, root=root)
+        self.fps = float(self.meta.fps)
+        self.tasks = {int(row["task_index"]): str(text) for text, row in self.meta.tasks.iterrows()}
+        self.lib, self.repo_id = lib, repo_id
+        self._videos: dict[str, VideoFile] = {}
+
+    @property
+    def total_episodes(self) -> int:
+        return int(self.meta.total_episodes)
+
+    def open(self, episodes: Sequence[int]) -> None:
+        """Load the episodes' per-frame table, once every file the library reads for them is known to be on disk
+        (it would try to download a missing one: a file of a dataset it takes to be incomplete)."""
+        from huggingface_hub.errors import OfflineModeIsEnabled
+
+        for episode in episodes:
+            data = self.root / self.meta.get_data_file_path(episode)
+            if not data.is_file():
+                raise UserError(f"{self.root}: missing data file {data.relative_to(self.root)} (episode {episode})")
+            for key in self.meta.video_keys:
+                video = self.root / self.meta.get_video_file_path(episode, key)
+                if not video.is_file():
+                    raise UserError(
+                        f"{self.root}: missing video file {video.relative_to(self.root)} ({key}, episode {episode}); "
+                        "the dataset is incomplete: fetch its videos too (LeRobot's library opens every camera's "
+                        "videos of the episodes imported, including cameras left out with --skip)"
+                    )
+        try:
+            self.dataset = self.lib.LeRobotDataset(
+                self.repo_id, root=self.root, episodes=list(episodes), download_videos=False, video_backend="pyav"
+            )
+        except OfflineModeIsEnabled:
+            raise UserError(
+                f"{self.root}: LeRobot's library finds the dataset incomplete; nothing is downloaded"
+            ) from None
+        self.table = self.dataset.hf_dataset.with_format("arrow")
+        columns = self.table[:].select(["episode_index", "frame_index", "task_index"])
+        self.frame_episodes, self.frame_numbers, self.frame_tasks = (
+            columns.column(name).to_numpy() for name in ("episode_index", "frame_index", "task_index")
+        )
+
+    def _positions(self, episode: int) -> np.ndarray:
+        """Row numbers of the episode's frames in the per-frame table, in frame order."""
+        positions = np.flatnonzero(self.frame_episodes == episode)
+        if len(positions) == 0:
+            raise UserError(f"{self.root}: episode {episode} has no frames in the dataset's data files")
+        return positions[np.argsort(self.frame_numbers[positions], kind="stable")]
+
+    def task(self, episode: int) -> int:
+        """The LeRobot task index of an episode: that of its first frame."""
+        return int(self.frame_tasks[self._positions(episode)[0]])
+
+    def rows(self, episode: int):
+        """The episode's frames as an Arrow table, in frame order."""
+        positions = self._positions(episode)
+        if np.array_equal(positions, np.arange(positions[0], positions[0] + len(positions))):
+            return self.table[int(positions[0]) : int(positions[-1]) + 1]
+        return self.dataset.hf_dataset.select(positions).with_format("arrow")[:]
+
+    def read(self, episode: int, table) -> dict[str, np.ndarray]:
+        """The store's per-step arrays of one episode."""
+        n = table.num_rows
+        steps = {m.key: _as_numpy(table.column(m.feature), n, m) for m in (*self.fmap.lowdim, self.fmap.action)}
+        for camera in self.fmap.cameras:
+            steps[camera.key] = self._camera(episode, camera, table)
+        return steps
+
+    def _camera(self, episode: int, camera: Mapped, table) -> np.ndarray:
+        size, fit = self.settings.image_size, self.settings.fit
+        if camera.dtype == "image":
+            column = table.column(camera.feature).combine_chunks()
+            pairs = zip(column.field("bytes").to_pylist(), column.field("path").to_pylist(), strict=True)
+            images = [decode_png(data, path, self.root) for data, path in pairs]
+        else:
+            path = self.root / self.meta.get_video_file_path(episode, camera.feature)
+            if camera.feature not in self._videos or self._videos[camera.feature].path != path:
+                if camera.feature in self._videos:
+                    self._videos.pop(camera.feature).close()
+                self._videos[camera.feature] = VideoFile(path)
+            start = float(self.meta.episodes[episode][f"videos/{camera.feature}/from_timestamp"])
+            times = start + table.column("timestamp").to_numpy().astype(np.float64)
+            images = self._videos[camera.feature].frames_at(times, tolerance=0.5 / self.fps)
+        return np.stack([fit_image(image, size, fit) for image in images])
+
+    def close(self) -> None:
+        for video in self._videos.values():
+            video.close()
+        self._videos.clear()
+
+
+# ------------------------------------------------------------------------------------------------ writing
+def import_dataset(
+    source: str | Path,
+    out: Path,
+    settings: ImportSettings = ImportSettings(),
+    heldout_out: Path | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> tuple[EpisodeStore, EpisodeStore | None]:
+    """Import the LeRobot dataset at `source` (a folder or a cached repo id) into the store `out`, and its held-out
+    episodes (if the settings hold any out) into `heldout_out` (default: ``<out>-heldout.zarr``). Both are written
+    atomically. Returns (the training store, the held-out store or None)."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    root = locate(source)
+    info = read_info(root)
+    fmap = map_features(info["features"], settings.cameras, settings.skip, settings.action)
+    holding_out = bool(settings.holdout_episodes or settings.holdout_tasks)
+    held_path = Path(heldout_out) if heldout_out is not None else heldout_path(out)
+    with offline_and_quiet():
+        reader = _Reader(root, fmap, settings)
+        try:
+            chosen = parse_episodes(settings.episodes, reader.total_episodes)
+            reader.open(chosen)
+            by_task: dict[int, list[int]] = {}
+            for episode in chosen:
+                by_task.setdefault(reader.task(episode), []).append(episode)
+            train, held, whole = split_episodes(by_task, settings.holdout_episodes, settings.holdout_tasks)
+            if whole:
+                count = settings.holdout_episodes
+                print(f"[import] {len(whole)} task(s) have {count} episodes or fewer and stay whole in training")
+            if holding_out and not held:
+                raise UserError("nothing is held out: no task has more episodes than --holdout-episodes")
+            config = {
+                "source": str(root),
+                "codebase_version": info.get("codebase_version"),
+                "robot_type": info.get("robot_type"),
+                "fps": info["fps"],
+                "settings": asdict(settings),
+                "features": {m.key: m.to_json() for m in fmap.all},
+                "cameras": [m.key for m in fmap.cameras],
+            }
+            task_of = {e: t for t, episodes in by_task.items() for e in episodes}
+            stats_keys = [m.key for m in (*fmap.lowdim, fmap.action)]
+            writers = [(out, train, "train")] + ([(held_path, held, "held-out")] if holding_out else [])
+            with contextlib.ExitStack() as stack:
+                opened = []
+                for path, episodes, split in writers:
+                    writer = EpisodeWriter(
+                        path,
+                        benchmark=BENCHMARK,
+                        config={**config, "split": split},
+                        overwrite=overwrite,
+                        stats_keys=stats_keys,
+                    )
+                    opened.append((stack.enter_context(writer), episodes))
+                bar = tqdm(total=len(chosen), desc="import", unit="episode", disable=not progress)
+                for writer, episodes in opened:
+                    task_index: dict[int, int] = {}
+                    for episode in episodes:
+                        task = task_of[episode]
+                        if task not in task_index:
+                            text = reader.tasks.get(task, "")
+                            task_index[task] = writer.add_task(
+                                _task_id(task, text), {"lerobot_task_index": task}, instruction=text
+                            )
+                        steps = reader.read(episode, reader.rows(episode))
+                        writer.add_episode(steps, task_index[task], lerobot_episode=episode)
+                        bar.update()
+                bar.close()
+        finally:
+            reader.close()
+    return EpisodeStore(out), (EpisodeStore(held_path) if holding_out else None)
+
+
+def _task_id(index: int, text: str) -> str:
+    """A task's id: its LeRobot index and the start of its text, e.g. ``0003-pick-up-the-cube``."""
+    slug = re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")[:40].rstrip("-")
+    return f"{index:04d}-{slug}" if slug else f"{index:04d}"

@@ -1,0 +1,166 @@
+"""LeRobot's dataset library, imported when used, and what running it offline and quietly takes.
+
+The ``lerobot`` extra installs the standalone ``lerobot-dataset`` package (module ``ledataset``), LeRobot's dataset
+code released without LeRobot's pins on torch, so that it installs beside bpp's torch. An environment that has LeRobot
+itself (module ``lerobot``) and not the extra uses LeRobot's. Both read and write LeRobot's v3 format with the same
+``LeRobotDataset`` API.
+
+Camera frames are decoded here with PyAV (FFmpeg inside its wheel, a dependency of the library), not through
+``LeRobotDataset.__getitem__``, whose decoders need torchcodec with a system FFmpeg or a torchvision video reader that
+current torchvision no longer has; the frames are picked by the timestamps the library's metadata gives.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import io
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from bpp.errors import UserError, require_extra
+
+MODULES = ("ledataset.datasets.lerobot_dataset", "lerobot.datasets.lerobot_dataset")
+"""Where ``LeRobotDataset`` is, in the order tried: the extra's standalone package, then LeRobot itself."""
+READ_MAJOR = 3
+"""The LeRobot dataset format this reads and writes: codebase_version v3.x."""
+
+
+def dataset_library():
+    """The module with ``LeRobotDataset`` and ``LeRobotDatasetMetadata``; a UserError naming the extra if neither
+    package is installed."""
+    for name in MODULES:
+        try:
+            return importlib.import_module(name)
+        except ModuleNotFoundError as err:
+            if err.name is None or err.name.split(".")[0] != name.split(".")[0]:
+                raise  # the package is there but one of its own imports failed: a broken install
+    return require_extra(MODULES[0], "lerobot")
+
+
+@contextlib.contextmanager
+def offline_and_quiet() -> Iterator[None]:
+    """While the library runs: no network (a file it cannot find locally is an error rather than a download from the
+    Hugging Face Hub), and no progress bars or encoder banners in the output."""
+    import av
+    import huggingface_hub.constants as hub
+    from datasets.utils import logging as datasets_logging
+
+    offline, bars = hub.HF_HUB_OFFLINE, datasets_logging.is_progress_bar_enabled()
+    svt = os.environ.get("SVT_LOG")
+    hub.HF_HUB_OFFLINE = True
+    level = _ffmpeg_log_level(av.logging.ERROR)
+    datasets_logging.disable_progress_bar()
+    os.environ["SVT_LOG"] = "1"  # SVT-AV1 (LeRobot's default encoder) prints its settings for every video otherwise
+    try:
+        yield
+    finally:
+        hub.HF_HUB_OFFLINE = offline
+        _ffmpeg_log_level(level)
+        if bars:
+            datasets_logging.enable_progress_bar()
+        if svt is None:
+            os.environ.pop("SVT_LOG", None)
+        else:
+            os.environ["SVT_LOG"] = svt
+
+
+def _ffmpeg_log_level(level: int | None) -> int | None:
+    """Set the log level of the FFmpeg inside PyAV's wheel; returns the previous one (None where it cannot be set).
+
+    LeRobot's video writer hands FFmpeg's logging back to FFmpeg's own printer, which prints at FFmpeg's level (info:
+    a line per video written); PyAV has no call for that level, so it is set in FFmpeg's library directly."""
+    if level is None:
+        return None
+    import ctypes
+    import glob
+
+    import av
+
+    found = glob.glob(os.path.join(os.path.dirname(av.__file__), os.pardir, "av.libs", "libavutil*"))
+    if not found:
+        return None
+    avutil = ctypes.CDLL(found[0])
+    previous = int(avutil.av_log_get_level())
+    avutil.av_log_set_level(int(level))
+    return previous
+
+
+FITS = ("stretch", "pad")
+"""How a camera frame becomes square: stretched to the square, or scaled to fit it and padded with black."""
+
+
+def fit_image(image, size: int, fit: str = "stretch") -> np.ndarray:
+    """A PIL image -> (size, size, 3) uint8 RGB, resized (antialiased) as `fit` says (:data:`FITS`)."""
+    from PIL import Image
+
+    image = image.convert("RGB")
+    if fit == "stretch" or image.width == image.height:
+        return np.asarray(image.resize((size, size), Image.BILINEAR))
+    scale = size / max(image.width, image.height)
+    inner = image.resize((max(1, round(image.width * scale)), max(1, round(image.height * scale))), Image.BILINEAR)
+    canvas = Image.new("RGB", (size, size))
+    canvas.paste(inner, ((size - inner.width) // 2, (size - inner.height) // 2))
+    return np.asarray(canvas)
+
+
+def decode_png(data: bytes | None, path: str | None, root: Path):
+    """An image stored in a parquet column (``{"bytes", "path"}``) as a PIL image."""
+    from PIL import Image
+
+    if data is not None:
+        return Image.open(io.BytesIO(data))
+    if path:
+        file = Path(path) if Path(path).is_absolute() else root / path
+        if file.is_file():
+            return Image.open(file)
+    raise UserError(f"{root}: an image frame has neither bytes nor a readable file ({path!r})")
+
+
+class VideoFile:
+    """One video file of a LeRobot dataset (several episodes one after another), decoded in order with PyAV."""
+
+    def __init__(self, path: Path):
+        import av
+
+        self.path = path
+        try:
+            self.container = av.open(str(path))
+            self.stream = self.container.streams.video[0]
+        except (av.error.FFmpegError, IndexError) as err:
+            raise UserError(f"{path}: not a readable video ({err})") from None
+
+    def frames_at(self, times: Sequence[float], tolerance: float) -> list:
+        """PIL images of the frames shown at `times` (seconds into the file, ascending): for each, the first frame
+        at or after ``time - tolerance``, which must lie within `tolerance` of it."""
+        import av
+
+        times = np.asarray(times, dtype=np.float64)
+        base = self.stream.time_base
+        try:  # to the key frame at or before the first time, then forward
+            self.container.seek(int(max(times[0] - tolerance, 0.0) / base), stream=self.stream, backward=True)
+            frames = self.container.decode(self.stream)
+            images, frame = [], next(frames, None)
+            for time in times:
+                while frame is not None and _seconds(frame, base) < time - tolerance:
+                    frame = next(frames, None)
+                if frame is None or abs(_seconds(frame, base) - time) > tolerance:
+                    found = "the end of the video" if frame is None else f"{_seconds(frame, base):.3f} s"
+                    raise UserError(
+                        f"{self.path}: no frame at {time:.3f} s (next: {found}); the dataset's timestamps and its "
+                        "video disagree"
+                    )
+                images.append(frame.to_image())
+            return images
+        except av.error.FFmpegError as err:
+            raise UserError(f"{self.path}: cannot decode the video ({err})") from None
+
+    def close(self) -> None:
+        self.container.close()
+
+
+def _seconds(frame, base) -> float:
+    return float(frame.pts * base) if frame.pts is not None else float(frame.time)

@@ -1,0 +1,339 @@
+"""LeRobot datasets in and out: a dataset made here with LeRobot's own library imports into a store (tasks, keys,
+cameras, fps, held-out episodes), trains BPP and is evaluated open loop; any store exports to a LeRobot v3 dataset
+that LeRobot's loader reads back, and imports back to the same arrays. Needs the `lerobot` extra."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bpp.benchmarks.lerobot.benchmark import BENCHMARK
+from bpp.benchmarks.lerobot.export import export_store
+from bpp.benchmarks.lerobot.replay import replayed_episode, run_rollouts
+from bpp.cli import main
+from bpp.data.spec import DataSpec
+from bpp.data.store import EpisodeStore, EpisodeWriter
+from helpers import import_optional
+
+pytestmark = pytest.mark.lerobot
+
+library = import_optional("bpp.benchmarks.lerobot.library", "lerobot")
+
+TASKS = ["pick up the red cube", "push the block to the left", "open the drawer"]
+EPISODES_PER_TASK, STEPS, FPS = 4, 10, 10
+HEIGHT, WIDTH = 24, 32  # the video camera's frames: not square, so importing resizes them
+
+
+@pytest.fixture(scope="module", autouse=True)
+def datasets_cache(tmp_path_factory):
+    """The `datasets` package caches every parquet file it reads; here in a temporary folder, not the user's."""
+    import datasets
+
+    before = datasets.config.HF_DATASETS_CACHE
+    datasets.config.HF_DATASETS_CACHE = tmp_path_factory.mktemp("datasets-cache")
+    yield
+    datasets.config.HF_DATASETS_CACHE = before
+
+
+def _frame(episode: int, step: int, height: int, width: int) -> np.ndarray:
+    """A smooth picture that differs between episodes and steps (what a lossy video keeps)."""
+    y, x = np.mgrid[0:height, 0:width]
+    base = np.array([40 + 15 * episode, 200 - 12 * step, 90 + 5 * (episode + step)])
+    return np.clip(base + 3 * x[..., None] + 2 * y[..., None], 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    """A LeRobot v3 dataset written by LeRobot's library: 3 tasks x 4 episodes of 10 frames, a 3-D state, a 4-D
+    action, a video camera (24x32) and an image camera (16x16); and the arrays it was given."""
+    lib = library.dataset_library()
+    root = tmp_path_factory.mktemp("lerobot") / "robot"
+    features = {
+        "observation.state": {"dtype": "float32", "shape": (3,), "names": ["x", "y", "z"]},
+        "action": {"dtype": "float32", "shape": (4,), "names": ["x", "y", "z", "gripper"]},
+        "observation.images.front": {
+            "dtype": "video",
+            "shape": (HEIGHT, WIDTH, 3),
+            "names": ["height", "width", "channels"],
+        },
+        "observation.images.wrist": {"dtype": "image", "shape": (16, 16, 3), "names": ["height", "width", "channels"]},
+    }
+    rng = np.random.default_rng(0)
+    given = {"state": [], "action": [], "front": [], "wrist": [], "task": []}
+    with library.offline_and_quiet():
+        dataset = lib.LeRobotDataset.create(
+            "test/robot", fps=FPS, features=features, root=root, robot_type="arm", video_backend="pyav"
+        )
+        for episode in range(len(TASKS) * EPISODES_PER_TASK):
+            task = episode % len(TASKS)  # tasks interleaved, so held-out episodes are not simply the last ones
+            state = rng.normal(size=(STEPS, 3)).astype(np.float32)
+            action = np.concatenate([state + 0.1, rng.uniform(0, 1, (STEPS, 1))], axis=1).astype(np.float32)
+            front = np.stack([_frame(episode, t, HEIGHT, WIDTH) for t in range(STEPS)])
+            wrist = np.stack([_frame(episode, t, 16, 16)[::-1] for t in range(STEPS)])
+            for t in range(STEPS):
+                frame = {"observation.state": state[t], "action": action[t], "task": TASKS[task]}
+                dataset.add_frame({**frame, "observation.images.front": front[t], "observation.images.wrist": wrist[t]})
+            dataset.save_episode(parallel_encoding=False)
+            for key, value in zip(given, (state, action, front, wrist, task), strict=True):
+                given[key].append(value)
+        dataset.finalize()
+    return SimpleNamespace(root=root, **given)
+
+
+@pytest.fixture(scope="module")
+def imported(source, tmp_path_factory):
+    """The dataset imported with 2 episodes of each task held out, cameras at 16 px."""
+    out = tmp_path_factory.mktemp("imported") / "robot.zarr"
+    main(["lerobot", "import", str(source.root), "--out", str(out), "--image-size", "16", "--holdout-episodes", "2"])
+    return EpisodeStore(out), EpisodeStore(out.with_name("robot-heldout.zarr"))
+
+
+def _resized(frames: np.ndarray, size: int) -> np.ndarray:
+    from PIL import Image
+
+    return np.stack([library.fit_image(Image.fromarray(f), size) for f in frames])
+
+
+def test_an_imported_dataset_has_its_tasks_keys_cameras_and_held_out_episodes(source, imported):
+    train, held = imported
+    assert train.benchmark == held.benchmark == "lerobot_dataset"
+    assert [t["instruction"] for t in train.tasks] == TASKS == [t["instruction"] for t in held.tasks]
+    assert train.tasks[0]["id"] == "0000-pick-up-the-red-cube"
+    assert sorted(train.keys) == ["action", "camera0", "camera1", "state"]
+    assert train.config["fps"] == FPS and train.config["cameras"] == ["camera0", "camera1"]
+    assert train.config["features"]["camera1"]["feature"] == "observation.images.wrist"
+    # per task, its first two episodes train and its last two are held out
+    per_task = {t: [e for e in range(12) if e % 3 == t] for t in range(3)}
+    assert sorted(train.column("lerobot_episode")) == sorted(e for eps in per_task.values() for e in eps[:2])
+    assert sorted(held.column("lerobot_episode")) == sorted(e for eps in per_task.values() for e in eps[2:])
+    for store in (train, held):
+        for episode, original in enumerate(store.column("lerobot_episode")):
+            steps = store.episode(episode)
+            assert store.tasks[int(store.column("task_index")[episode])]["instruction"] == TASKS[source.task[original]]
+            np.testing.assert_array_equal(steps["state"], source.state[original])
+            np.testing.assert_array_equal(steps["action"], source.action[original])
+            np.testing.assert_array_equal(steps["camera1"], _resized(source.wrist[original], 16))  # PNG: exact
+            front = _resized(source.front[original], 16).astype(int)
+            assert np.abs(steps["camera0"].astype(int) - front).mean() < 6  # a lossy video, decoded
+            assert np.abs(steps["camera0"][-1].astype(int) - front[0]).mean() > 10  # ... of the right step
+    assert BENCHMARK.frames(train, 1, "camera0", 32, steps=[0, 5]).shape == (2, 32, 32, 3)
+    with pytest.raises(ValueError, match="has the cameras camera0, camera1; got 'image'"):
+        BENCHMARK.frames(train, 0, "image", 16)
+
+
+def _copy(source, tmp_path: Path) -> Path:
+    copy = tmp_path / "copy"
+    shutil.copytree(source.root, copy)
+    return copy
+
+
+def test_datasets_bpp_cannot_read_are_refused_with_what_is_wrong(source, tmp_path, capsys):
+    out = str(tmp_path / "s.zarr")
+    copy = _copy(source, tmp_path)
+    info = json.loads((copy / "meta" / "info.json").read_text())
+    (copy / "meta" / "info.json").write_text(json.dumps({**info, "codebase_version": "v2.1"}))
+    with pytest.raises(SystemExit, match="codebase_version v2.1; bpp reads LeRobot v3 datasets"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    text = {"dtype": "string", "shape": (1,), "names": None}
+    (copy / "meta" / "info.json").write_text(json.dumps({**info, "features": {**info["features"], "note": text}}))
+    with pytest.raises(SystemExit, match="feature 'note' has dtype 'string'.*--skip note"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    (copy / "meta" / "info.json").write_text(json.dumps(info))
+    for video in (copy / "videos").rglob("*.mp4"):
+        video.unlink()
+    with pytest.raises(SystemExit, match="missing video file videos/observation.images.front/.*--skip"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    with pytest.raises(SystemExit, match="--cameras 'side' is not a feature of the dataset"):
+        main(["lerobot", "import", str(source.root), "--out", out, "--cameras", "side"])
+    with pytest.raises(SystemExit, match="no such folder, and no dataset of that name in LeRobot's cache"):
+        main(["lerobot", "import", "nobody/nothing", "--out", out])
+    with pytest.raises(SystemExit, match="imported, not generated: bpp lerobot import"):
+        main(["lerobot", "generate", "--out", out])
+    assert not Path(out).exists()
+
+
+def test_an_imported_store_exports_under_its_original_feature_names(imported, tmp_path, capsys):
+    train, _ = imported
+    main(["lerobot", "export", str(train.path), "--out", str(tmp_path / "again"), "--no-video"])
+    info = json.loads((tmp_path / "again" / "meta" / "info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and info["fps"] == FPS and info["robot_type"] == "arm"
+    assert info["features"]["observation.state"]["names"] == ["x", "y", "z"]
+    assert info["features"]["observation.images.wrist"]["shape"] == [16, 16, 3]
+    main(["lerobot", "import", str(tmp_path / "again"), "--out", str(tmp_path / "back.zarr"), "--image-size", "16"])
+    back = EpisodeStore(tmp_path / "back.zarr")
+    assert back.keys == train.keys and back.tasks == train.tasks
+    for key in back.keys:
+        np.testing.assert_array_equal(back.array(key), train.array(key), err_msg=key)
+
+
+class ReplayingAgent:
+    """An agent that outputs, at every step, the recorded action of the episode each rollout replays, plus `offset`."""
+
+    def __init__(self, store: EpisodeStore, replayed: list[int], offset: float = 0.0):
+        self.data_spec = DataSpec(lowdim_keys=("state",))
+        self.obs_keys = ["state"]
+        self.actions = [store.episode(e, ["action"])["action"] for e in replayed]
+        self.offset, self.t = offset, 0
+
+    def act_batch(self, obs):
+        assert obs["state"].shape == (len(self.actions), 3)
+        self.t += 1
+        return np.stack([a[min(self.t - 1, len(a) - 1)] + self.offset for a in self.actions])
+
+
+def test_open_loop_rollouts_score_the_action_error_against_another_episode_of_the_task(imported):
+    _, held = imported
+    episodes = held.task_episodes()
+    rollouts = [
+        {"target_episode": int(episodes[0][0]), "prompt_episode": int(episodes[0][0])},  # own prompt
+        {"target_episode": int(episodes[1][1]), "prompt_episode": int(episodes[2][0])},  # another task's
+    ]
+    replayed = [replayed_episode(held, r["target_episode"], r["prompt_episode"]) for r in rollouts]
+    assert replayed == [int(episodes[0][1]), int(episodes[1][0])]
+    results = run_rollouts(ReplayingAgent(held, replayed), held, rollouts, 100, [True, False], BENCHMARK.frames)
+    assert [r.score for r in results] == [0.0, 0.0] and [r.extra["replayed_episode"] for r in results] == replayed
+    assert results[0].steps == STEPS and results[0].frames[0].shape == (256, 256, 3) and results[1].frames == []
+    stats = held.stats["action"]
+    half = (np.asarray(stats["max"]) - np.asarray(stats["min"])) / 2
+    results = run_rollouts(ReplayingAgent(held, replayed, 0.1), held, rollouts, 4, [False, False], BENCHMARK.frames)
+    np.testing.assert_allclose([r.score for r in results], np.mean(0.1 / half), rtol=1e-5)
+    assert results[0].steps == 4 and results[0].extra["action_mae_raw"] == pytest.approx(0.1, rel=1e-5)
+
+
+def test_a_task_with_one_episode_cannot_be_replayed_without_its_prompt(tmp_path):
+    with EpisodeWriter(tmp_path / "one.zarr", benchmark="lerobot_dataset") as writer:
+        for task, episodes in enumerate((1, 2)):
+            index = writer.add_task(f"task-{task}")
+            for _ in range(episodes):
+                writer.add_episode({"state": np.zeros((3, 2)), "action": np.zeros((3, 2))}, index)
+    store = EpisodeStore(tmp_path / "one.zarr")
+    assert replayed_episode(store, 1, 1) == 2
+    with pytest.raises(ValueError, match="task 'task-0' has one episode; open-loop evaluation replays"):
+        replayed_episode(store, 0, 0)
+
+
+@pytest.mark.slow
+def test_bpp_trains_on_an_imported_dataset_and_is_evaluated_open_loop_with_the_other_task_control(
+    imported, tmp_path, capsys
+):
+    train, held = imported
+    run = tmp_path / "run"
+    main(
+        ["train", "--method", "bpp", "--preset", "debug", "--data", str(train.path), "--out", str(run)]
+        + ["--steps", "3", "--batch-size", "4", "--workers", "0", "--model.action-relative-to", "state"]
+    )
+    config = json.loads((run / "config.json").read_text())["model_config"]
+    assert config["obs"]["image_keys"] == ["camera0"] and config["obs"]["proprio_keys"] == ["state"]
+    scores = {}
+    for prompts in ("own", "other-task"):
+        out = tmp_path / prompts
+        main(["eval", str(run), "--tasks", str(held.path), "--rollouts", "2", "--workers", "1", "--prompts", prompts]
+             + ["--out", str(out)])  # fmt: skip
+        results = json.loads((out / "results.json").read_text())
+        assert results["metric"]["name"] == "action error" and results["summary"]["tasks"] == 3
+        rows = results["rollouts"]
+        assert all(r["replayed_episode"] != r["prompt_episode"] for r in rows)
+        assert all(r["steps"] == STEPS and np.isfinite(r["score"]) for r in rows)
+        scores[prompts] = [r["score"] for r in rows]
+        assert (out / "grid.png").is_file()
+    assert scores["own"] != scores["other-task"]  # the same replayed episodes, other prompts
+
+
+def test_a_drawanything_store_exports_to_a_dataset_lerobot_loads_and_imports_back(debug_store, tmp_path, capsys):
+    from bpp.benchmarks.draw.benchmark import BENCHMARK as DRAW
+
+    out = tmp_path / "draw"
+    main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--image-size", "32", "--episodes", "0:4"])
+    lib = library.dataset_library()
+    with library.offline_and_quiet():
+        dataset = lib.LeRobotDataset("bpp/draw", root=out, video_backend="pyav")
+    n = int(debug_store.episode_ends[3])
+    assert dataset.num_episodes == 4 and dataset.num_frames == n and dataset.fps == 10
+    assert list(dataset.meta.tasks.index) == [t["id"] for t in debug_store.tasks[:2]]  # no instructions: the ids
+    assert dataset.meta.features["observation.images.image"]["dtype"] == "video"
+    table = dataset.hf_dataset.with_format("arrow")[:]
+    for key in debug_store.keys:  # every per-step array, as LeRobot reads it
+        name = "action" if key == "action" else f"observation.{key}"
+        values = np.asarray(table.column(name).to_pylist()).reshape(n, -1)
+        np.testing.assert_array_equal(values, debug_store.array(key)[:n].reshape(n, -1), err_msg=key)
+    main(["lerobot", "import", str(out), "--out", str(tmp_path / "back.zarr"), "--image-size", "32"])
+    back = EpisodeStore(tmp_path / "back.zarr")
+    assert back.num_episodes == 4 and [t["instruction"] for t in back.tasks] == [t["id"] for t in debug_store.tasks[:2]]
+    np.testing.assert_array_equal(back.column("task_index"), debug_store.column("task_index")[:4])
+    for key in debug_store.keys:
+        np.testing.assert_array_equal(back.array(key), debug_store.array(key)[:n], err_msg=key)
+    for episode in range(4):
+        drawn = DRAW.frames(debug_store, episode, "image", 32).astype(int)
+        assert np.abs(back.episode(episode, ["camera0"])["camera0"] - drawn).mean() < 8  # AV1 video, lossy
+
+
+def test_lerobots_own_loader_returns_every_exported_array(debug_store, tmp_path, capsys):
+    """With images in the parquet files (lossless), LeRobotDataset's items are exactly the store's arrays and
+    DrawAnything's frames."""
+    from bpp.benchmarks.draw.benchmark import BENCHMARK as DRAW
+
+    out = tmp_path / "draw"
+    main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--episodes", "0", "--no-video"])
+    with pytest.raises(SystemExit, match="already exists; pass --overwrite"):
+        main(["lerobot", "export", str(debug_store.path), "--out", str(out)])
+    main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--image-size", "24", "--no-video"]
+         + ["--episodes", "5,6", "--overwrite"])  # fmt: skip
+    lib = library.dataset_library()
+    with library.offline_and_quiet():
+        dataset = lib.LeRobotDataset("bpp/draw", root=out, video_backend="pyav")
+    assert dataset.num_episodes == 2 and dataset.meta.features["observation.images.image"]["dtype"] == "image"
+    index = 0
+    for episode in (5, 6):
+        steps = debug_store.episode(episode)
+        frames = DRAW.frames(debug_store, episode, "image", 24)
+        task = debug_store.tasks[int(debug_store.column("task_index")[episode])]["id"]
+        for t in range(len(frames)):
+            item = dataset[index]
+            index += 1
+            assert item["task"] == task and int(item["frame_index"]) == t
+            image = (item["observation.images.image"].numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)
+            np.testing.assert_array_equal(image, frames[t])
+            for key, values in steps.items():
+                name = "action" if key == "action" else f"observation.{key}"
+                got = item[name].numpy().reshape(-1)  # LeRobot's items are float32 tensors, also of float64 columns
+                np.testing.assert_array_equal(got, values[t].reshape(-1).astype(got.dtype), err_msg=key)
+    assert index == len(dataset)
+
+
+@pytest.mark.libero
+def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(tmp_path, capsys):
+    """A store of LIBERO-Gen's keys with agent-view frames stored as generation renders them (made here: generating
+    one in LIBERO takes minutes); the wrist camera, which it did not store, is left out."""
+    rng = np.random.default_rng(0)
+    path = tmp_path / "libero.zarr"
+    with EpisodeWriter(path, benchmark="libero_gen", stats_keys=("action", "proprio", "object_state")) as writer:
+        task = writer.add_task("train-000", {"problem": "(define)"}, instruction="put the bowl on the plate")
+        for seed in range(2):
+            steps = {
+                "action": rng.uniform(-1, 1, (12, 7)).astype(np.float32),
+                "proprio": rng.normal(size=(12, 39)).astype(np.float32),
+                "object_state": rng.normal(size=(12, 70)).astype(np.float32),
+                "sim_state": rng.normal(size=(12, 92)),
+                "agentview": rng.integers(0, 255, (12, 32, 32, 3), dtype=np.uint8),
+            }
+            writer.add_episode(steps, task, seed=seed)
+    store = EpisodeStore(path)
+    export_store(store, tmp_path / "out", cameras=["agentview"], progress=False)
+    lib = library.dataset_library()
+    with library.offline_and_quiet():
+        dataset = lib.LeRobotDataset("bpp/libero", root=tmp_path / "out", video_backend="pyav")
+    features = dataset.meta.features
+    assert dataset.fps == 20 and dataset.num_frames == 24 and dataset.meta.robot_type == "libero_gen"
+    assert list(dataset.meta.tasks.index) == ["put the bowl on the plate"]
+    assert features["observation.images.agentview"]["shape"] == (32, 32, 3)
+    assert features["observation.state"]["shape"] == (39 + 70,)  # the default observation's proprio, object_state
+    assert features["observation.sim_state"]["dtype"] == "float64"
+    assert "observation.eef" not in features  # derived from the proprioception, not stored
+    table = dataset.hf_dataset.with_format("arrow")[:]
+    state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float32)
+    np.testing.assert_array_equal(state, np.concatenate([store.array("proprio"), store.array("object_state")], 1))
