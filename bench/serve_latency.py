@@ -84,7 +84,7 @@ def in_process(size: str, obs: str, store, requests: int, threads: int) -> list[
     from bpp.policies.agent import PolicyAgent
 
     torch.set_num_threads(threads)
-    agent = PolicyAgent(_model(size, obs, store))
+    agent = PolicyAgent(_model(size, obs, store), record_attention=True)  # the arithmetic `bpp eval` and the server use
     agent.reset(task_context(store, 0, agent.data_spec, BENCHMARK.frames), seed=0)
     agent.act(_observation(store, agent.data_spec, 0, 0))
     times = []
@@ -138,13 +138,14 @@ def clients_run(url: str, store, spec, clients: int, requests: int) -> dict:
 
 
 def memory_per_client(url: str, pid: int, store, spec, clients: int) -> float:
+    """The server's resident memory growth per connection with a started episode, in KB."""
     from bpp.serve.client import PolicyClient
 
     before = _rss_mb(pid)
     conns = [PolicyClient(url) for _ in range(clients)]
     for i, c in enumerate(conns):
         c.infer({**_observation(store, spec, i % store.num_episodes, 0), "prompt": i % store.num_episodes})
-    per_client = (_rss_mb(pid) - before) / clients
+    per_client = 1024 * (_rss_mb(pid) - before) / clients
     for c in conns:
         c.close()
     return per_client
@@ -152,7 +153,9 @@ def memory_per_client(url: str, pid: int, store, spec, clients: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--settings", nargs="+", default=["cpu:canvas", "cpu:image64", "paper:paper"])
+    parser.add_argument(
+        "--settings", nargs="+", default=["debug:canvas", "cpu:canvas", "cpu:image64", "paper:canvas", "paper:paper"]
+    )
     parser.add_argument("--requests", type=int, default=40, help="requests per client and measurement")
     parser.add_argument("--concurrency", type=int, nargs="+", default=[1, 4, 16])
     parser.add_argument("--threads", type=int, default=2, help="torch threads of the model")
@@ -163,7 +166,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         store = generate(PRESETS["debug"], Path(tmp) / "prompts.zarr", workers=1, progress=False)
         print("| setting | in process p50 / p95 (ms) | socket p50 / p95 (ms) | request bytes |", end=" ")
-        print(" | ".join(f"{k} clients: req/s, p50 / p95 ms, batch" for k in args.concurrency), "| MB per client |")
+        print(" | ".join(f"{k} clients: req/s, p50 / p95 ms, batch" for k in args.concurrency), "| KB per client |")
         for setting in args.settings:
             size, obs = setting.split(":")
             requests = args.requests if size != "paper" else max(4, args.requests // 8)
@@ -191,7 +194,7 @@ def main() -> None:
             )
             print(
                 f"| bpp {size} / {obs} | {lp50:.1f} / {lp95:.1f} | {single['p50_ms']:.1f} / {single['p95_ms']:.1f} | "
-                f"{size_bytes:,} | {cells} | {mem:.1f} |",
+                f"{size_bytes:,} | {cells} | {mem:.0f} |",
                 flush=True,
             )
 
