@@ -125,9 +125,8 @@ class ModelWorker:
     """The one thread that touches the model (and renders prompts): calls run one at a time, inference requests
     waiting together run as one batch."""
 
-    def __init__(self, model, device: torch.device, limits: ServerLimits):
-        self.model, self.device, self.limits = model, device, limits
-        self.h = model.cfg.horizons
+    def __init__(self, model, limits: ServerLimits):
+        self.model, self.limits = model, limits
         self.jobs: queue.Queue[_Job | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, name="bpp-model", daemon=True)
         self.batches: list[int] = []
@@ -264,7 +263,7 @@ class PolicyServer:
         self.obs_keys = list(model.obs_keys())
         self.image_keys = set(self.spec.image_keys)
         self.widths = {k: model.normalizer.width(k) for k in self.obs_keys if k not in self.image_keys}
-        self.worker = ModelWorker(self.model, self.device, limits)
+        self.worker = ModelWorker(self.model, limits)
         self.clients = 0
         self.served = 0
 
