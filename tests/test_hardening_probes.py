@@ -145,6 +145,8 @@ def _damaged_store(damage: Callable[[Path], None], command: str) -> Callable[[In
         damage(store)
         if command == "eval":
             return _eval(i, "--tasks", str(store), *QUICK)
+        if command == "sheet":
+            return ["draw", "sheet", str(store), "--out", str(i.tmp / "sheet.png")]
         return _train(i, "--steps", "1", data=store)
 
     return argv
@@ -159,6 +161,24 @@ def _broken_header(store: Path) -> None:
     (store / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {')
 
 
+def _flip_a_bit(file: Path) -> None:
+    data = bytearray(file.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    file.write_bytes(bytes(data))
+
+
+def _header(store: Path, **changes) -> None:
+    """Sets entries of the store's zarr.json (an entry of attributes if its name is not zarr.json's own)."""
+    doc = json.loads((store / "zarr.json").read_text())
+    for key, value in changes.items():
+        (doc if key in doc else doc["attributes"])[key] = value
+    (store / "zarr.json").write_text(json.dumps(doc))
+
+
+def _merge(i: Inputs, *stores: Path, out: Path | None = None) -> list[str]:
+    return ["store", "merge", *map(str, stores), "--out", str(out or i.tmp / "merged.zarr")]
+
+
 def _damaged_run(damage: Callable[[Path], None], command: str = "eval") -> Callable[[Inputs], list[str]]:
     def argv(i: Inputs) -> list[str]:
         run = i.copy_run("damaged-run")
@@ -171,7 +191,8 @@ def _damaged_run(damage: Callable[[Path], None], command: str = "eval") -> Calla
 
 
 def _case(argv: Callable[[Inputs], list[str]], mention: str, name: str, leaves: str = ""):
-    """A refused command `argv`, whose message must contain `mention` ("{tmp}" stands for the case's folder).
+    """A refused command `argv`, whose message must contain `mention` ("{tmp}" stands for the case's folder, "{store}"
+    for the shared store).
     `leaves`: a folder the refusal is known to leave behind (with no checkpoint in it); "": it writes nothing."""
     return pytest.param(argv, mention, leaves, id=name)
 
@@ -363,8 +384,42 @@ DAMAGED = [
     ),
     _case(
         _damaged_store(lambda s: shutil.rmtree(s / "data" / "action"), "train"),
-        "damaged.zarr: the policy needs keys ['action']",
+        "damaged.zarr: damaged store (no data/action)",
         "train on a store without actions",
+    ),
+    # Every read is verified: a chunk that is missing or changed is refused naming the array and the chunk, where
+    # zarr alone reads zeros or decodes the changed bytes.
+    _case(
+        _damaged_store(lambda s: (s / "data" / "action" / "c" / "0" / "0").unlink(), "train"),
+        "damaged.zarr: damaged store, cannot read data/action: its chunk (0, 0) (data/action/c/0/0) is missing",
+        "train on a store with a deleted chunk",
+        leaves="new-run",
+    ),
+    _case(
+        _damaged_store(lambda s: _flip_a_bit(s / "data" / "state" / "c" / "0" / "0"), "eval"),
+        "damaged.zarr: damaged store, cannot read data/state: its chunk (0, 0) (data/state/c/0/0) fails its checksum",
+        "eval on a store with a flipped bit",
+    ),
+    _case(
+        _damaged_store(lambda s: (s / "tasks" / "strokes" / "c" / "0" / "0").unlink(), "sheet"),
+        "damaged.zarr: damaged store, cannot read tasks/strokes: its chunk (0, 0) (tasks/strokes/c/0/0) is missing",
+        "sheet of a store whose drawings' chunk was deleted",
+    ),
+    _case(
+        _damaged_store(lambda s: _header(s, stats={}), "train"),
+        "damaged.zarr: damaged store header (it does not match its digest)",
+        "train on a store whose statistics were changed",
+    ),
+    # Stores of another format or version, refused by it.
+    _case(
+        _damaged_store(lambda s: _header(s, version=1), "train"),
+        "damaged.zarr: store version 1, written by an older bpp; this bpp reads version 2",
+        "train on a store of version 1",
+    ),
+    _case(
+        _damaged_store(lambda s: _header(s, zarr_format=2), "eval"),
+        "damaged.zarr: not an episode store (zarr format 2",
+        "eval on a header of zarr format 2",
     ),
     # Damaged runs, refused naming the damaged file.
     _case(
@@ -399,14 +454,35 @@ DAMAGED = [
     ),
 ]
 
+MERGES = [
+    # Merges that would double demonstrations or change an input.
+    _case(lambda i: _merge(i, i.store, i.store), "debug.zarr is {store} given again", "merge a store with itself"),
+    _case(
+        lambda i: _merge(i, i.store, i.copy_store("copy.zarr")),
+        "episode 0 of {tmp}/copy.zarr is episode 0 of {store} again",
+        "merge a store with its copy",
+    ),
+    _case(
+        lambda i: _merge(i, i.copy_store("a.zarr"), i.store, out=i.tmp / "a.zarr" / "data" / "m.zarr"),
+        "the merge would be written inside its input {tmp}/a.zarr",
+        "merge into an input store",
+    ),
+    _case(
+        lambda i: _merge(i, i.copy_store("a.zarr"), i.store, out=i.tmp / "a.zarr") + ["--overwrite"],
+        "the merge would be written over its input {tmp}/a.zarr",
+        "merge over an input store",
+    ),
+]
 
-@pytest.mark.parametrize(("argv", "mention", "leaves"), [*FLAGS, *PATHS, *DRAWINGS, *DAMAGED])
+
+@pytest.mark.parametrize(("argv", "mention", "leaves"), [*FLAGS, *PATHS, *DRAWINGS, *DAMAGED, *MERGES])
 def test_bad_inputs_are_refused_in_one_line_naming_the_input_and_change_nothing(argv, mention, leaves, inputs, capsys):
     inputs.tmp.mkdir()
     command = argv(inputs)
     before = snapshot(inputs.tmp)
     message = refused(command, capsys)
-    assert mention.format(tmp=inputs.tmp) in " ".join(message.replace("│", " ").split()), message
+    mention = mention.format(tmp=inputs.tmp, store=inputs.store)
+    assert mention in " ".join(message.replace("│", " ").split()), message
     after = snapshot(inputs.tmp)
     assert {p: after.get(p) for p in before} == before  # every file given is as it was
     written = sorted(set(after) - set(before))

@@ -122,8 +122,35 @@ def test_an_imported_dataset_has_its_tasks_keys_cameras_and_held_out_episodes(so
             assert np.abs(steps["camera0"].astype(int) - front).mean() < 6  # a lossy video, decoded
             assert np.abs(steps["camera0"][-1].astype(int) - front[0]).mean() > 10  # ... of the right step
     assert BENCHMARK.frames(train, 1, "camera0", 32, steps=[0, 5]).shape == (2, 32, 32, 3)
+    from PIL import Image
+
+    padded = library.fit_image(Image.fromarray(source.front[0][0]), 16, "pad")  # 24x32 -> 12x16, black above and below
+    assert padded[:2].max() == padded[-2:].max() == 0 and padded[2:14].min() > 0
     with pytest.raises(ValueError, match="has the cameras camera0, camera1; got 'image'"):
         BENCHMARK.frames(train, 0, "image", 16)
+
+
+def test_some_episodes_and_features_import_alone(source, tmp_path, capsys):
+    out = tmp_path / "part.zarr"
+    main(
+        [
+            "lerobot",
+            "import",
+            str(source.root),
+            "--out",
+            str(out),
+            "--episodes",
+            "7,3",
+            "--skip",
+            "wrist",
+            "--fit",
+            "pad",
+        ]
+    )
+    part = EpisodeStore(out)
+    assert list(part.column("lerobot_episode")) == [3, 7] and sorted(part.keys) == ["action", "camera0", "state"]
+    np.testing.assert_array_equal(part.episode(1)["state"], source.state[7])
+    assert part["camera0"].shape[1:] == (96, 96, 3) and part["camera0"][:, :12].max() == 0  # padded above
 
 
 def _copy(source, tmp_path: Path) -> Path:
@@ -159,6 +186,8 @@ def test_datasets_bpp_cannot_read_are_refused_with_what_is_wrong(source, tmp_pat
 
 def test_an_imported_store_exports_under_its_original_feature_names(imported, tmp_path, capsys):
     train, _ = imported
+    with pytest.raises(SystemExit, match="--image-size 16: LeRobot's default video encoder .* at least 32 px"):
+        main(["lerobot", "export", str(train.path), "--out", str(tmp_path / "again")])  # its frames are 16 px
     main(["lerobot", "export", str(train.path), "--out", str(tmp_path / "again"), "--no-video"])
     info = json.loads((tmp_path / "again" / "meta" / "info.json").read_text())
     assert info["codebase_version"] == "v3.0" and info["fps"] == FPS and info["robot_type"] == "arm"

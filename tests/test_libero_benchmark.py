@@ -178,6 +178,19 @@ def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypat
         dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
 
 
+def test_a_second_generation_into_the_same_store_is_refused_before_it_touches_the_journal(tmp_path):
+    from bpp.data.store import destination_lock
+
+    cfg = dataset.LiberoDataConfig(task_indices=(0,), demos_per_task=1)
+    journal = tmp_path / ".s.zarr.journal"
+    journal.mkdir()
+    (journal / "config.json").write_text("{}")  # another configuration's journal: discarded if the lock were not held
+    with destination_lock(journal), pytest.raises(StoreError, match="being written by another writer"):
+        dataset.generate(cfg, tmp_path / "s.zarr", workers=1, progress=False)
+    assert (journal / "config.json").read_text() == "{}"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".s.zarr.journal"]  # and the lock released
+
+
 @pytest.mark.parametrize(
     ("method", "obs"),
     [

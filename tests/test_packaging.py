@@ -14,6 +14,8 @@ EXTRA_MODULES = {
     "libero": ["libero", "robosuite", "mujoco", "h5py"],
     "dev": ["pytest", "playwright", "ruff"],
     "docs": ["mkdocs", "material"],
+    "serve": ["websockets", "msgpack"],
+    "lerobot": ["ledataset", "lerobot", "av", "datasets", "torchvision"],
 }
 
 
@@ -53,6 +55,8 @@ def test_the_core_commands_load_without_any_extra(tmp_path):
     [
         (["studio", "--no-browser", "--runs", "runs"], "studio"),
         (["libero", "tasks", "--out", "tasks"], "libero"),
+        (["serve", "runs/none"], "serve"),
+        (["lerobot", "import", ".", "--out", "x.zarr"], "lerobot"),
     ],
 )
 def test_a_command_needing_a_missing_extra_says_which_in_one_line(tmp_path, argv, extra):

@@ -3,8 +3,8 @@
 Layout (a zarr v3 directory)::
 
     <name>.zarr/
-      zarr.json          attributes: format, version, complete, benchmark, config, tasks, stats, created;
-                         tasks is the task table: one {"id", "instruction", "info"} per task
+      zarr.json          attributes: format, version, complete, benchmark, config, tasks, stats, created, arrays,
+                         digest; tasks is the task table: one {"id", "instruction", "info"} per task
       data/<key>         (N, ...) per-step arrays, episodes concatenated in time, chunked and zstd-compressed
       meta/episode_ends  (E,) int64, exclusive end step of each episode
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
@@ -16,19 +16,33 @@ the registry from its own benchmark name, so every process that opens it sees th
 
 Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
 and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
-as complete. Reading is safe from many data-loader processes: the store is read-only once written, and each
-process opens its own handles lazily (a pickled store carries only its path).
+as complete. A writer owns its destination from start to finish: it holds a lock on the hidden ``.<name>.lock``
+sibling, so a second writer of the same path is refused when it starts, and the rename into place never replaces a
+store that another writer put there meanwhile unless the writer was asked to overwrite. Reading is safe from many
+data-loader processes: the store is read-only once written, and each process opens its own handles lazily (a pickled
+store carries only its path).
+
+Every read is verified (version 2). Each chunk of every array ends with a crc32c checksum of its compressed bytes
+(zarr's ``crc32c`` codec, after zstd), and every chunk is written, even one that holds only zeros; the reader refuses a
+chunk that is missing or fails its checksum, naming the array and the chunk, where zarr alone would read the array's
+fill value or decode changed bytes. The header records the SHA-256 of each array's metadata (``arrays``) and of
+itself (``digest``), checked when the store is opened, so that changed statistics, tasks, shapes or a deleted array
+are refused too.
 """
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import errno
+import functools
 import hashlib
 import json
 import os
+import re
 import shutil
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -38,8 +52,21 @@ from bpp.benchmarks.registry import derived_keys
 from bpp.errors import UserError
 from bpp.utils import read_json, to_dict
 
+try:
+    import fcntl
+except ImportError:  # not POSIX: writers are kept apart by the check at the rename alone
+    fcntl = None
+
 FORMAT = "bpp-episodes"
-VERSION = 1
+VERSION = 2
+"""1: the first format. 2: every chunk carries a crc32c checksum and is written even if it holds only zeros; the
+header records digests of itself and of each array's metadata."""
+ZARR_FORMAT = 3
+
+_CHUNK_KEY = re.compile(r"(?P<array>.+)/c(?P<index>(?:/\d+)*)")
+"""A chunk's key in zarr v3's default chunk key encoding: ``data/action/c/3/0`` is chunk (3, 0) of data/action."""
+_ARRAY_NAME = re.compile(r"(?:data|meta|tasks)(?:/(?!\.\.?(?:/|$))[^/\\]+)+")
+"""The name of an array a store may record: under data/, meta/ or tasks/, with no empty, ``.`` or ``..`` part."""
 
 
 class StoreError(UserError):
@@ -163,8 +190,212 @@ class _RunningStats:
         return {"min": self.min.tolist(), "max": self.max.tolist(), "mean": mean.tolist(), "std": std.tolist()}
 
 
+# ------------------------------------------------------------------ integrity
+@functools.cache
+def _crc32c():
+    """The crc32c function of the package zarr's own ``crc32c`` codec uses (google-crc32c since zarr 3.1, crc32c
+    before)."""
+    try:
+        from google_crc32c import value
+    except ModuleNotFoundError:
+        from crc32c import crc32c as value
+    return value
+
+
+def _checksum_matches(data: np.ndarray) -> bool:
+    """Whether a chunk's stored bytes (uint8) end with the crc32c of the bytes before, as zarr's crc32c codec writes
+    it (4 bytes, little-endian)."""
+    return len(data) >= 4 and _crc32c()(data[:-4]) == int.from_bytes(data[-4:].tobytes(), "little")
+
+
+def _checked_chunk(root, key: str, value, whole: bool):
+    """`value`, what the store at `root` holds under `key` (zarr's Buffer, or None), if `key` is not a chunk's or the
+    chunk is there and, if `whole`, matches its checksum; else a StoreError naming the store, the array and the
+    chunk."""
+    chunk = _CHUNK_KEY.fullmatch(key)
+    if chunk is None:  # metadata, or a key zarr probes for
+        return value
+    if value is None:
+        problem = "is missing"
+    elif whole and not _checksum_matches(value.as_numpy_array()):
+        problem = "fails its checksum"
+    else:
+        return value
+    index = tuple(int(i) for i in chunk["index"].split("/")[1:])
+    raise StoreError(
+        f"{root}: damaged store, cannot read {chunk['array']}: its chunk {index} ({key}) {problem}; generate it again"
+    )
+
+
+@functools.cache
+def _checked_store_class() -> type:
+    """A read-only zarr LocalStore that refuses a chunk that is missing or fails its crc32c checksum with a StoreError
+    naming the store, the array and the chunk: every read of an array goes through it, whoever reads."""
+    from zarr.storage import LocalStore
+
+    class CheckedStore(LocalStore):
+        async def get(self, key, prototype=None, byte_range=None):
+            value = await super().get(key, prototype, byte_range)
+            return _checked_chunk(self.root, key, value, byte_range is None)
+
+        def get_sync(self, key, *, prototype=None, byte_range=None):  # zarr >= 3.1's synchronous reads
+            value = super().get_sync(key, prototype=prototype, byte_range=byte_range)
+            return _checked_chunk(self.root, key, value, byte_range is None)
+
+    return CheckedStore
+
+
+def _array_settings() -> dict:
+    """How every array of a store is written: zstd, then a crc32c checksum of the compressed bytes, on each chunk;
+    and every chunk written, even one that holds only zeros (zarr skips those by default and reads the fill value in
+    their place), so that a missing chunk is damage, never data."""
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    return {"compressors": (ZstdCodec(level=5), Crc32cCodec()), "config": {"write_empty_chunks": True}}
+
+
+def _header_digest(attrs: dict) -> str:
+    """SHA-256 of a store's header attributes other than the digest itself, as parsed from its zarr.json."""
+    content = {k: v for k, v in attrs.items() if k != "digest"}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
+
+
+def _metadata_digest(path: Path, name: str) -> str | None:
+    """SHA-256 of the metadata file of array `name` of the store at `path` (None if there is none)."""
+    try:
+        return hashlib.sha256((path / name / "zarr.json").read_bytes()).hexdigest()
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+
+
+def read_header(path: str | Path) -> dict:
+    """The header attributes of the episode store at `path`, checked: a zarr v3 group, of this format and version,
+    complete, with the header and every array's metadata matching their digests. Reads only metadata files; a
+    StoreError says what is wrong, by the format marker and version first."""
+    path = Path(path)
+    if not path.exists():
+        raise StoreError(f"{path}: no such store")
+    if not (path / "zarr.json").is_file():
+        if (path / ".zgroup").is_file() or (path / ".zarray").is_file():
+            raise StoreError(f"{path}: a zarr format 2 folder, not an episode store (zarr format {ZARR_FORMAT})")
+        raise StoreError(f"{path}: not an episode store (no zarr.json)")
+    try:
+        doc = read_json(path / "zarr.json", "store header")
+    except UserError as err:
+        raise StoreError(f"{path}: damaged store header ({err}); generate it again") from None
+    if not isinstance(doc, dict):
+        raise StoreError(f"{path}: damaged store header (not a zarr metadata document); generate it again")
+    if doc.get("zarr_format") != ZARR_FORMAT or doc.get("node_type") != "group":
+        what = f"zarr format {doc.get('zarr_format')!r}" + (
+            f", a zarr {doc.get('node_type')}" if doc.get("node_type") != "group" else ""
+        )
+        raise StoreError(
+            f"{path}: not an episode store ({what}; an episode store is a zarr format {ZARR_FORMAT} group)"
+        )
+    attrs = doc.get("attributes", {})
+    if not isinstance(attrs, dict):
+        raise StoreError(f"{path}: damaged store header (its attributes are not a mapping); generate it again")
+    if attrs.get("format") != FORMAT:
+        raise StoreError(f"{path}: not an episode store (format {attrs.get('format')!r}, expected {FORMAT!r})")
+    version = attrs.get("version")
+    if version != VERSION:
+        if isinstance(version, int) and not isinstance(version, bool) and 0 < version < VERSION:
+            raise StoreError(
+                f"{path}: store version {version}, written by an older bpp; this bpp reads version {VERSION} "
+                "(checksummed chunks): generate it again"
+            )
+        raise StoreError(f"{path}: store version {version!r}, this bpp reads version {VERSION}")
+    if not attrs.get("complete"):
+        raise StoreError(f"{path}: incomplete store (its generation was interrupted); generate it again")
+    if attrs.get("digest") != _header_digest(attrs):
+        raise StoreError(f"{path}: damaged store header (it does not match its digest); generate it again")
+    arrays = attrs.get("arrays")
+    if not isinstance(arrays, dict) or not all(isinstance(n, str) and _ARRAY_NAME.fullmatch(n) for n in arrays):
+        raise StoreError(f"{path}: damaged store header (no valid table of arrays); generate it again")
+    for name, digest in arrays.items():
+        found = _metadata_digest(path, name)
+        if found is None:
+            raise StoreError(f"{path}: damaged store (no {name}); generate it again")
+        if found != digest:
+            raise StoreError(
+                f"{path}: damaged store, the metadata of {name} ({name}/zarr.json) does not match its digest; "
+                "generate it again"
+            )
+    return attrs
+
+
+def _enclosing_store(path: Path) -> Path | None:
+    """The episode store (complete or not) that `path` would lie inside, if any."""
+    return next((parent for parent in path.resolve().parents if _is_store(parent)), None)
+
+
+class _DestinationLock:
+    """A writer's exclusive hold on a store path: an advisory lock (flock) on the hidden sibling ``.<name>.lock``,
+    which holds the writer's process id. The kernel drops it when that process ends, however it ends; the file is
+    removed on release."""
+
+    def __init__(self, path: Path):
+        self.file = path.parent / f".{path.name}.lock"
+        self.handle = None
+        if fcntl is None:
+            return
+        while True:
+            try:
+                handle = open(self.file, "a+")  # noqa: SIM115 - held open until release
+            except OSError as err:
+                raise StoreError(f"{path}: cannot write there ({err.strerror}: {self.file})") from None
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as err:
+                handle.seek(0)
+                holder = handle.read().strip()[:100]
+                handle.close()
+                if err.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
+                    raise StoreError(
+                        f"{path} is being written by another writer ({holder or 'another process'}); wait for it to "
+                        "finish, or choose another path"
+                    ) from None
+                return  # a file system without locks: the check at the rename remains
+            try:  # the file may have been removed by a writer that finished meanwhile: then lock the new one
+                same = os.stat(self.file).st_ino == os.fstat(handle.fileno()).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            handle.close()
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"process {os.getpid()}")
+        handle.flush()
+        self.handle = handle
+
+    def release(self) -> None:
+        if self.handle is not None:
+            with contextlib.suppress(FileNotFoundError):
+                self.file.unlink()  # while still locked, so that no other writer holds a lock on a removed file
+            self.handle.close()
+            self.handle = None
+
+
+@contextlib.contextmanager
+def destination_lock(path: str | Path) -> Iterator[None]:
+    """Hold, for the block, the lock a writer of `path` holds (a StoreError at once if another writer holds it): for
+    work that fills `path` over longer than one writer lives, e.g. a journal of finished tasks that a killed
+    generation resumes from."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lock = _DestinationLock(path)
+    try:
+        yield
+    finally:
+        lock.release()
+
+
 class EpisodeWriter:
     """Builds a store episode by episode; use as a context manager (or call :meth:`close`).
+
+    The writer owns `path` from construction to :meth:`close` or :meth:`abort`: a second writer of the same path is
+    refused while it runs, and without `overwrite` a store that appears at `path` meanwhile is never replaced.
 
     Args:
         path: the final store path (conventionally ``*.zarr``).
@@ -188,17 +419,24 @@ class EpisodeWriter:
         import zarr
 
         self.path = Path(path)
-        if self.path.exists() and not overwrite:
-            raise StoreError(f"{self.path} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
-        if self.path.exists() and not _is_store(self.path):
+        self._closed = False
+        self._lock = None
+        enclosing = _enclosing_store(self.path)
+        if enclosing is not None:
             raise StoreError(
-                f"{self.path} exists and is not an episode store; only a store is ever replaced (delete it yourself "
-                "if you mean to)"
+                f"{self.path} is inside the episode store {enclosing}, which would change it; choose a path outside it"
             )
+        self._check_destination(overwrite)  # before anything is written, so that a refusal changes nothing
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        remove_stale_partials(self.path)
-        self.tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
-        self.root = zarr.open_group(str(self.tmp), mode="w")
+        self._lock = _DestinationLock(self.path)
+        try:
+            self._check_destination(overwrite)  # again, now that no other writer can change it
+            remove_stale_partials(self.path)
+            self.tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+            self.root = zarr.open_group(str(self.tmp), mode="w")
+        except BaseException:
+            self._lock.release()
+            raise
         self.root.attrs.update(
             {
                 "format": FORMAT,
@@ -211,6 +449,7 @@ class EpisodeWriter:
         self.overwrite = overwrite
         self.chunk_steps = chunk_steps
         self.stats_keys = None if stats_keys is None else set(stats_keys)
+        self._arrays: dict[str, Any] = {}  # name -> the zarr array written through (it writes every chunk)
         self._buffer: dict[str, list[np.ndarray]] = {}
         self._buffered = 0
         self._step_spec: dict[str, tuple[tuple[int, ...], np.dtype]] | None = None
@@ -219,7 +458,15 @@ class EpisodeWriter:
         self._columns: dict[str, list] = {}
         self._tasks: list[dict] = []
         self._task_ragged: dict[str, list[np.ndarray]] = {}
-        self._closed = False
+
+    def _check_destination(self, overwrite: bool) -> None:
+        if os.path.lexists(self.path) and not overwrite:
+            raise StoreError(f"{self.path} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+        if self.path.exists() and not _is_store(self.path):
+            raise StoreError(
+                f"{self.path} exists and is not an episode store; only a store is ever replaced (delete it yourself "
+                "if you mean to)"
+            )
 
     # ------------------------------------------------------------------ tasks
     def add_task(self, task_id: str, info: dict | None = None, *, instruction: str = "", **ragged: np.ndarray) -> int:
@@ -270,61 +517,96 @@ class EpisodeWriter:
         for key, parts in self._buffer.items():
             data = np.concatenate(parts)
             name = f"data/{key}"
-            if name not in self.root:
+            if name not in self._arrays:
                 self._create(name, data, self.chunk_steps)
-            self.root[name].append(data)
+            self._arrays[name].append(data)
         self._buffer = {}
         self._buffered = 0
 
     def _create(self, name: str, example: np.ndarray, chunk_len: int):
-        from zarr.codecs import ZstdCodec
-
         item_bytes = max(int(np.prod(example.shape[1:])) * example.dtype.itemsize, 1)
         rows = int(max(1, min(chunk_len, (8 << 20) // item_bytes)))  # chunks of at most ~8 MB
-        return self.root.create_array(
-            name,
-            shape=(0, *example.shape[1:]),
-            chunks=(rows, *example.shape[1:]),
-            dtype=example.dtype,
-            compressors=ZstdCodec(level=5),
+        shape, chunks = (0, *example.shape[1:]), (rows, *example.shape[1:])
+        self._arrays[name] = self.root.create_array(
+            name, shape=shape, chunks=chunks, dtype=example.dtype, **_array_settings()
         )
+
+    def _table(self, name: str, data: np.ndarray) -> None:
+        """Array `name` holding `data` (an episode table column, a per-task array), chunked as zarr chooses."""
+        self._arrays[name] = self.root.create_array(name, data=data, **_array_settings())
 
     # --------------------------------------------------------------- finishing
     def close(self) -> EpisodeStore:
-        """Write tables and statistics, mark complete, and move the store into place."""
+        """Write tables and statistics, mark complete, and move the store into place. On any failure the store is
+        discarded, as by :meth:`abort`."""
         if self._closed:
             raise StoreError("writer already closed")
-        if not self._ends:
-            raise StoreError(f"{self.path}: no episodes were added; refusing to write an empty store")
-        self._flush()
-        self.root.create_array("meta/episode_ends", data=np.asarray(self._ends, dtype=np.int64))
-        for key, values in self._columns.items():
-            self.root.create_array(f"meta/{key}", data=np.asarray(values))
-        for key, parts in self._task_ragged.items():
-            self.root.create_array(f"tasks/{key}", data=np.concatenate(parts))
-            self.root.create_array(f"tasks/{key}__ends", data=np.cumsum([len(p) for p in parts]).astype(np.int64))
-        self.root.attrs.update(
-            {
-                "tasks": self._tasks,
-                "stats": {k: s.result() for k, s in self._stats.items()},
-                "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-                "complete": True,
-            }
-        )
+        try:
+            if not self._ends:
+                raise StoreError(f"{self.path}: no episodes were added; refusing to write an empty store")
+            self._flush()
+            self._table("meta/episode_ends", np.asarray(self._ends, dtype=np.int64))
+            for key, values in self._columns.items():
+                self._table(f"meta/{key}", np.asarray(values))
+            for key, parts in self._task_ragged.items():
+                self._table(f"tasks/{key}", np.concatenate(parts))
+                self._table(f"tasks/{key}__ends", np.cumsum([len(p) for p in parts]).astype(np.int64))
+            self.root.attrs.update(
+                {
+                    "tasks": self._tasks,
+                    "stats": {k: s.result() for k, s in self._stats.items()},
+                    "created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                    "arrays": {name: _metadata_digest(self.tmp, name) for name in sorted(self._arrays)},
+                    "complete": True,
+                }
+            )
+            # The digest of the header as it is on disk, as a reader parses it.
+            attrs = read_json(self.tmp / "zarr.json", "store header")["attributes"]
+            self.root.attrs["digest"] = _header_digest(attrs)
+            self._install()
+        except BaseException:
+            self.abort()
+            raise
+        self._closed = True
+        self._lock.release()
+        return EpisodeStore(self.path)
+
+    def _install(self) -> None:
+        """Rename the finished store into place: replacing an existing store only if asked to overwrite, and never a
+        store that another writer (one that did not take the lock: another machine, another program) put there
+        since this one started, unless asked to overwrite."""
+        if os.path.lexists(self.path) and not self.overwrite:
+            raise StoreError(
+                f"{self.path} appeared while this store was being written (another writer?); it was left as it is "
+                "and this store discarded: choose another path, or pass overwrite=True (CLI: --overwrite)"
+            )
         old = None
-        if self.path.exists():
+        if os.path.lexists(self.path):
+            if not _is_store(self.path):
+                raise StoreError(f"{self.path} is no longer an episode store; only a store is ever replaced")
             old = self.path.parent / f".{self.path.name}.old-{uuid.uuid4().hex[:8]}"
             os.replace(self.path, old)
-        os.replace(self.tmp, self.path)
+        try:
+            os.rename(self.tmp, self.path)  # refused by the OS if a non-empty folder or a file is there
+        except OSError as err:
+            if old is not None:
+                with contextlib.suppress(OSError):
+                    os.rename(old, self.path)
+            if os.path.lexists(self.path):
+                raise StoreError(
+                    f"{self.path} appeared while this store was being written (another writer?); it was left as it "
+                    "is and this store discarded"
+                ) from None
+            raise StoreError(f"{self.path}: cannot move the finished store into place ({err})") from None
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
-        self._closed = True
-        return EpisodeStore(self.path)
 
     def abort(self) -> None:
         """Discard everything written so far."""
         self._closed = True
         shutil.rmtree(self.tmp, ignore_errors=True)
+        if self._lock is not None:
+            self._lock.release()
 
     def __enter__(self) -> EpisodeWriter:
         return self
@@ -340,26 +622,14 @@ class EpisodeStore:
     """Read access to a complete store. Cheap to construct and to pickle; arrays are read lazily.
 
     ``store["action"]`` is the lazy zarr array of a per-step key; :meth:`array` loads (and caches) it in memory.
+    Opening checks the header and each array's metadata against their digests (:func:`read_header`); every chunk,
+    however it is read (:meth:`array`, :meth:`episode`, the lazy arrays), is checked to be there and to match its
+    checksum, or refused with a StoreError naming it.
     """
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        if not self.path.exists():
-            raise StoreError(f"{self.path}: no such store")
-        if not (self.path / "zarr.json").is_file():
-            raise StoreError(f"{self.path}: not an episode store (no zarr.json)")
-        try:
-            attrs = dict(self._root().attrs)
-        except Exception as err:  # noqa: BLE001 - zarr raises JSON, KeyError and its own errors for a bad header
-            raise StoreError(
-                f"{self.path}: damaged store header ({type(err).__name__}: {err}); generate it again"
-            ) from None
-        if attrs.get("format") != FORMAT:
-            raise StoreError(f"{self.path}: format {attrs.get('format')!r}, expected {FORMAT!r}")
-        if attrs.get("version") != VERSION:
-            raise StoreError(f"{self.path}: store version {attrs.get('version')}, this bpp reads version {VERSION}")
-        if not attrs.get("complete"):
-            raise StoreError(f"{self.path}: incomplete store (its generation was interrupted); generate it again")
+        attrs = read_header(self.path)
         self.attrs = attrs
         try:
             self.benchmark: str = attrs["benchmark"]
@@ -368,6 +638,7 @@ class EpisodeStore:
             self._stored_stats: dict[str, dict[str, list[float]]] = attrs["stats"]
         except KeyError as err:
             raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
+        self._arrays: frozenset[str] = frozenset(attrs["arrays"])
         self._cache: dict[str, np.ndarray] = {}
         self._derived: dict[str, tuple[str, tuple[int, ...]]] | None = None
         try:
@@ -375,23 +646,25 @@ class EpisodeStore:
         except KeyError:
             raise StoreError(f"{self.path}: damaged store (no meta/episode_ends); generate it again") from None
         self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
-        try:
-            self._stored_keys: list[str] = sorted(self._root()["data"].array_keys())
-        except Exception as err:  # noqa: BLE001
-            raise StoreError(
-                f"{self.path}: damaged store, cannot list its data ({type(err).__name__}: {err})"
-            ) from None
+        self._stored_keys: list[str] = self._names("data")
         if len(self.episode_ends) == 0 or np.any(np.diff(self.episode_ends) <= 0) or self.episode_ends[0] <= 0:
             raise StoreError(f"{self.path}: damaged store (meta/episode_ends is not increasing); generate it again")
 
+    def _names(self, group: str) -> list[str]:
+        """The arrays of `group` (data, meta or tasks) the header records, by their names inside it, sorted."""
+        return sorted(name[len(group) + 1 :] for name in self._arrays if name.startswith(f"{group}/"))
+
     def _read(self, name: str, selection: slice = slice(None)) -> np.ndarray:
         """Array `name` of the store (or a slice of its first axis), with a StoreError naming the store and the
-        array if a chunk is missing or corrupt (zarr and the zstd codec raise their own errors)."""
+        array if a chunk is missing or corrupt (and the chunk: see :func:`_checked_store_class`). A KeyError if the
+        header records no such array."""
+        if name not in self._arrays:
+            raise KeyError(name)
         try:
             return np.asarray(self._root()[name][selection])
-        except KeyError:
+        except StoreError:
             raise
-        except Exception as err:  # noqa: BLE001
+        except Exception as err:  # noqa: BLE001 - zarr and its codecs raise their own errors
             raise StoreError(
                 f"{self.path}: damaged store, cannot read {name} ({type(err).__name__}: {err}); generate it again"
             ) from None
@@ -402,9 +675,26 @@ class EpisodeStore:
         if handle is None or handle[0] != os.getpid():
             import zarr
 
-            handle = (os.getpid(), zarr.open_group(str(self.path), mode="r"))
+            store = _checked_store_class()(str(self.path), read_only=True)
+            handle = (os.getpid(), zarr.open_group(store=store, mode="r"))
             self._handle = handle
         return handle[1]
+
+    def verify(self) -> int:
+        """Read every chunk of every array, each checked as every read checks it (present, matching its checksum);
+        returns the number of chunks read. A StoreError names the first damaged one. Reads about 64 MB at a time."""
+        chunks = 0
+        for name in sorted(self._arrays):
+            array = self._root()[name]
+            if array.ndim == 0:
+                self._read(name, ())
+            else:
+                row_bytes = max(int(np.prod(array.shape[1:])) * array.dtype.itemsize, 1)
+                rows = array.chunks[0] * max(1, (64 << 20) // (array.chunks[0] * row_bytes))
+                for start in range(0, array.shape[0], rows):
+                    self._read(name, slice(start, start + rows))
+            chunks += array.nchunks
+        return chunks
 
     def __getstate__(self):
         state = self.__dict__.copy()
@@ -506,8 +796,7 @@ class EpisodeStore:
     @property
     def task_keys(self) -> list[str]:
         """The ragged per-task arrays' keys (e.g. a drawing's strokes)."""
-        root = self._root()
-        return sorted(k for k in root["tasks"].array_keys() if not k.endswith("__ends")) if "tasks" in root else []
+        return [k for k in self._names("tasks") if not k.endswith("__ends")]
 
     def task_array(self, key: str, task_index: int) -> np.ndarray:
         """The ragged per-task array `key` of one task."""
@@ -517,10 +806,11 @@ class EpisodeStore:
 
     def fingerprint(self) -> str:
         """SHA-256 of the store's content: every file's relative path and bytes, except that the header's creation
-        time is left out (so a store generated again from the same input has the same fingerprint). Cached."""
+        time (and its digest, which covers it) is left out (so a store generated again from the same input has the
+        same fingerprint). Cached."""
         if "_fingerprint" not in self.__dict__:
             digest = hashlib.sha256()
-            header = {k: v for k, v in self.attrs.items() if k != "created"}
+            header = {k: v for k, v in self.attrs.items() if k not in ("created", "digest")}
             digest.update(json.dumps(header, sort_keys=True).encode())
             for file in sorted(p for p in self.path.rglob("*") if p.is_file() and p != self.path / "zarr.json"):
                 digest.update(str(file.relative_to(self.path)).encode() + b"\0")
@@ -549,15 +839,51 @@ def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
     return store if same else None
 
 
+def _refuse_overlaps(stores: list[EpisodeStore], out: Path) -> None:
+    """Refuse a merge whose inputs include one store twice (by any path to it), or whose output is an input, lies
+    inside one or holds one: the first would double every demonstration, the others change an input."""
+    for i, store in enumerate(stores):
+        for other in stores[:i]:
+            if os.path.samefile(store.path, other.path):
+                raise StoreError(
+                    f"{store.path} is {other.path} given again: a store merged with itself holds each of its "
+                    "demonstrations twice"
+                )
+    target = out.resolve()
+    for store in stores:
+        source = store.path.resolve()
+        if target == source:
+            raise StoreError(f"{out}: the merge would be written over its input {store.path}; choose a new path")
+        if source in target.parents:
+            raise StoreError(f"{out}: the merge would be written inside its input {store.path}; choose a path outside")
+        if target in source.parents:
+            raise StoreError(f"{out}: the merge would replace a folder holding its input {store.path}")
+
+
+def _episode_digest(steps: dict[str, np.ndarray]) -> bytes:
+    """SHA-256 of an episode's per-step arrays (keys, dtypes, shapes and bytes)."""
+    digest = hashlib.sha256()
+    for key in sorted(steps):
+        value = np.ascontiguousarray(steps[key])
+        digest.update(f"{key}\0{value.dtype.str}\0{value.shape}\0".encode())
+        digest.update(value.tobytes())
+    return digest.digest()
+
+
 def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool = False) -> EpisodeStore:
     """One store of every episode of the stores at `paths` (of one benchmark, with the same per-step keys), written
     atomically to `out`: e.g. pieces generated on several machines, or demonstrations of a few tasks added later.
     A task in several stores (the same id) becomes one task with all their episodes; its instruction, info and
     per-task arrays must agree. The merged header keeps the first store's generation config and lists every
-    source (path, fingerprint, config) under ``merged_from``; the statistics are those of the merged episodes."""
+    source (path, fingerprint, config) under ``merged_from``; the statistics are those of the merged episodes.
+
+    Refused: a store given twice, an episode that two of the stores hold (a store merged with a copy of itself, or
+    with a merge that includes it: its demonstrations would count twice), and an output that is an input, lies
+    inside one or holds one."""
     stores = [EpisodeStore(p) for p in paths]
     if len(stores) < 2:
         raise StoreError("merging needs at least two stores")
+    _refuse_overlaps(stores, Path(out))
     first = stores[0]
     task_keys = first.task_keys
     for s in stores[1:]:
@@ -572,8 +898,9 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
             raise StoreError(f"{s.path} has per-task arrays {s.task_keys}, {first.path} {task_keys}")
     with EpisodeWriter(out, benchmark=first.benchmark, config=first.config, overwrite=overwrite) as writer:
         merged: dict[str, tuple[int, dict, dict]] = {}  # task id -> (merged index, task entry, per-task arrays)
-        for s in stores:
-            columns = [k for k in s._root()["meta"].array_keys() if k not in ("episode_ends", "task_index")]
+        seen: dict[bytes, tuple[int, int]] = {}  # episode digest -> (store, episode) that first held it
+        for n, s in enumerate(stores):
+            columns = [k for k in s._names("meta") if k not in ("episode_ends", "task_index")]
             remap = []
             for t, task in enumerate(s.tasks):
                 arrays = {k: s.task_array(k, t) for k in task_keys}  # the same in every store (checked above)
@@ -586,8 +913,15 @@ def merge_stores(paths: Iterable[str | Path], out: str | Path, overwrite: bool =
                 remap.append(index)
             task_index = s.column("task_index")
             for e in range(s.num_episodes):
+                steps = s.episode(e, s._stored_keys)
+                m, f = seen.setdefault(_episode_digest(steps), (n, e))
+                if m != n:
+                    raise StoreError(
+                        f"episode {e} of {s.path} is episode {f} of {stores[m].path} again: merged, it would count "
+                        "twice (is one store a copy of the other, or a merge that includes it?)"
+                    )
                 extra = {k: s.column(k)[e] for k in columns}  # a scalar, or an array (a goal image)
-                writer.add_episode(s.episode(e, s._stored_keys), remap[int(task_index[e])], **extra)
+                writer.add_episode(steps, remap[int(task_index[e])], **extra)
         writer.root.attrs["merged_from"] = [
             {"path": str(s.path), "fingerprint": s.fingerprint(), "config": s.config} for s in stores
         ]

@@ -23,8 +23,8 @@ class Serve:
     unchanged); clients pick behavior prompts from a prompt library by id, or upload their own.
 
     Examples:
-      bpp serve runs/bpp_cpu --prompts human                        (DrawAnything's human set; loopback only)
-      BPP_SERVE_TOKEN=secret bpp serve runs/libero --prompts data/libero_gen/heldout.zarr --host 0.0.0.0
+      bpp serve runs/bpp_cpu --prompts human                 (a named task set of the run's benchmark; loopback)
+      BPP_SERVE_TOKEN=secret bpp serve runs/bpp --prompts data/heldout.zarr --host 0.0.0.0
     """
 
     run: tyro.conf.Positional[Path]

@@ -67,13 +67,13 @@ class LeRobotExport:
     """The dataset folder to write."""
     cameras: tuple[str, ...] | None = None
     """Cameras to draw (default: an imported store's own; else every camera of the benchmark's observation presets,
-    e.g. image for DrawAnything, agentview and eye_in_hand for LIBERO-Gen)."""
+    e.g. image for DrawAnything, agentview and eye_in_hand for LIBERO-Gen; --cameras alone: none)."""
     image_size: int = 0
     """Camera frame size in px (0: the size of the frames the store holds, else 128)."""
     video: bool = True
     """Cameras as videos (LeRobot's default); --no-video stores them as PNG images in the parquet files, lossless."""
     vcodec: str = "libsvtav1"
-    """The video codec: libsvtav1 (AV1, LeRobot's default), h264 or hevc."""
+    """The video codec: libsvtav1 (AV1, LeRobot's default; frames of 32 px or more) or h264."""
     action: str = ""
     """The per-step key exported as action (default: the benchmark's default observation's action key)."""
     state: tuple[str, ...] | None = None

@@ -12,8 +12,8 @@ What becomes what:
   is the concatenation of ``--state`` keys (default: the keys the benchmark's default observation preset reads)
   unless the store has a key named ``state``;
 * cameras become ``observation.images.<camera>`` videos (``--no-video``: PNG images inside the parquet files,
-  lossless), drawn by the store's benchmark at ``--image-size`` (LIBERO-Gen renders cameras it did not store from the
-  stored simulator states);
+  lossless; ``--vcodec h264`` for H.264), drawn by the store's benchmark at ``--image-size`` (LIBERO-Gen renders
+  cameras it did not store from the stored simulator states);
 * a store imported from LeRobot gets its features' original names, dtypes and shapes back.
 
 Per-episode columns (a board angle, a seed) and per-task arrays (a drawing's strokes) have no place in the format and
@@ -40,8 +40,11 @@ from bpp.errors import UserError
 CONTROL_HZ = {"drawanything": 10, "libero_gen": 20}
 """Control rates of the built-in simulators (DrawAnything's physics.CONTROL_HZ; LIBERO's control_freq), the fps of
 their exports; other stores without an ``fps`` in their config default to 10."""
-VCODECS = ("libsvtav1", "h264", "hevc")
-"""Video codecs LeRobot's writer offers; libsvtav1 (AV1) is its default."""
+VCODECS = ("libsvtav1", "h264")
+"""Video codecs of LeRobot's writer offered here: libsvtav1 (AV1, its default) and h264. (Its third, hevc, crashes
+PyAV's FFmpeg on some small frame sizes, 40 and 48 px among them.)"""
+MIN_AV1_SIZE = 32
+"""SVT-AV1 stops the process (a floating-point exception) on frames under 28 px; smaller exports are refused."""
 
 
 def _imported(store: EpisodeStore) -> dict[str, Mapped]:
@@ -99,6 +102,7 @@ def export_store(
     """Write `store` (or its `episodes`) as a LeRobot v3 dataset at `out`; see the module docstring. Returns `out`."""
     from tqdm import tqdm
 
+    lib = dataset_library()  # a missing extra is named before anything else
     out = Path(out)
     if out.exists() and not overwrite:
         raise UserError(f"{out} already exists; pass --overwrite to replace it")
@@ -114,6 +118,11 @@ def export_store(
         raise UserError(f"{store.path} has no action key {action!r} (--action); its keys: {', '.join(store.keys)}")
     cameras = list(default_cameras(store) if cameras is None else cameras)
     size = image_size or _stored_size(store, cameras) or 128
+    if video and cameras and vcodec == "libsvtav1" and size < MIN_AV1_SIZE:
+        raise UserError(
+            f"--image-size {size}: LeRobot's default video encoder (SVT-AV1) needs frames of at least {MIN_AV1_SIZE} "
+            "px; export with --vcodec h264, --no-video or a larger --image-size"
+        )
     episodes = list(range(store.num_episodes)) if episodes is None else [int(e) for e in episodes]
     for e in episodes:
         store.episode_slice(e)  # an error naming the store's episode count if out of range
@@ -151,7 +160,6 @@ def export_store(
     texts = _task_texts(store, task_text)
     fps = int(fps or store.config.get("fps") or CONTROL_HZ.get(store.benchmark, 10))
     task_index = store.column("task_index")
-    lib = dataset_library()
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     out.parent.mkdir(parents=True, exist_ok=True)
     try:

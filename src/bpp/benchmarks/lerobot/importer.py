@@ -229,9 +229,12 @@ class _Reader:
                         "the dataset is incomplete: fetch its videos too (LeRobot's library opens every camera's "
                         "videos of the episodes imported, including cameras left out with --skip)"
                     )
+        # All episodes: the library's default, its per-frame table memory-mapped through the `datasets` cache; some:
+        # only theirs, read into memory.
+        chosen = None if len(episodes) == self.total_episodes else list(episodes)
         try:
             self.dataset = self.lib.LeRobotDataset(
-                self.repo_id, root=self.root, episodes=list(episodes), download_videos=False, video_backend="pyav"
+                self.repo_id, root=self.root, episodes=chosen, download_videos=False, video_backend="pyav"
             )
         except OfflineModeIsEnabled:
             raise UserError(
@@ -306,6 +309,7 @@ def import_dataset(
     atomically. Returns (the training store, the held-out store or None)."""
     from tqdm import tqdm
 
+    dataset_library()  # a missing extra is named before anything else
     out = Path(out)
     root = locate(source)
     info = read_info(root)

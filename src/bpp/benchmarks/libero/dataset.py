@@ -34,7 +34,7 @@ from bpp.benchmarks.libero.chain import ChainTask
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.sim import CAMERAS
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, destination_lock
 from bpp.errors import UserError
 from bpp.utils import check_fields, to_dict
 
@@ -252,6 +252,12 @@ def generate(
     out = Path(out)
     if out.exists() and not overwrite:
         raise StoreError(f"{out} already exists; pass overwrite=True (CLI: --overwrite) to replace it")
+    # One generation per destination: another one would discard or delete this one's journal while it writes there.
+    with destination_lock(out.with_name(f".{out.name}.journal")):
+        return _generate(cfg, out, workers, overwrite, progress)
+
+
+def _generate(cfg: LiberoDataConfig, out: Path, workers: int, overwrite: bool, progress: bool) -> EpisodeStore:
     tasks = cfg.tasks()
     journal = _journal(out, cfg)
     done = {int(p.stem.split("-")[1]) for p in journal.glob("task-*.npz")}

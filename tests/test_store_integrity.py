@@ -1,0 +1,257 @@
+"""The episode store's integrity: one writer per destination, every read verified, merges that neither double
+demonstrations nor change their inputs, and stores of another format or version refused by it."""
+
+import json
+import multiprocessing as mp
+import os
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from bpp.data.store import VERSION, EpisodeStore, EpisodeWriter, StoreError, destination_lock, merge_stores
+
+
+def _fill(writer: EpisodeWriter, episodes: int = 3, offset: float = 0.0) -> None:
+    t = writer.add_task("task-a", points=np.arange(6.0).reshape(3, 2))
+    for e in range(episodes):
+        steps = {
+            "obs": np.full((3 + e, 2), e + offset, np.float32),
+            "action": np.arange(3 + e, dtype=np.float64)[:, None] + offset,
+            "pen": np.zeros((3 + e, 1), np.float32),  # only zeros: a chunk zarr would not write by default
+        }
+        writer.add_episode(steps, t, angle=0.1 * e)
+
+
+def _write(path, episodes: int = 3, offset: float = 0.0, **kw) -> EpisodeStore:
+    with EpisodeWriter(path, benchmark="test", chunk_steps=4, **kw) as w:
+        _fill(w, episodes, offset)
+    return EpisodeStore(path)
+
+
+def _chunks(path, array: str) -> list:
+    return sorted(p for p in (path / array / "c").rglob("*") if p.is_file())
+
+
+# ----------------------------------------------------------------------------- one writer per destination
+
+
+def test_a_second_writer_of_the_same_path_is_refused_and_the_first_store_kept(tmp_path):
+    path = tmp_path / "s.zarr"
+    first = EpisodeWriter(path, benchmark="test", chunk_steps=4)
+    with pytest.raises(StoreError, match=f"{path} is being written by another writer \\(process {os.getpid()}\\)"):
+        EpisodeWriter(path, benchmark="test")
+    with pytest.raises(StoreError, match="being written by another writer"):
+        EpisodeWriter(path, benchmark="test", overwrite=True)  # --overwrite does not take another's destination
+    _fill(first)
+    assert first.close().num_episodes == 3
+    with pytest.raises(StoreError, match="already exists"):
+        EpisodeWriter(path, benchmark="test")
+    assert _write(path, episodes=1, overwrite=True).num_episodes == 1  # the lock was released with the store
+    with destination_lock(path), pytest.raises(StoreError, match="being written by another writer"):
+        _write(path, overwrite=True)  # work that prepares a store holds the same lock
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]
+    assert EpisodeStore(path).num_episodes == 1
+
+
+def _hold_a_writer(path, started, finish):
+    with EpisodeWriter(path, benchmark="test", chunk_steps=4) as w:
+        started.set()
+        finish.wait(60)
+        _fill(w, episodes=2)
+
+
+def test_a_writer_in_another_process_owns_its_destination(tmp_path):
+    path = tmp_path / "s.zarr"
+    ctx = mp.get_context("spawn")
+    started, finish = ctx.Event(), ctx.Event()
+    child = ctx.Process(target=_hold_a_writer, args=(path, started, finish))
+    child.start()
+    try:
+        assert started.wait(60)
+        with pytest.raises(StoreError, match=f"being written by another writer \\(process {child.pid}\\)"):
+            _write(path)
+    finally:
+        finish.set()
+        child.join(60)
+    assert child.exitcode == 0
+    assert EpisodeStore(path).num_episodes == 2  # the first writer's store, not replaced
+
+
+def test_a_store_that_appears_while_writing_is_never_replaced(tmp_path):
+    path = tmp_path / "s.zarr"
+    writer = EpisodeWriter(path, benchmark="test", chunk_steps=4)
+    _fill(writer)
+    _write(tmp_path / "other.zarr", episodes=1)
+    shutil.copytree(tmp_path / "other.zarr", path)  # a writer that took no lock (another machine, another program)
+    with pytest.raises(StoreError, match="s.zarr appeared while this store was being written"):
+        writer.close()
+    assert EpisodeStore(path).num_episodes == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["other.zarr", "s.zarr"]  # no partial, no lock left
+
+
+def test_a_store_is_never_written_inside_another(tmp_path):
+    outer = _write(tmp_path / "outer.zarr")
+    before = outer.fingerprint()
+    with pytest.raises(StoreError, match="inner.zarr is inside the episode store .*outer.zarr"):
+        _write(tmp_path / "outer.zarr" / "data" / "inner.zarr")
+    assert EpisodeStore(tmp_path / "outer.zarr").fingerprint() == before
+
+
+# ----------------------------------------------------------------------------- every read verified
+
+
+def test_every_chunk_is_written_checksummed_and_verified(tmp_path):
+    store = _write(tmp_path / "s.zarr")
+    assert store.attrs["version"] == VERSION == 2
+    assert len(_chunks(store.path, "data/pen")) == 3  # 12 steps in chunks of 4, zeros included
+    codecs = json.loads((store.path / "data" / "action" / "zarr.json").read_text())["codecs"]
+    assert [c["name"] for c in codecs] == ["bytes", "zstd", "crc32c"]
+    assert store.verify() == sum(len(_chunks(store.path, a)) for a in store.attrs["arrays"])
+    np.testing.assert_array_equal(store.array("pen"), np.zeros((12, 1), np.float32))
+
+
+def test_every_single_bit_flip_in_a_chunk_is_refused_naming_the_array_and_the_chunk(tmp_path):
+    path = _write(tmp_path / "s.zarr").path
+    chunk = path / "data" / "action" / "c" / "1" / "0"
+    intact = chunk.read_bytes()
+    for i in range(len(intact)):
+        flipped = bytearray(intact)
+        flipped[i] ^= 1 << (i % 8)
+        chunk.write_bytes(bytes(flipped))
+        store = EpisodeStore(path)
+        message = "cannot read data/action: its chunk \\(1, 0\\) \\(data/action/c/1/0\\) fails its checksum"
+        with pytest.raises(StoreError, match=f"s.zarr: damaged store, {message}"):
+            store.array("action")
+        with pytest.raises(StoreError, match=message):
+            store["action"][4:8]  # the lazy array is checked too
+        with pytest.raises(StoreError, match=message):
+            store.episode(1)  # steps 3-6: chunks 0 and 1
+    chunk.write_bytes(intact)
+    np.testing.assert_array_equal(EpisodeStore(path).episode(1)["action"], np.arange(4.0)[:, None])
+
+
+@pytest.mark.parametrize(
+    ("array", "read"),
+    [
+        ("data/action", lambda s: s.array("action")),
+        ("data/pen", lambda s: s.episode(0)),  # a chunk of zeros: its absence is not the fill value either
+        ("tasks/points", lambda s: s.task_array("points", 0)),  # a drawing's strokes, say
+        ("meta/angle", lambda s: s.column("angle")),
+    ],
+)
+def test_a_deleted_chunk_is_refused_naming_the_array_and_the_chunk(tmp_path, array, read):
+    path = _write(tmp_path / "s.zarr").path
+    chunk = _chunks(path, array)[0]
+    chunk.unlink()
+    key = chunk.relative_to(path).as_posix()
+    index = tuple(int(p) for p in key.split("/c/")[1].split("/"))
+    message = f"damaged store, cannot read {array}: its chunk {index} ({key}) is missing"
+    with pytest.raises(StoreError, match=re.escape(message)):
+        read(EpisodeStore(path))
+
+
+def _edit(path, file: str, change) -> None:
+    doc = json.loads((path / file).read_text())
+    change(doc)
+    (path / file).write_text(json.dumps(doc))
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (
+            lambda p: _edit(p, "zarr.json", lambda d: d["attributes"]["stats"]["action"]["std"].__setitem__(0, 2.0)),
+            "damaged store header \\(it does not match its digest\\)",
+        ),
+        (
+            lambda p: _edit(p, "zarr.json", lambda d: d["attributes"]["tasks"][0].__setitem__("id", "x")),
+            "damaged store header \\(it does not match its digest\\)",
+        ),
+        (
+            lambda p: _edit(p, "data/action/zarr.json", lambda d: d.__setitem__("shape", [8, 1])),
+            "damaged store, the metadata of data/action \\(data/action/zarr.json\\) does not match its digest",
+        ),
+        (lambda p: shutil.rmtree(p / "data" / "obs"), "damaged store \\(no data/obs\\)"),
+        (lambda p: shutil.rmtree(p / "meta" / "angle"), "damaged store \\(no meta/angle\\)"),
+    ],
+    ids=["statistics", "task table", "an array's shape", "a per-step array", "an episode column"],
+)
+def test_a_changed_header_or_array_metadata_is_refused_when_opened(tmp_path, damage, message):
+    path = _write(tmp_path / "s.zarr").path
+    damage(path)
+    with pytest.raises(StoreError, match=f"s.zarr: {message}"):
+        EpisodeStore(path)
+
+
+# ----------------------------------------------------------------------------- merging
+
+
+def test_a_merge_never_doubles_demonstrations(tmp_path):
+    a, b = _write(tmp_path / "a.zarr"), _write(tmp_path / "b.zarr", offset=10.0)
+    out = tmp_path / "m.zarr"
+    with pytest.raises(StoreError, match="a.zarr is .*a.zarr given again: a store merged with itself"):
+        merge_stores([a.path, b.path, a.path], out)
+    os.symlink(a.path, tmp_path / "alias.zarr")
+    with pytest.raises(StoreError, match="alias.zarr is .*a.zarr given again"):
+        merge_stores([a.path, tmp_path / "alias.zarr"], out)
+    shutil.copytree(a.path, tmp_path / "copy.zarr")
+    with pytest.raises(StoreError, match="episode 0 of .*copy.zarr is episode 0 of .*a.zarr again"):
+        merge_stores([a.path, tmp_path / "copy.zarr"], out)
+    both = merge_stores([a.path, b.path], tmp_path / "ab.zarr")
+    with pytest.raises(StoreError, match="episode 0 of .*ab.zarr is episode 0 of .*a.zarr again"):
+        merge_stores([a.path, both.path], out)  # a merge that includes the other store
+    assert not out.exists()
+    assert both.num_episodes == 6
+
+
+def test_a_merge_never_writes_into_or_over_its_inputs(tmp_path):
+    a, b = _write(tmp_path / "a.zarr"), _write(tmp_path / "b.zarr", offset=10.0)
+    before = {s.path: s.fingerprint() for s in (a, b)}
+    with pytest.raises(StoreError, match="the merge would be written inside its input .*a.zarr"):
+        merge_stores([a.path, b.path], a.path / "data" / "m.zarr")
+    with pytest.raises(StoreError, match="the merge would be written over its input .*b.zarr"):
+        merge_stores([a.path, b.path], b.path, overwrite=True)
+    with pytest.raises(StoreError, match="the merge would replace a folder holding its input .*a.zarr"):
+        merge_stores([a.path, b.path], tmp_path, overwrite=True)
+    assert {p: EpisodeStore(p).fingerprint() for p in before} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.zarr", "b.zarr"]
+
+
+# ----------------------------------------------------------------------------- format and version
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (
+            lambda d: d.__setitem__("zarr_format", 2),
+            "not an episode store \\(zarr format 2; an episode store is a zarr",
+        ),
+        (lambda d: d.__setitem__("node_type", "array"), "not an episode store \\(zarr format 3, a zarr array"),
+        (
+            lambda d: d["attributes"].__setitem__("format", "replay-buffer"),
+            "not an episode store \\(format 'replay-buffer', expected",
+        ),
+        (
+            lambda d: d["attributes"].__setitem__("version", 1),
+            "store version 1, written by an older bpp; this bpp reads version 2 \\(checksummed chunks\\): generate it",
+        ),
+        (lambda d: d["attributes"].__setitem__("version", 3), "store version 3, this bpp reads version 2"),
+    ],
+    ids=["zarr format 2", "a zarr array", "another format", "version 1", "a newer version"],
+)
+def test_a_store_of_another_format_or_version_is_reported_by_it(tmp_path, change, message):
+    path = _write(tmp_path / "s.zarr").path
+    _edit(path, "zarr.json", change)
+    with pytest.raises(StoreError, match=f"s.zarr: {message}"):
+        EpisodeStore(path)
+
+
+def test_a_zarr_format_2_folder_is_reported_as_one(tmp_path):
+    folder = tmp_path / "buffer.zarr"
+    folder.mkdir()
+    (folder / ".zgroup").write_text('{"zarr_format": 2}')
+    with pytest.raises(StoreError, match="buffer.zarr: a zarr format 2 folder, not an episode store"):
+        EpisodeStore(folder)
