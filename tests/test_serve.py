@@ -39,6 +39,16 @@ def _server(model, store, **kw):
     return PolicyServer(model, library, {"method": model.method}, **kw)
 
 
+def _trained_run(store, tmp_path, steps: int):
+    """A BPP run of `steps` training steps on `store` (its checkpoint is what `bpp serve` loads)."""
+    from bpp.train import TrainConfig, train
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=store.path, out=run, method="bpp", steps=steps, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    return run
+
+
 def _obs(store, episode, step, keys):
     sl = store.episode_slice(episode)
     return {k: store.array(k)[sl.start + step] for k in keys}
@@ -86,11 +96,8 @@ def test_the_robot_client_reproduces_bpp_eval_exactly_rollout_for_rollout(debug_
     from bpp.evaluation.evaluate import Protocol, evaluate
     from bpp.serve.command import build_server
     from bpp.serve.robot import RobotClient, robot_client
-    from bpp.train import TrainConfig, train
 
-    run = tmp_path / "run"
-    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, config("bpp"), progress=False)
+    run = _trained_run(debug_store, tmp_path, steps=2)
     protocol = Protocol(rollouts=1, seed=3, max_steps=40)
     tasks = [0, 4, 7, 11]  # what --num-tasks 4 spreads over the store's 12
     local = evaluate(run, TaskSet(debug_store, "debug"), tasks, tmp_path / "eval", protocol, 1, 0, progress=False)
@@ -308,11 +315,8 @@ def test_openpis_own_client_drives_a_served_checkpoint_to_bpp_evals_scores(debug
     from bpp.benchmarks.contract import TaskSet
     from bpp.evaluation.evaluate import Protocol, evaluate
     from bpp.serve.command import build_server
-    from bpp.train import TrainConfig, train
 
-    run = tmp_path / "run"
-    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, config("bpp"), progress=False)
+    run = _trained_run(debug_store, tmp_path, steps=2)
     protocol = Protocol(rollouts=1, seed=0, max_steps=30)
     tasks = [0, 4, 7, 11]  # what --num-tasks 4 spreads over the store's 12
     local = evaluate(run, TaskSet(debug_store, "debug"), tasks, tmp_path / "eval", protocol, 1, 0, progress=False)
@@ -341,11 +345,7 @@ def test_bpp_serve_starts_serves_and_stops_on_ctrl_c(debug_store, tmp_path):
     import re
     import signal
 
-    from bpp.train import TrainConfig, train
-
-    run = tmp_path / "run"
-    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
-    train(cfg, config("bpp"), progress=False)
+    run = _trained_run(debug_store, tmp_path, steps=1)
     proc = subprocess.Popen(
         [sys.executable, "-m", "bpp.cli", "serve", str(run), "--prompts", str(debug_store.path), "--port", "0"],
         stdout=subprocess.PIPE,

@@ -204,7 +204,7 @@ class ModelWorker:
         for i, job in enumerate(group):
             timing = {"infer_ms": 1e3 * elapsed, "queue_ms": 1e3 * (start - job.submitted), "batch": len(group)}
             weights = None
-            if attention is not None:  # (n_chunks + 1,) of this session's own prompt (a batch pads to its longest)
+            if attention is not None:  # (n_chunks + 1,) of this client's own prompt (a batch pads to its longest)
                 weights = attention[i, : getattr(job.session.context, "num_chunks", attention.shape[1] - 1) + 1]
             _resolve(job.future, result=(chunks[i], weights, timing))
 
@@ -263,6 +263,8 @@ class PolicyServer:
         self.obs_keys = list(model.obs_keys())
         self.image_keys = set(self.spec.image_keys)
         self.widths = {k: model.normalizer.width(k) for k in self.obs_keys if k not in self.image_keys}
+        self.step_shapes = {k: tuple(v["shape"]) for k, v in self.observation_shapes().items()}
+        """Each observation key's per-step shape, which every request is checked against."""
         self.worker = ModelWorker(self.model, limits)
         self.clients = 0
         self.served = 0
@@ -316,7 +318,7 @@ class PolicyServer:
                 value = np.asarray(value)
             if not isinstance(value, np.ndarray):
                 raise RequestError(f"observation {key!r} must be an array, got {type(value).__name__}")
-            shape = tuple(self.observation_shapes()[key]["shape"])
+            shape = self.step_shapes[key]
             if value.shape == shape:
                 value = value[None]
             elif value.shape[1:] != shape or not 1 <= len(value) <= MAX_STEPS_PER_REQUEST:
