@@ -18,6 +18,7 @@ BENCHMARKS: dict[str, str] = {
     "drawanything": "bpp.benchmarks.draw.benchmark:BENCHMARK",
     "libero_gen": "bpp.benchmarks.libero.benchmark:BENCHMARK",
     "lerobot_dataset": "bpp.benchmarks.lerobot.benchmark:BENCHMARK",
+    "iphumi": "bpp.benchmarks.iphumi.benchmark:BENCHMARK",
 }
 """Benchmark name (as stored in every store) -> ``module:object`` implementing the contract."""
 

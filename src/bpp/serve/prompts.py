@@ -21,6 +21,9 @@ from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 
 UPLOAD_PREFIX = "upload:"
+LATEST_UPLOAD = "upload:latest"
+"""The newest upload, whichever it is: a client that names it follows new uploads (its next request after one starts
+a new episode with it), so a person can re-prompt a running robot by uploading a demonstration."""
 
 
 class PromptLookupError(UserError):
@@ -54,6 +57,7 @@ class PromptLibrary:
         self.spec, self.validate, self.store, self.frames = spec, validate, store, frames
         self.max_uploads, self.cache_size = max_uploads, cache
         self._uploads: OrderedDict[str, Mapping] = OrderedDict()
+        self._latest: str | None = None
         self._cache: OrderedDict[int, Mapping] = OrderedDict()
         self._task_ids: dict[str, int] = {}
         if store is not None:
@@ -107,6 +111,10 @@ class PromptLibrary:
 
     def get(self, prompt: int | str) -> PromptEntry:
         """The validated raw context of prompt id `prompt`."""
+        if prompt == LATEST_UPLOAD:
+            if self._latest is None or self._latest not in self._uploads:
+                raise PromptLookupError(f"prompt {LATEST_UPLOAD!r}: nothing has been uploaded yet")
+            prompt = self._latest
         if isinstance(prompt, str) and prompt.startswith(UPLOAD_PREFIX):
             if prompt not in self._uploads:
                 raise PromptLookupError(
@@ -138,6 +146,7 @@ class PromptLibrary:
         handle = UPLOAD_PREFIX + digest.hexdigest()[:20]
         self._uploads[handle] = context
         self._uploads.move_to_end(handle)
+        self._latest = handle
         while len(self._uploads) > self.max_uploads:
             self._uploads.popitem(last=False)
         return handle

@@ -1,0 +1,1 @@
+"""iPhUMI: phone-recorded demonstrations as training data and as live behavior prompts."""
