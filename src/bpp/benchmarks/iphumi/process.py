@@ -110,13 +110,14 @@ def calibration_for(recording: Recording, tags: str, export_index: Mapping[str, 
     name = recording.calibration_name
     if not name:
         raise RecordingError(f"{recording.name}: names no gripper calibration run (gripperCalibrationRunName)")
-    key = (name, tags)
+    if name not in export_index:
+        raise RecordingError(
+            f"{recording.name}: its gripper calibration run {name!r} is not among the recordings (export the "
+            "calibration recording with the demonstrations)"
+        )
+    json_path = Path(export_index[name]) / f"{name}.json"
+    key = (str(Path(export_index[name]).resolve()), json_path.stat().st_mtime_ns, tags)
     if key not in cache:
-        if name not in export_index:
-            raise RecordingError(
-                f"{recording.name}: its gripper calibration run {name!r} is not among the recordings (export the "
-                "calibration recording with the demonstrations)"
-            )
         calibration = read_recording(export_index[name])
         if calibration.kind != "grippercalibration":
             raise RecordingError(f"{recording.name}: {name!r}, named as its calibration run, is a {calibration.kind}")

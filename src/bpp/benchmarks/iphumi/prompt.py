@@ -83,8 +83,8 @@ def hand_off(
         limit = int(metadata.get("max_message_bytes", 0))
         if limit and len(message) > limit:
             raise UserError(
-                f"{recording}: the prompt is {len(message) / 2**20:.1f} MiB, over the {limit / 2**20:.0f} MiB a "
-                "message to this server may have; record a shorter demonstration, or serve with a larger "
+                f"{recording}: the prompt is {_size(len(message))}, over the {_size(limit)} a message to this "
+                "server may have; record a shorter demonstration, or serve with a larger "
                 "--limits.max-message-bytes"
             )
         t1 = time.perf_counter()
@@ -102,3 +102,7 @@ def hand_off(
         return result
     finally:
         client.close()
+
+
+def _size(count: int) -> str:
+    return f"{count / 2**20:.1f} MiB" if count >= 2**20 else f"{count / 1024:.0f} KiB"

@@ -10,6 +10,7 @@ gripper width; main-camera frames show the ink so far and the pen; depth (option
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -77,6 +78,8 @@ class Truth:
     width: np.ndarray
     """(N,) the gripper opening (m, 0 closed)."""
     labels: list = field(default_factory=list)
+    motion: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
+    """The motion itself: epoch times (M,) -> (TCP poses (M, 4, 4), openings (M,)) at any time, not only logged ones."""
 
 
 def _iso(t: float) -> str:
@@ -174,10 +177,8 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
             offset = {"right": 0.0, "left": -0.35, "head": -0.15}[side]
             jitter = rng.uniform(-0.4, 0.4, size=sum(len(p) for p in positions)) * 1e-3
             times = np.round((clock + np.concatenate(local) + jitter) * 1000) / 1000
-            truths_times = times - clock
-            tcp = _tcp_poses(truths_times, positions, local, place, offset, side)
-            tcp = world @ tcp
-            width = np.interp(truths_times, np.concatenate(local), np.concatenate(widths))
+            motion = _motion(clock, positions, local, widths, world @ place, offset, side)
+            tcp, width = motion(times)
             name = f"{group}_{side}"
             _write_demonstration(
                 folder / name,
@@ -194,9 +195,20 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
                 rng,
             )
             if side != "head":
-                truths[name] = Truth(times, tcp, width, [(n, clock + a, clock + b) for n, a, b in labels])
+                truths[name] = Truth(times, tcp, width, [(n, clock + a, clock + b) for n, a, b in labels], motion)
         clock += t + 2.0
     return truths
+
+
+def _motion(clock, positions, local, widths, place, offset, side):
+    """The demonstration's motion as a function of epoch time."""
+
+    def at(times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        seconds = np.asarray(times, dtype=np.float64) - clock
+        width = np.interp(seconds, np.concatenate(local), np.concatenate(widths))
+        return _tcp_poses(seconds, positions, local, place, offset, side), width
+
+    return at
 
 
 def _tcp_poses(times, positions, local, place, offset, side) -> np.ndarray:

@@ -1,0 +1,296 @@
+"""iPhUMI recordings on the workstation: synthetic app-format exports with known ground truth become stores whose
+poses, widths and actions match the truth; every stage's failure names the recording and the reason; processing
+resumes; bimanual and depth recordings keep their extra streams; and one recording becomes the live prompt of a
+served policy."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from bpp.benchmarks.poses import (
+    integrate_actions,
+    interpolate_poses,
+    invert,
+    make_pose,
+    matrix_from_rot6d,
+    relative_actions,
+    rot6d_from_matrix,
+    rotation_angle,
+    vector_to_pose,
+)
+from bpp.cli import main
+from bpp.errors import UserError
+from helpers import import_optional
+
+pytestmark = pytest.mark.iphumi
+import_optional("cv2", "iphumi")
+
+from bpp.benchmarks.iphumi import pipeline  # noqa: E402
+from bpp.benchmarks.iphumi.align import MOUNTS, Aligned, check_demonstration, load_mounts  # noqa: E402
+from bpp.benchmarks.iphumi.process import ProcessSettings  # noqa: E402
+from bpp.benchmarks.iphumi.recording import (  # noqa: E402
+    Demonstration,
+    RecordingError,
+    find_recordings,
+    group_demonstrations,
+    read_recording,
+)
+from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
+from bpp.data.store import EpisodeStore  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory):
+    """Three single-gripper demonstrations of two labelled tasks each (two drawings in all), and the calibration."""
+    out = tmp_path_factory.mktemp("iphumi") / "export"
+    truths = write_export(out, SyntheticSettings(demonstrations=3, tasks=2, tasks_per_demonstration=2, seed=3))
+    return out, truths
+
+
+@pytest.fixture(scope="module")
+def processed(export, tmp_path_factory):
+    """The export processed by the command line, one episode per task of each demonstration held out."""
+    out = tmp_path_factory.mktemp("iphumi-store") / "store.zarr"
+    main(["iphumi", "process", str(export[0]), "--out", str(out), "--holdout-episodes", "1", "--workers", "1"])
+    return EpisodeStore(out), EpisodeStore(out.with_name("store-heldout.zarr"))
+
+
+def _truth_steps(truth, store: EpisodeStore, episode: int):
+    """The ground-truth TCP poses and widths at an episode's steps, from the synthetic motion itself."""
+    n = store.episode_slice(episode).stop - store.episode_slice(episode).start
+    start = float(store.column("start_s")[episode])
+    return truth.motion(truth.times[0] + start + np.arange(n) / store.config["fps"])
+
+
+def test_processed_poses_widths_and_actions_match_the_ground_truth(export, processed):
+    _, truths = export
+    store, held = processed
+    position_mm, angle_deg, width_mm = [], [], []
+    for part in (store, held):
+        for episode in range(part.num_episodes):
+            name = part.config["demonstrations"][episode] + "_right"
+            truth = truths[name]
+            tcp, width = _truth_steps(truth, part, episode)
+            expected = invert(tcp[0]) @ tcp
+            got = part.episode(episode, ["pose", "width", "action"])
+            pose = vector_to_pose(got["pose"].astype(np.float64))
+            position_mm.append(np.linalg.norm(pose[:, :3, 3] - expected[:, :3, 3], axis=1) * 1e3)
+            angle_deg.append(np.rad2deg(rotation_angle(pose[:, :3, :3], expected[:, :3, :3])))
+            width_mm.append(np.abs(got["width"][:, 0] - width) * 1e3)
+            # the actions move each pose to the next one, in the gripper's own frame
+            replayed = integrate_actions(pose[0], got["action"][:-1, :9].astype(np.float64))
+            np.testing.assert_allclose(replayed[:, :3, 3], pose[:, :3, 3], atol=1e-5)
+            np.testing.assert_allclose(got["action"][:-1, 9], got["width"][1:, 0], atol=1e-7)
+    position_mm, angle_deg, width_mm = map(np.concatenate, (position_mm, angle_deg, width_mm))
+    # what is left is the interpolation between logged samples at the path's corners
+    assert position_mm.max() < 0.2, position_mm.max()
+    assert angle_deg.max() < 0.05, angle_deg.max()
+    assert np.median(width_mm) < 1.0 and np.percentile(width_mm, 95) < 3.0, np.percentile(width_mm, [50, 95, 100])
+
+
+def test_task_labels_cut_one_episode_per_segment_and_hold_out_the_last(processed):
+    store, held = processed
+    assert sorted(t["instruction"] for t in store.tasks) == ["draw task 0", "draw task 1"]
+    assert store.num_episodes + held.num_episodes == 6  # three demonstrations, two labelled segments each
+    assert held.num_episodes == 2 and {t["instruction"] for t in held.tasks} == {"draw task 0", "draw task 1"}
+    assert store.benchmark == "iphumi" and set(store.keys) == {"pose", "width", "rgb", "action"}
+    assert store["rgb"].shape[1:] == (96, 96, 3)
+    frame = store["rgb"][0]
+    assert frame[:10].max() == 0 and frame[48].max() > 0  # 4:3 letterboxed: black bars above and below
+
+
+def test_processing_resumes_without_redoing_finished_demonstrations(export, processed, tmp_path, monkeypatch):
+    store, _ = processed
+    parts = pipeline.parts_folder(Path(store.path), ProcessSettings())
+    assert len(list(parts.glob("*.json"))) == 3
+
+    def refuse(*args):
+        raise AssertionError("a finished demonstration was processed again")
+
+    monkeypatch.setattr(pipeline, "_process", refuse)
+    again, held, rejected = pipeline.process_export(
+        export[0], Path(store.path), workers=1, overwrite=True, holdout_episodes=1, progress=False
+    )
+    assert rejected == [] and again.num_episodes == store.num_episodes
+    np.testing.assert_array_equal(again["pose"][:], store["pose"][:])
+
+
+def _copy(export: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / "export"
+    shutil.copytree(export, copy)
+    return copy
+
+
+def _edit(folder: Path, **changes) -> None:
+    path = folder / f"{folder.name}.json"
+    meta = json.loads(path.read_text())
+    meta.update(changes)
+    path.write_text(json.dumps(meta))
+
+
+def test_bad_recordings_are_left_out_with_their_reasons_and_nothing_half_written(export, tmp_path):
+    copy = _copy(export[0], tmp_path)
+    demos = [f for f in find_recordings(copy) if "demonstration" in f.name]
+    rgb = demos[0] / f"{demos[0].name}_rgb.mp4"
+    rgb.write_bytes(rgb.read_bytes()[:2000])  # a truncated video
+    meta = json.loads((demos[1] / f"{demos[1].name}.json").read_text())
+    times = meta["poseTimes"]
+    _edit(demos[1], poseTimes=times[:5] + [times[3]] + times[6:])  # a clock that went back
+    _edit(demos[2], poseTransforms=[m[:3] for m in meta["poseTransforms"]])  # 3x4 matrices
+    out = tmp_path / "store.zarr"
+    with pytest.raises(UserError, match="every demonstration was rejected") as err:
+        pipeline.process_export(copy, out, workers=1, progress=False)
+    text = str(err.value)
+    assert "cannot decode the video" in text or "truncated" in text
+    assert "poseTimes is not strictly increasing" in text and "poseTransforms must be" in text
+    assert not out.exists() and not list(tmp_path.glob("*.partial*"))
+
+
+@pytest.mark.parametrize(
+    "damage, reason",
+    [
+        (lambda f, m: _edit(f, poseTimes=m["poseTimes"][:-1]), "poseTransforms must be"),
+        (lambda f, m: _edit(f, rgbTimes=["yesterday"] + m["rgbTimes"][1:]), "rgbTimes\\[0\\] = 'yesterday'"),
+        (lambda f, m: _edit(f, mainCameraIntrinsics=[[1, 0, 0], [0, 1, 0]]), "mainCameraIntrinsics must be"),
+        (lambda f, m: _edit(f, taskNames=["a"], taskStartTimestamps=[], taskEndTimestamps=[]), "one entry per label"),
+        (lambda f, m: (f / f"{f.name}_ultrawidergb.mp4").unlink(), "missing .*_ultrawidergb.mp4"),
+        (lambda f, m: _edit(f, side="left"), "contradicts the folder name"),
+    ],
+)
+def test_each_kind_of_damaged_recording_is_named_with_its_problem(export, tmp_path, damage, reason):
+    copy = _copy(export[0], tmp_path)
+    folder = next(f for f in find_recordings(copy) if "demonstration" in f.name)
+    damage(folder, json.loads((folder / f"{folder.name}.json").read_text()))
+    with pytest.raises(RecordingError, match=reason) as err:
+        read_recording(folder)
+    assert folder.name in str(err.value)
+
+
+def test_missing_sides_and_calibration_runs_are_reasons_too(export, tmp_path):
+    copy = _copy(export[0], tmp_path)
+    demos = [f for f in find_recordings(copy) if "demonstration" in f.name]
+    _edit(demos[0], sidesPresent=["right", "left"])
+    for calibration in [f for f in find_recordings(copy) if "grippercalibration" in f.name]:
+        shutil.rmtree(calibration)
+    valid, invalid = group_demonstrations([read_recording(f) for f in find_recordings(copy)])
+    assert invalid == [(demos[0].name.rsplit("_", 1)[0], "the side(s) left listed in sidesPresent have no recording")]
+    with pytest.raises(UserError, match="calibration run .* is not among the recordings"):
+        pipeline.process_export(copy, tmp_path / "store.zarr", workers=1, progress=False)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(UserError, match="no iPhUMI recordings"):
+        pipeline.process_export(empty, tmp_path / "x.zarr", progress=False)
+    with pytest.raises(RecordingError, match="not an iPhUMI recording folder name"):
+        read_recording(empty)
+
+
+def test_implausible_motion_and_flipped_sides_are_rejected_with_the_reason():
+    n = 30
+    times = np.arange(n) / 60.0
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    jumped = poses.copy()
+    jumped[15:, 0, 3] += 0.2  # 20 cm in one frame: 12 m/s
+    single = Aligned(Demonstration("d", {}), times, tcp={"right": jumped}, camera={"right": jumped})
+    assert any("moves at 12.0 m/s" in r for r in check_demonstration(single))
+    right = poses.copy()
+    right[:, 0, 3] = -0.3  # the right phone to the left of the left one
+    flipped = Aligned(
+        Demonstration("d", {}), times, tcp={"right": right, "left": poses}, camera={"right": right, "left": poses}
+    )
+    assert any("sides flipped" in r for r in check_demonstration(flipped))
+    right[:, 0, 3] = 0.3
+    assert check_demonstration(flipped) == []
+
+
+def test_rotations_are_interpolated_on_the_rotation_group():
+    from scipy.spatial.transform import Rotation
+
+    times = np.array([0.0, 1.0])
+    rotations = Rotation.from_rotvec([[0, 0, 0], [0, 0, 2.5]]).as_matrix()  # 143 degrees about z
+    poses = make_pose(rotations, np.zeros((2, 3)))
+    middle = interpolate_poses(times, poses, np.array([0.5]))[0, :3, :3]
+    np.testing.assert_allclose(middle, Rotation.from_rotvec([0, 0, 1.25]).as_matrix(), atol=1e-12)
+    componentwise = (rotations[0] + rotations[1]) / 2
+    assert abs(np.linalg.det(componentwise) - 1) > 0.3  # what per-entry interpolation would give: not a rotation
+
+
+def test_pose_vectors_and_relative_actions_round_trip():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    poses = make_pose(Rotation.random(20, random_state=1).as_matrix(), rng.normal(size=(20, 3)))
+    np.testing.assert_allclose(matrix_from_rot6d(rot6d_from_matrix(poses[:, :3, :3])), poses[:, :3, :3], atol=1e-12)
+    actions = relative_actions(poses)
+    np.testing.assert_allclose(integrate_actions(poses[0], actions[:-1]), poses, atol=1e-9)
+    moved = make_pose(Rotation.random(random_state=2).as_matrix(), [1.0, 2.0, 3.0]) @ poses
+    np.testing.assert_allclose(relative_actions(moved), actions, atol=1e-9)  # whatever the world frame
+
+
+def test_the_iphone_15_pro_mount_and_mount_files(tmp_path):
+    mount = MOUNTS["iPhone16,1"]
+    expected = [[1, 0, 0], [0, -0.9659258, 0.25881904], [0, -0.25881904, -0.9659258]]
+    np.testing.assert_allclose(mount[:3, :3], expected, atol=1e-7)
+    np.testing.assert_allclose(mount[:3, 3], [0.0, -0.06441, -0.211397])
+    path = tmp_path / "mounts.json"
+    path.write_text(json.dumps({"iPhone17,1": {"rotation": np.eye(3).tolist(), "translation": [0, 0, -0.2]}}))
+    assert set(load_mounts(path)) == {"iPhone16,1", "iPhone17,1"}
+    path.write_text(json.dumps({"iPhone17,1": {"rotation": (2 * np.eye(3)).tolist(), "translation": [0, 0, 0]}}))
+    with pytest.raises(RecordingError, match="not a proper rotation"):
+        load_mounts(path)
+    path.write_text(json.dumps({"iPhone17,1": {"rotation": np.eye(3).tolist()}}))
+    with pytest.raises(RecordingError, match="needs 'rotation'"):
+        load_mounts(path)
+
+
+@pytest.mark.slow
+def test_bimanual_head_and_depth_recordings_keep_every_stream(tmp_path):
+    export = tmp_path / "export"
+    write_export(export, SyntheticSettings(demonstrations=1, bimanual=True, head=True, depth=True, seed=5))
+    settings = ProcessSettings(cameras=("rgb", "depth"), image_size=32)
+    store, _, rejected = pipeline.process_export(export, tmp_path / "s.zarr", settings, workers=1, progress=False)
+    assert rejected == []
+    assert set(store.keys) == {
+        "pose", "width", "rgb", "depth", "arm1_pose", "arm1_width", "arm1_rgb", "arm1_depth", "head_rgb", "action"
+    }  # fmt: skip
+    assert store["action"].shape[1] == 20 and store["depth"].shape[1:] == (32, 32, 1)
+    # the left gripper traced the same path 35 cm to the left: its pose in the right one's starting frame says so
+    np.testing.assert_allclose(store["arm1_pose"][0][:3], [-0.35, 0.0, 0.0], atol=1e-3)
+    left_width = store["arm1_width"][:, 0]
+    np.testing.assert_allclose(left_width, store["width"][:, 0], atol=2e-3)  # tags 6/7 read like tags 0/1
+
+
+@pytest.mark.serve
+@pytest.mark.slow
+def test_one_recording_becomes_the_prompt_of_a_served_policy(export, processed, tmp_path):
+    import_optional("websockets", "serve")
+    from bpp.benchmarks.iphumi.prompt import hand_off
+    from bpp.serve.client import PolicyClient
+    from bpp.serve.command import build_server
+    from bpp.serve.server import ServerLimits, ServerThread
+
+    store, _ = processed
+    run = tmp_path / "run"
+    main(["train", "--method", "bpp", "--preset", "debug", "--obs", "state", "--data", str(store.path)]
+         + ["--out", str(run), "--steps", "2", "--batch-size", "4", "--workers", "0"])  # fmt: skip
+    recording = next(f for f in find_recordings(export[0]) if "demonstration" in f.name)
+    with ServerThread(build_server(run, str(store.path))) as url:
+        result = hand_off(recording, url)
+        assert result.handle.startswith("upload:") and result.first_action.shape == (10,)
+        assert result.task == recording.name.split("_")[2]  # two labels: the whole demonstration, named by session
+        robot = PolicyClient(url)
+        first = {"pose": np.zeros(9, np.float32), "width": np.zeros(1, np.float32)}
+        first["pose"][3], first["pose"][7] = 1.0, 1.0
+        reply = robot.infer({**first, "prompt": "upload:latest"})
+        assert reply["prompt"] == result.handle
+        again = hand_off(recording, url, check=False)
+        assert again.handle == result.handle  # the same demonstration, the same prompt
+        robot.close()
+    small = ServerLimits(max_message_bytes=4096)
+    with ServerThread(build_server(run, str(store.path), limits=small)) as url, pytest.raises(UserError) as err:
+        hand_off(recording, url)
+    assert "KiB, over the 4 KiB a message to this server may have" in str(err.value)
