@@ -280,5 +280,6 @@ def render_fingers(
         region = cv2.resize(region, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
         frame[y0:y1, x0:x1] = np.clip(np.rint(region), 0, 255)
     if rng is not None:
-        frame = np.clip(np.rint(frame + rng.normal(0, 2.0, frame.shape)), 0, 255).astype(np.uint8)
+        noise = rng.standard_normal(frame.shape, dtype=np.float32) * 2.0  # float32: a quarter of the time
+        frame = np.clip(np.rint(frame + noise), 0, 255).astype(np.uint8)
     return frame

@@ -80,7 +80,7 @@ def write_video(path: Path, frames, fps: float, size: tuple[int, int]) -> None:
         pix_fmt_in="rgb24",
         quality=8,
         macro_block_size=1,
-        output_params=["-f", "mov"],
+        output_params=["-f", "mov", "-preset", "veryfast"],
         ffmpeg_log_level="error",
     )
     writer.send(None)
