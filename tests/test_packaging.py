@@ -16,6 +16,7 @@ EXTRA_MODULES = {
     "docs": ["mkdocs", "material"],
     "serve": ["websockets", "msgpack"],
     "lerobot": ["ledataset", "lerobot", "av", "datasets", "torchvision"],
+    "iphumi": ["cv2"],
 }
 
 
