@@ -189,6 +189,22 @@ def test_missing_sides_and_calibration_runs_are_reasons_too(export, tmp_path):
         read_recording(empty)
 
 
+def test_dropped_frames_read_the_last_frame_and_a_truncated_video_is_refused(tmp_path):
+    from bpp.benchmarks.iphumi.video import read_frames, write_video
+
+    frames = [np.full((24, 32, 3), 10 * i, np.uint8) for i in range(20)]
+    path = tmp_path / "v.mp4"
+    write_video(path, frames, 10, (32, 24))
+    got, beyond = read_frames(path, [0, 19, 20], logged=21)  # one logged time whose frame the encoder dropped
+    assert beyond == 1 and got.shape == (3, 24, 32, 3)
+    np.testing.assert_allclose(got[2].astype(float), got[1].astype(float))  # the last decoded frame stands in
+    assert abs(float(got[1].mean()) - 190) < 3 and abs(float(got[0].mean()) - 0) < 3
+    with pytest.raises(RecordingError, match="20 frames decoded for 40 logged frame times; the video is truncated"):
+        read_frames(path, [39], logged=40)
+    small, _ = read_frames(path, [5], logged=20, fit=16)
+    assert small.shape == (1, 12, 16, 3)  # scaled to fit 16x16, the aspect kept
+
+
 def test_implausible_motion_and_flipped_sides_are_rejected_with_the_reason():
     n = 30
     times = np.arange(n) / 60.0
@@ -290,6 +306,11 @@ def test_one_recording_becomes_the_prompt_of_a_served_policy(export, processed, 
         again = hand_off(recording, url, check=False)
         assert again.handle == result.handle  # the same demonstration, the same prompt
         robot.close()
+    # open-loop evaluation on the processed store, as for any recorded dataset
+    evaluation = tmp_path / "eval"
+    main(["eval", str(run), "--tasks", str(store.path), "--rollouts", "1", "--workers", "1", "--out", str(evaluation)])
+    results = json.loads((evaluation / "results.json").read_text())
+    assert results["metric"]["name"] == "action error" and results["summary"]["tasks"] == 2
     small = ServerLimits(max_message_bytes=4096)
     with ServerThread(build_server(run, str(store.path), limits=small)) as url, pytest.raises(UserError) as err:
         hand_off(recording, url)
