@@ -144,7 +144,7 @@ def test_bad_recordings_are_left_out_with_their_reasons_and_nothing_half_written
     _edit(demos[2], poseTransforms=[m[:3] for m in meta["poseTransforms"]])  # 3x4 matrices
     out = tmp_path / "store.zarr"
     with pytest.raises(UserError, match="every demonstration was rejected") as err:
-        pipeline.process_export(copy, out, workers=1, progress=False)
+        pipeline.process_export(copy, out, workers=2, progress=False)  # workers spawned after OpenCV ran here
     text = str(err.value)
     assert "cannot decode the video" in text or "truncated" in text
     assert "poseTimes is not strictly increasing" in text and "poseTransforms must be" in text

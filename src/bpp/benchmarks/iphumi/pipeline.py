@@ -10,6 +10,7 @@ parts (atomically, like every store), with every rejection and its reason in its
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import re
 from collections.abc import Sequence
@@ -124,7 +125,8 @@ def process_export(
             _process(*job)
             bar.update()
     else:
-        with ProcessPoolExecutor(workers) as pool:
+        # spawned, not forked: a forked child deadlocks on a lock one of OpenCV's or FFmpeg's threads held in the parent
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             for future in as_completed([pool.submit(_process, *job) for job in jobs]):
                 future.result()
                 bar.update()
