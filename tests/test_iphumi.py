@@ -6,6 +6,7 @@ served policy."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -42,6 +43,19 @@ from bpp.benchmarks.iphumi.recording import (  # noqa: E402
 )
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
+
+
+@pytest.fixture(scope="module", autouse=True)
+def calibration_cache(tmp_path_factory):
+    """Gripper calibrations are cached on disk: here, in a folder of this module's own."""
+    folder = tmp_path_factory.mktemp("cache")
+    before = os.environ.get("BPP_CACHE")
+    os.environ["BPP_CACHE"] = str(folder)
+    yield folder / "iphumi"
+    if before is None:
+        del os.environ["BPP_CACHE"]
+    else:
+        os.environ["BPP_CACHE"] = before
 
 
 @pytest.fixture(scope="module")
@@ -118,6 +132,21 @@ def test_processing_resumes_without_redoing_finished_demonstrations(export, proc
     )
     assert rejected == [] and again.num_episodes == store.num_episodes
     np.testing.assert_array_equal(again["pose"][:], store["pose"][:])
+
+
+def test_a_calibration_is_measured_once_and_read_back_from_the_cache(export, processed, calibration_cache, monkeypatch):
+    from bpp.benchmarks.iphumi import gripper, process
+
+    assert len(list(calibration_cache.glob("*.json"))) == 1  # three demonstrations, one calibration recording
+
+    def refuse(*args):
+        raise AssertionError("the calibration was measured again")
+
+    monkeypatch.setattr(gripper, "calibrate", refuse)
+    recording = next(f for f in find_recordings(export[0]) if "demonstration" in f.name)
+    episode = pipeline.process_one(recording, ProcessSettings())  # a new process would find it the same way
+    assert len(episode["steps"]["width"]) > 10
+    assert process.calibration_cache() == calibration_cache
 
 
 def _copy(export: Path, tmp_path: Path) -> Path:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from bpp.benchmarks.iphumi.recording import (
 )
 from bpp.benchmarks.poses import invert, pose_to_vector, relative_actions
 from bpp.errors import UserError
-from bpp.utils import check_fields
+from bpp.utils import check_fields, write_json_atomic
 
 CAMERAS = ("rgb", "ultrawide", "depth")
 ARM_PREFIX = ("", "arm1_")
@@ -115,18 +116,42 @@ def calibration_for(recording: Recording, tags: str, export_index: Mapping[str, 
             f"{recording.name}: its gripper calibration run {name!r} is not among the recordings (export the "
             "calibration recording with the demonstrations)"
         )
-    json_path = Path(export_index[name]) / f"{name}.json"
-    key = (str(Path(export_index[name]).resolve()), json_path.stat().st_mtime_ns, tags)
-    if key not in cache:
-        calibration = read_recording(export_index[name])
-        if calibration.kind != "grippercalibration":
-            raise RecordingError(f"{recording.name}: {name!r}, named as its calibration run, is a {calibration.kind}")
-        frames, _ = ultrawide_frames(calibration)
+    folder = Path(export_index[name])
+    fingerprint = hashlib.sha256(tags.encode())
+    for path in (folder / f"{name}.json", folder / f"{name}_ultrawidergb.mp4"):
+        if path.is_file():  # a missing video is named by read_recording below
+            fingerprint.update(path.read_bytes())
+    key = fingerprint.hexdigest()[:32]
+    if key in cache:
+        return cache[key]
+    saved = calibration_cache() / f"{key}.json"
+    if saved.is_file():
         try:
-            cache[key] = gripper.calibrate(frames, calibration.ultrawide_intrinsics, tags)
-        except UserError as err:
-            raise RecordingError(f"gripper calibration {name}: {err}") from None
+            cache[key] = gripper.GripperCalibration.from_json(json.loads(saved.read_text()))
+            return cache[key]
+        except (OSError, ValueError):
+            pass  # an unreadable or outdated cache entry: computed again below
+    calibration = read_recording(folder)
+    if calibration.kind != "grippercalibration":
+        raise RecordingError(f"{recording.name}: {name!r}, named as its calibration run, is a {calibration.kind}")
+    frames, _ = ultrawide_frames(calibration)
+    try:
+        cache[key] = gripper.calibrate(frames, calibration.ultrawide_intrinsics, tags)
+    except UserError as err:
+        raise RecordingError(f"gripper calibration {name}: {err}") from None
+    try:
+        saved.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(saved, cache[key].to_json())
+    except OSError:
+        pass  # a cache that cannot be written costs only time
     return cache[key]
+
+
+def calibration_cache() -> Path:
+    """Where gripper calibrations are kept once computed, by the content of their recording (so a prompt or a new
+    export does not measure a calibration recording again): ``$BPP_CACHE/iphumi`` (default ``~/.cache/bpp``)."""
+    root = os.environ.get("BPP_CACHE") or Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "bpp"
+    return Path(root) / "iphumi"
 
 
 def measure_widths(demonstration: Demonstration, export_index: Mapping[str, Path], cache: dict) -> dict:
