@@ -27,8 +27,10 @@ def plot_episodes(store: EpisodeStore, episodes: Sequence[int], out: Path) -> No
             raise UserError(f"{store.path} has episodes 0 to {store.num_episodes - 1}, got {episode}")
     cameras = "rgb" in store.keys
     columns = 2 + (FRAMES if cameras else 0)
-    fig = plt.figure(figsize=(3.2 * 2 + (1.6 * FRAMES if cameras else 0), 3.2 * len(episodes)))
-    grid = fig.add_gridspec(len(episodes), columns, width_ratios=[2, 2] + [1] * (columns - 2))
+    fig = plt.figure(figsize=(7.6 + (1.3 * FRAMES if cameras else 0), 3.0 * len(episodes)))
+    grid = fig.add_gridspec(
+        len(episodes), columns, width_ratios=[3.2, 2.6] + [1.2] * (columns - 2), wspace=0.45, hspace=0.4, left=0.02, right=0.99
+    )
     fps = float(store.config.get("fps") or 10)
     for row, episode in enumerate(episodes):
         data = store.episode(episode, ["pose", "width"] + (["rgb"] if cameras else []))
@@ -39,8 +41,8 @@ def plot_episodes(store: EpisodeStore, episodes: Sequence[int], out: Path) -> No
         closed = width < 0.2 * max(width.max(), 1e-9)
         ax.scatter(*position.T, c=seconds, cmap="viridis", s=np.where(closed, 14, 4))
         ax.plot(*position.T, color="0.6", linewidth=0.6)
-        ax.set(xlabel="x (cm)", ylabel="y (cm)", zlabel="z (cm)")
-        ax.set_title(f"episode {episode}: {task['instruction'] or task['id']}", fontsize=9)
+        ax.set(xlabel="x", ylabel="y")  # z, the gripper's forward axis, keeps its ticks only: its label would collide
+        ax.set_title(f"episode {episode}: {task['instruction'] or task['id']} (path in cm)", fontsize=9)
         ax = fig.add_subplot(grid[row, 1])
         ax.plot(seconds, width)
         ax.set(xlabel="time (s)", ylabel="gripper width (mm)", ylim=(-2, max(width.max() * 1.1, 10)))
@@ -51,7 +53,6 @@ def plot_episodes(store: EpisodeStore, episodes: Sequence[int], out: Path) -> No
                 ax.imshow(data["rgb"][step])
                 ax.set_title(f"{seconds[step]:.1f} s", fontsize=8)
                 ax.axis("off")
-    fig.tight_layout()
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110)
     plt.close(fig)
