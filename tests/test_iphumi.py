@@ -340,6 +340,10 @@ def test_one_recording_becomes_the_prompt_of_a_served_policy(export, processed, 
     main(["eval", str(run), "--tasks", str(store.path), "--rollouts", "1", "--workers", "1", "--out", str(evaluation)])
     results = json.loads((evaluation / "results.json").read_text())
     assert results["metric"]["name"] == "action error" and results["summary"]["tasks"] == 2
+    with ServerThread(build_server(run, str(store.path), token="secret")) as url:
+        with pytest.raises(UserError, match="refused the connection"):
+            hand_off(recording, url, check=False)
+        assert hand_off(recording, url, token="secret", check=False).handle == result.handle
     small = ServerLimits(max_message_bytes=4096)
     with ServerThread(build_server(run, str(store.path), limits=small)) as url, pytest.raises(UserError) as err:
         hand_off(recording, url)
