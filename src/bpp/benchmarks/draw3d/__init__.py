@@ -1,0 +1,1 @@
+"""DrawAnything-Real: the paper's real drawing benchmark, on a simulated 6-DoF arm."""

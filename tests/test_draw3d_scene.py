@@ -1,0 +1,96 @@
+"""DrawAnything-Real's simulated arm: the scene places the canvas anywhere on the board, the controller follows
+6-DoF relative pen actions, the pen inks exactly where its tip touches the canvas, and the cameras see the ink."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports MuJoCo (robosuite does)
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from bpp.benchmarks.poses import invert, make_pose, pose_to_vector  # noqa: E402
+from helpers import import_optional  # noqa: E402
+
+pytestmark = pytest.mark.libero  # robosuite's Panda model ships with the libero extra
+import_optional("robosuite", "libero")
+
+from bpp.benchmarks.draw3d.scene import (  # noqa: E402
+    BOARD,
+    CANVAS_SIDE,
+    HOME_QPOS,
+    Scene,
+    _texture_px,
+    canvas_transform,
+    pose_error,
+)
+
+DOWN = np.diag([1.0, -1.0, -1.0])
+"""The pen's orientation relative to the canvas when drawing: along the canvas's -z, aligned with its x."""
+
+
+@pytest.fixture(scope="module")
+def scene():
+    scene = Scene(image_size=64)
+    yield scene
+    scene.close()
+
+
+def _move(scene: Scene, canvas_point, height: float, steps: int) -> None:
+    """Command the pen, by relative actions, in a straight line to `height` above a canvas point."""
+    goal = scene.canvas @ make_pose(DOWN, [*canvas_point, height])
+    start = scene.target.copy()
+    for k in range(1, steps + 1):
+        a = k / steps
+        waypoint = make_pose(goal[:3, :3], (1 - a) * start[:3, 3] + a * goal[:3, 3])
+        if k == 1:
+            waypoint = make_pose(goal[:3, :3], start[:3, 3])  # turn first, then translate
+        scene.step(pose_to_vector(invert(scene.target) @ waypoint))
+
+
+def test_canvas_placements_lie_on_the_board_at_their_rotation(scene):
+    canvas = canvas_transform(0.1, -0.05, 40.0)
+    normal = canvas[:3, 2]
+    np.testing.assert_allclose(normal, BOARD[:, 2], atol=1e-12)
+    angle = np.rad2deg(np.arctan2(canvas[:3, 0] @ BOARD[:, 1], canvas[:3, 0] @ BOARD[:, 0]))
+    assert abs(angle - 40.0) < 1e-9
+
+
+def test_the_pen_draws_a_square_where_it_is_told_and_only_there(scene):
+    scene.reset(canvas_transform(-0.05, 0.04, 30.0), HOME_QPOS)
+    half = 0.05
+    corners = [(-half, -half), (half, -half), (half, half), (-half, half), (-half, -half)]
+    _move(scene, corners[0], 0.03, 30)
+    _move(scene, corners[0], -0.001, 10)  # press 1 mm: within the pen's spring travel
+    for corner in corners[1:]:
+        _move(scene, corner, -0.001, 25)
+    _move(scene, corners[-1], 0.03, 10)
+    _move(scene, (0.08, 0.08), 0.03, 10)  # pen up: no ink on the way
+    ink = scene.ink.polylines()
+    assert len(ink) == 1
+    points = np.concatenate(ink)
+    distance_to_square = np.minimum(np.abs(np.abs(points[:, 0]) - half), np.abs(np.abs(points[:, 1]) - half))
+    # every inked point lies on the square's outline: to half a millimetre, a few overshooting a corner by 2-3 mm
+    assert np.percentile(distance_to_square, 95) < 5e-4 and distance_to_square.max() < 3e-3
+    assert abs(scene.ink.length - 8 * half) < 0.01
+    for _ in range(10):  # half a second holding still: the commanded pose is reached
+        scene.step(pose_to_vector(np.eye(4)))
+    position, angle = pose_error(scene.tip_pose(), scene.target)
+    assert position < 1e-3 and angle < 0.5
+
+
+def test_the_ink_is_painted_where_the_cameras_see_the_canvas(scene):
+    canvas = canvas_transform(0.1, 0.0, -20.0)
+    scene.reset(canvas, np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78]))  # the arm pulled back, out of sight
+    before = scene.render("scene", 256)
+    import cv2
+
+    point = np.array([0.06, -0.04])
+    cv2.circle(scene._paper, _texture_px(point), 20, (0, 0, 0), -1)  # 2.3 cm across
+    scene._paper_dirty = True
+    after = scene.render("scene", 256)
+    u, v = scene.project("scene", (canvas @ np.array([*point, 0.0, 1.0]))[None, :3], 256)[0].round().astype(int)
+    assert after[v, u].max() < 60 < before[v, u].min()  # dark where the ink is, on white paper before
+    assert np.abs(after.astype(int) - before.astype(int)).sum(axis=2).astype(bool).mean() < 0.01  # nothing else
+    assert abs(CANVAS_SIDE - 0.30) < 1e-12
