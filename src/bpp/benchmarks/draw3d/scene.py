@@ -1,13 +1,13 @@
 """DrawAnything-Real's scene in MuJoCo: a Panda arm holding a pen in front of a whiteboard, a square canvas with four
 red corner markers placed anywhere on the board at any rotation within ±45 degrees, a wrist camera and a scene camera.
 
-The arm is robosuite's Panda model (its meshes ship in the ``libero`` extra's robosuite), driven by torques: a damped
-least-squares inverse kinematics turns the commanded pen pose into joint targets, tracked by a PD law with gravity
-and Coriolis compensation. Commands are 6-DoF: each action moves the commanded pen pose by a relative step in its own
-frame (:func:`bpp.benchmarks.poses.vector_to_pose`), as a robot driver composes relative actions with its current
-target. The pen is compliant, like the paper's spring-loaded marker: it inks where its tip is within
-:data:`PEN_REACH` of the board surface (ink as polylines in the canvas frame), and the ink is painted into the
-canvas's texture so that the cameras see it.
+The arm is robosuite's Panda model (its meshes ship in the ``libero`` extra's robosuite), driven by torques from an
+operational-space controller: the pen tip is pulled toward its commanded pose by a critically damped 6-D spring
+through the arm's task-space inertia, with gravity and Coriolis compensated. Commands are 6-DoF: each action moves
+the commanded pen pose by a relative step in its own frame (:func:`bpp.benchmarks.poses.vector_to_pose`), as a robot
+driver composes relative actions with its current target. The pen is compliant, like the paper's spring-loaded
+marker: it inks where its tip is within :data:`PEN_REACH` of the board surface (ink as polylines in the canvas frame),
+and the ink is painted into the canvas's texture so that the cameras see it.
 
 Frames: the robot's base is the world origin (x forward, z up); the canvas frame has its origin at the canvas centre,
 x right and y up as the robot sees the upright canvas, z out of the board toward the robot.
@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bpp.benchmarks.poses import invert, make_pose, rotation_angle
+from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE
+from bpp.benchmarks.poses import invert, make_pose
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL (Mesa); MuJoCo reads it when first imported
 
@@ -33,8 +34,6 @@ BOARD_CENTRE = np.array([0.55, 0.0, 0.30])
 """The centre of the board's surface in the base frame (m)."""
 BOARD_HALF = (0.45, 0.25)
 """The board's half width (across, along -y) and half height (up its slope) (m)."""
-CANVAS_SIDE = 0.30
-MARKER_SIDE = 0.025
 PAPER = 0.0006
 """The canvas's thickness: its surface stands this far in front of the board's (m)."""
 PEN_LENGTH = 0.13
@@ -43,15 +42,17 @@ PEN_REACH = 0.002
 """The tip inks when it is within this distance of the board's surface (the pen's spring travel, m)."""
 TEXTURE = 256
 """The canvas texture's side (px): the ink the cameras see."""
-SCENE_CAMERA = np.array([-0.2, 0.45, 1.0])
+SCENE_CAMERA = np.array([0.15, -0.6, 1.15])
 """Where the fixed scene camera stands (it looks at the board's centre), in the base frame (m)."""
 CONTROL_HZ = 20.0
 TIMESTEP = 0.002
 HOME_QPOS = np.array([0.0, -0.35, 0.0, -2.2, 0.0, 1.9, np.pi / 4])
 """A joint configuration with the pen pointing at the board from about 30 cm away."""
 STIFFNESS = 900.0
-"""The joint-space PD law's natural frequency squared (1/s^2), critically damped, applied through the arm's mass
-matrix (computed torque), so that every joint tracks alike."""
+"""The pen tip's spring toward its commanded pose: natural frequency squared (1/s^2), critically damped, applied
+through the arm's task-space inertia (operational-space control), so that every direction responds alike."""
+POSTURE_STIFFNESS = 25.0
+"""The same for the arm's spare joint motion, toward :data:`HOME_QPOS`."""
 _T = np.deg2rad(BOARD_TILT_DEG)
 BOARD = np.array([[0.0, np.sin(_T), -np.cos(_T)], [-1.0, 0.0, 0.0], [0.0, np.cos(_T), np.sin(_T)]])
 """The board's axes in the base frame (columns): x right as the robot sees it (-y), y up the board's slope, z its
@@ -115,7 +116,10 @@ def scene_xml() -> str:
     pen = ET.SubElement(hand, "body", name="pen", pos="0 0 0")
     ET.SubElement(pen, "geom", name="pen", group="2", type="capsule", fromto=f"0 0 0.01 0 0 {PEN_LENGTH - 0.005}",
                   size="0.005", rgba="0.1 0.1 0.12 1", mass="0.02")  # fmt: skip
-    ET.SubElement(pen, "site", name="pen_tip", pos=f"0 0 {PEN_LENGTH}", size="0.003", rgba="0.9 0.1 0.1 1")
+    # the tip's frame is the flange's turned a quarter about the pen: a pen aligned with an upright canvas then puts
+    # the last joint mid-range, so canvases turned ±45 degrees stay clear of its limits
+    ET.SubElement(pen, "site", name="pen_tip", pos=f"0 0 {PEN_LENGTH}", quat="0.70710678 0 0 0.70710678", size="0.003",
+                  rgba="0.9 0.1 0.1 1")  # fmt: skip
     # the wrist camera: beside the pen, looking along it, as the iPhone on the paper's gripper
     ET.SubElement(pen, "camera", name="wrist", mode="fixed", pos="0 0.07 0.03", fovy="75",
                   xyaxes="-1 0 0 0 0.819 0.573")  # fmt: skip
@@ -186,7 +190,7 @@ class Scene:
         self.data.mocap_quat[self.canvas_body] = quat
         mujoco.mj_forward(self.model, self.data)
         self.target = self.tip_pose()
-        self.q_target = self.data.qpos[:7].copy()
+        self._target_velocity = np.zeros(6)
         self.ink = Ink()
         self._paper = np.full((TEXTURE, TEXTURE, 3), (245, 245, 237), np.uint8)
         self._paper_dirty = True
@@ -207,42 +211,45 @@ class Scene:
         entry, the gripper's, is ignored: the pen is held), then simulate one control period."""
         from bpp.benchmarks.poses import vector_to_pose
 
+        previous = self.target
         self.target = self.target @ vector_to_pose(np.asarray(action, dtype=np.float64)[:9])
-        self.q_target = self.inverse_kinematics(self.target, self.q_target)
-        mass = np.zeros((self.model.nv, self.model.nv))
+        # the commanded pose's velocity over the control period, fed forward so that a moving target is followed
+        # without the lag of a spring pulled along a ramp
+        self._target_velocity = (
+            np.concatenate(
+                [self.target[:3, 3] - previous[:3, 3], _rotation_vector(self.target[:3, :3] @ previous[:3, :3].T)]
+            )
+            * CONTROL_HZ
+        )
         for _ in range(self.substeps):
-            q, dq = self.data.qpos[:7], self.data.qvel[:7]
-            self.mujoco.mj_fullM(self.model, self.data, mass)
-            acceleration = STIFFNESS * (self.q_target - q) - 2.0 * np.sqrt(STIFFNESS) * dq
-            torque = mass[:7, :7] @ acceleration + self.data.qfrc_bias[:7]
-            self.data.ctrl[:7] = np.clip(torque, *self.model.actuator_ctrlrange[:7].T)
+            self.data.ctrl[:7] = np.clip(self._torques(), *self.model.actuator_ctrlrange[:7].T)
             self.mujoco.mj_step(self.model, self.data)
             self._record_ink()
 
-    def inverse_kinematics(self, target: np.ndarray, q0: np.ndarray, iterations: int = 20) -> np.ndarray:
-        """Joint positions that put the pen tip at `target`, by damped least squares from `q0` (kinematics only,
-        on a scratch copy of the state), within the joints' ranges."""
-        mujoco = self.mujoco
-        scratch = getattr(self, "_scratch", None) or mujoco.MjData(self.model)
-        self._scratch = scratch
-        q = np.array(q0, dtype=np.float64)
-        jac_p, jac_r = np.zeros((3, self.model.nv)), np.zeros((3, self.model.nv))
-        for _ in range(iterations):
-            scratch.qpos[:7] = q
-            mujoco.mj_kinematics(self.model, scratch)
-            mujoco.mj_comPos(self.model, scratch)
-            position = scratch.site_xpos[self.tip]
-            rotation = scratch.site_xmat[self.tip].reshape(3, 3)
-            error_p = target[:3, 3] - position
-            error_r = _rotation_vector(target[:3, :3] @ rotation.T)
-            if np.linalg.norm(error_p) < 1e-5 and np.linalg.norm(error_r) < 1e-4:
-                break
-            mujoco.mj_jacSite(self.model, scratch, jac_p, jac_r, self.tip)
-            jac = np.vstack([jac_p[:, :7], jac_r[:, :7]])
-            error = np.concatenate([error_p, 0.5 * error_r])
-            step = jac.T @ np.linalg.solve(jac @ jac.T + 1e-4 * np.eye(6), error)
-            q = np.clip(q + step, self.ranges[:, 0], self.ranges[:, 1])
-        return q
+    def _torques(self) -> np.ndarray:
+        """Operational-space control of the pen tip toward the commanded pose: a critically damped spring in the
+        tip's 6-D space through the arm's task-space inertia, gravity and Coriolis compensated, and the arm's spare
+        joint held near a comfortable posture without disturbing the tip."""
+        mujoco, model, data = self.mujoco, self.model, self.data
+        jac_p, jac_r = np.zeros((3, model.nv)), np.zeros((3, model.nv))
+        mujoco.mj_jacSite(model, data, jac_p, jac_r, self.tip)
+        jac = np.vstack([jac_p[:, :7], jac_r[:, :7]])
+        mass = np.zeros((model.nv, model.nv))
+        mujoco.mj_fullM(model, data, mass)
+        mass_inv = np.linalg.inv(mass[:7, :7])
+        task_inertia = np.linalg.inv(jac @ mass_inv @ jac.T + 1e-6 * np.eye(6))
+        rotation = data.site_xmat[self.tip].reshape(3, 3)
+        error = np.concatenate(
+            [self.target[:3, 3] - data.site_xpos[self.tip], _rotation_vector(self.target[:3, :3] @ rotation.T)]
+        )
+        velocity = jac @ data.qvel[:7]
+        force = task_inertia @ (STIFFNESS * error + 2.0 * np.sqrt(STIFFNESS) * (self._target_velocity - velocity))
+        dynamically_consistent = mass_inv @ jac.T @ task_inertia
+        nullspace = np.eye(7) - jac.T @ dynamically_consistent.T
+        posture = mass[:7, :7] @ (
+            POSTURE_STIFFNESS * (HOME_QPOS - data.qpos[:7]) - 2.0 * np.sqrt(POSTURE_STIFFNESS) * data.qvel[:7]
+        )
+        return jac.T @ force + nullspace @ posture + data.qfrc_bias[:7]
 
     def _record_ink(self) -> None:
         point = self.tip_in_canvas()
@@ -312,8 +319,3 @@ def _texture_px(point: np.ndarray) -> tuple[int, int]:
     u = (point[0] / CANVAS_SIDE + 0.5) * (TEXTURE - 1)
     v = (0.5 - point[1] / CANVAS_SIDE) * (TEXTURE - 1)
     return int(round(u)), int(round(v))
-
-
-def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    """(position error m, rotation error deg) between two poses."""
-    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(np.rad2deg(rotation_angle(a[:3, :3], b[:3, :3])))
