@@ -29,7 +29,13 @@ def plot_episodes(store: EpisodeStore, episodes: Sequence[int], out: Path) -> No
     columns = 2 + (FRAMES if cameras else 0)
     fig = plt.figure(figsize=(7.6 + (1.3 * FRAMES if cameras else 0), 3.0 * len(episodes)))
     grid = fig.add_gridspec(
-        len(episodes), columns, width_ratios=[3.2, 2.6] + [1.2] * (columns - 2), wspace=0.45, hspace=0.4, left=0.02, right=0.99
+        len(episodes),
+        columns,
+        width_ratios=[3.2, 2.6] + [1.2] * (columns - 2),
+        wspace=0.45,
+        hspace=0.4,
+        left=0.02,
+        right=0.99,
     )
     fps = float(store.config.get("fps") or 10)
     for row, episode in enumerate(episodes):
