@@ -43,6 +43,8 @@ class Drawing:
         for i, stroke in enumerate(strokes):
             try:
                 arr = np.asarray(stroke, dtype=np.float64)
+            except OverflowError:  # a Python int beyond float64's range
+                raise DrawingError(f"{where}, stroke {i}: a coordinate is too large to be a finite number") from None
             except (TypeError, ValueError) as err:
                 raise DrawingError(f"{where}, stroke {i}: expected a list of [x, y] pairs ({err})") from None
             if arr.ndim != 2 or arr.shape[1] != 2 or len(arr) == 0:
@@ -50,7 +52,8 @@ class Drawing:
                     f"{where}, stroke {i}: expected a non-empty list of [x, y] pairs, got shape {arr.shape}"
                 )
             if not np.all(np.isfinite(arr)):
-                raise DrawingError(f"{where}, stroke {i}: contains NaN or infinite coordinates")
+                j, axis = np.argwhere(~np.isfinite(arr))[0]
+                raise DrawingError(f"{where}, stroke {i}, point {j}: coordinate {arr[j, axis]} is not a finite number")
             if arr.min() < 0.0 or arr.max() > 1.0:
                 raise DrawingError(
                     f"{where}, stroke {i}: coordinates must lie in the unit square [0, 1]^2, "

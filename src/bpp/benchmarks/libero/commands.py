@@ -10,7 +10,7 @@ import tyro
 from bpp.benchmarks.libero.benchmark import BENCHMARK
 from bpp.benchmarks.libero.export import export_store
 from bpp.benchmarks.libero.importer import import_files
-from bpp.benchmarks.libero.suites import SUITES_BY_NAME, view
+from bpp.benchmarks.libero.suites import SUITES_BY_NAME, parse_where, view
 from bpp.benchmarks.libero.tasks import write_suite
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
@@ -28,9 +28,10 @@ class LiberoTasks:
     suite: str = "combination"
     """combination or chain (LIBERO-Gen), chain_no_second_step (the ablation's view), chain_candidates (every chain
     the candidate rule generates, 218 + the 10 held out), or libero_spatial / libero_goal (LIBERO's own 10 tasks)."""
-    where: str = ""
+    where: str | None = None
     """Only the tasks in this view, e.g. ``pick=TD``, ``place!=ST;bowl=1``, ``view!=second_step`` (fields of each
-    task's entry in tasks.json; the report then counts similar tasks within the view)."""
+    task's entry in tasks.json; the report then counts similar tasks within the view; default: every task, and an
+    empty view is refused)."""
     out: Path | None = None
     """Folder to write (default: only print the report)."""
     overwrite: bool = False
@@ -45,6 +46,8 @@ class LiberoTasks:
             ("init_states", 0 <= self.init_states <= 1000, "in [0, 1000]"),
             ("init_states", not self.init_states or self.out is not None, "0 unless --out is given"),
         )
+        if self.where is not None:
+            parse_where(self.where)
 
 
 def libero_tasks(args: LiberoTasks) -> None:

@@ -19,6 +19,7 @@ model, which this import does not read).
 from __future__ import annotations
 
 import json
+import re
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -47,7 +48,7 @@ def read_task(f, path: Path) -> tuple[str, str, dict]:
     """(problem text, instruction, task info) of an open LIBERO dataset file."""
     from bpp.benchmarks.libero.sim import has_initial_states, libero_problem
 
-    if "data" not in f:
+    if "data" not in f or not hasattr(f["data"], "keys"):
         raise UserError(f"{path}: not a LIBERO dataset file (no 'data' group)")
     attrs = f["data"].attrs
     named = libero_problem_name(attrs.get("bddl_file_name", ""))
@@ -73,11 +74,69 @@ def read_task(f, path: Path) -> tuple[str, str, dict]:
     return problem, str(instruction).strip(), info
 
 
+def open_dataset_file(h5py, path: Path):
+    """`path` opened read-only with `h5py`, or a UserError naming it: not an HDF5 file at all, or one h5py cannot
+    read (truncated, damaged)."""
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        try:
+            hdf5 = h5py.is_hdf5(path)
+        except OSError:
+            hdf5 = True  # unreadable: say what h5py said
+        if not hdf5:
+            raise UserError(f"{path}: not an HDF5 file (LIBERO dataset files are HDF5, e.g. *_demo.hdf5)") from None
+        raise UserError(f"{path}: cannot read this HDF5 file ({err})") from None
+
+
 def _demo_names(f, path: Path) -> list[str]:
-    names = sorted((k for k in f["data"] if k.startswith("demo_")), key=lambda k: int(k.split("_")[1]))
+    """The file's demonstrations, data/demo_<i>, by i."""
+    names = [k for k in f["data"] if k.startswith("demo_")]
+    odd = [k for k in names if not re.fullmatch(r"demo_\d+", k)]
+    if odd:
+        raise UserError(f"{path}: data/{odd[0]} is not a demonstration name (expected data/demo_<i>, i a number)")
     if not names:
         raise UserError(f"{path}: no demonstrations (no data/demo_<i> groups)")
-    return names
+    return sorted(names, key=lambda k: int(k.split("_")[1]))
+
+
+def read_demos(f, path: Path):
+    """(name, seed, actions (T, 7) float32, states (T, S) float64) of each demonstration of an open LIBERO dataset
+    file, in order; a UserError naming the file and the demonstration if one lacks its actions or states, has them
+    in other shapes, or holds a number that is not finite (float32's range for actions)."""
+    for name in _demo_names(f, path):
+        where = f"{path}:{name}"
+        demo = f["data"][name]
+        missing = [key for key in ("actions", "states") if not hasattr(demo, "keys") or key not in demo]
+        if missing:
+            raise UserError(f"{where}: no {' and no '.join(missing)} (expected datasets data/{name}/actions, states)")
+        try:
+            actions = np.asarray(demo["actions"], dtype=np.float64)
+            states = np.asarray(demo["states"], dtype=np.float64)
+            seed = int(demo.attrs.get("seed", 0))
+        except (TypeError, ValueError, OverflowError) as err:
+            raise UserError(f"{where}: expected numeric actions, states and seed ({err})") from None
+        if (
+            actions.ndim != 2
+            or actions.shape[1] != 7
+            or states.ndim != 2
+            or len(actions) != len(states)
+            or not len(states)
+        ):
+            raise UserError(
+                f"{where}: expected (T, 7) actions and (T, S) states, T > 0, got {actions.shape} and {states.shape}"
+            )
+        if not 0 <= seed < 2**32:
+            raise UserError(f"{where}: seed {seed} is not in [0, 2**32)")
+        for key, values, limit in (("actions", actions, np.finfo(np.float32).max), ("states", states, np.inf)):
+            bad = np.argwhere(~(np.abs(values) <= limit))
+            if len(bad):
+                step, column = bad[0]
+                raise UserError(
+                    f"{where}: {key}[{step}, {column}] = {values[step, column]} is not a finite "
+                    f"{'float32' if key == 'actions' else 'number'}"
+                )
+        yield name, seed, actions.astype(np.float32), states
 
 
 def import_files(
@@ -96,6 +155,11 @@ def import_files(
     missing = [str(p) for p in paths if not Path(p).is_file()]
     if missing:
         raise UserError(f"no such file: {', '.join(missing)}")
+    for path in map(Path, paths):  # every file is checked before anything is written
+        with open_dataset_file(h5py, path) as f:
+            read_task(f, path)
+            for _ in read_demos(f, path):
+                pass
     with EpisodeWriter(
         out,
         benchmark=BENCHMARK,
@@ -106,7 +170,7 @@ def import_files(
         bar = tqdm(paths, desc=f"importing into {Path(out).name}", unit="file", disable=not progress)
         for path in bar:
             path = Path(path)
-            with h5py.File(path, "r") as f, tempfile.TemporaryDirectory(prefix="libero-import-") as folder:
+            with open_dataset_file(h5py, path) as f, tempfile.TemporaryDirectory(prefix="libero-import-") as folder:
                 problem, instruction, info = read_task(f, path)
                 task_id = path.stem.removesuffix("_demo")
                 task_index = writer.add_task(task_id, info, instruction=instruction)
@@ -114,16 +178,7 @@ def import_files(
                 problem_path.write_text(problem)
                 env = make_env(problem_path, render=bool(goal_size))
                 try:
-                    for name in _demo_names(f, path):
-                        demo = f["data"][name]
-                        seed = int(demo.attrs.get("seed", 0))
-                        actions = np.asarray(demo["actions"], dtype=np.float32)
-                        states = np.asarray(demo["states"], dtype=np.float64)
-                        if actions.ndim != 2 or actions.shape[1] != 7 or len(actions) != len(states):
-                            raise UserError(
-                                f"{path}:{name}: expected (T, 7) actions and T states, got {actions.shape} and "
-                                f"{states.shape}"
-                            )
+                    for name, seed, actions, states in read_demos(f, path):
                         env.seed(seed)
                         env.reset()
                         proprio, object_state = observe_states(env, states, f"{path}:{name}")

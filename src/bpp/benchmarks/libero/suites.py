@@ -290,27 +290,50 @@ SUITES_BY_NAME = {
 """LIBERO-Gen's suites, the Chain ablation's view, and LIBERO's own suites that bpp can demonstrate, by name."""
 
 
+VIEW_SYNTAX = "clauses field=value[,value...] or field!=value[,value...] joined by ';'"
+"""What a view (``--where``) is, for messages."""
+_CLAUSE = re.compile(r"\s*(\w+)\s*(!?)=([^=!;]*)")
+
+
+def parse_where(where: str) -> tuple[tuple[str, str, bool, frozenset[str]], ...]:
+    """The clauses of the view `where` (see :func:`matches`), each as (its text, field, negated, values), or a
+    UserError quoting `where` as given and saying what is expected. An empty or blank `where` is refused (no view
+    means every task: pass None), and so are an empty clause (``pick=TD;``) and a clause that is not
+    ``field=value[,value...]`` or ``field!=value[,value...]`` (``pick``, ``=TD``, ``pick==TD``, ``pick=!TD``)."""
+    if not where.strip():
+        raise UserError(f"where {where!r} is empty; expected {VIEW_SYNTAX} (leave it out for every task)")
+    clauses = []
+    for n, clause in enumerate(where.split(";"), 1):
+        match = _CLAUSE.fullmatch(clause)
+        if match is None:
+            what = f"clause {n} is empty" if not clause.strip() else f"{clause!r} is not field=value[,value...]"
+            raise UserError(f"where {where!r}: {what}; expected {VIEW_SYNTAX}")
+        key, negated, values = match.groups()
+        clauses.append((clause, key, bool(negated), frozenset(v.strip() for v in values.split(","))))
+    return tuple(clauses)
+
+
 def matches(task, where: str) -> bool:
     """Whether `task` is in the view `where`: clauses ``field=value[,value...]`` (or ``field!=...``) joined by ``;``,
     all of which must hold, over the task's scalar :meth:`describe` fields (Combination: scene, bowl, pick, place,
     place_key, base, instruction; Chain: view, start, instruction, label). E.g. ``pick=TD``, ``place!=ST;bowl=1``,
-    ``view=first_step,seen_chains``."""
+    ``view=first_step,seen_chains``; an empty value is a field that is not set (``start=``: chains with no start).
+    A malformed view or an unknown field is a UserError quoting `where` (:func:`parse_where`)."""
     fields = {k: "" if v is None else str(v) for k, v in task.describe().items() if not isinstance(v, (list, dict))}
-    for clause in filter(None, (c.strip() for c in where.split(";"))):
-        match = re.fullmatch(r"(\w+)\s*(!?)=(.*)", clause)
-        if match is None or match.group(1) not in fields:
-            raise UserError(f"view {where!r}: {clause!r} is not field=value[,value...] over {', '.join(fields)}")
-        key, negated, values = match.groups()
-        if (fields[key] in {v.strip() for v in values.split(",")}) == bool(negated):
+    for clause, key, negated, values in parse_where(where):
+        if key not in fields:
+            raise UserError(f"where {where!r}: {clause!r} is not field=value[,value...] over {', '.join(fields)}")
+        if (fields[key] in values) == negated:
             return False
     return True
 
 
-def view(suite, where: str):
+def view(suite, where: str | None):
     """`suite` with only the training and held-out tasks that match `where` (see :func:`matches`); its report then
-    counts similar tasks within the view. An empty `where` is the whole suite."""
-    if not where.strip():
+    counts similar tasks within the view. None is the whole suite; an empty `where` is refused."""
+    if where is None:
         return suite
+    parse_where(where)  # a malformed view is refused even if the suite has no task to match it against
     train = tuple(t for t in suite.train if matches(t, where))
     test = tuple(t for t in suite.test if matches(t, where))
     if not train and not test:
