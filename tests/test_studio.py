@@ -98,8 +98,10 @@ def test_every_api_call_needs_the_token(server):
                     json={} if method == "POST" else None,
                 )
                 assert response.status_code == 401 and response.json()["field"] == "token", (method, path)
-    assert httpx.post(f"{server.url}/api/session", params={"token": TOKEN}).status_code == 200
-    page = httpx.get(server.url)  # the page itself holds no data; its calls need the token in its URL
+    # a token in a URL leaks (history, logs, Referer): the API takes it only in a header (or as the page's cookie)
+    assert httpx.post(f"{server.url}/api/session", params={"token": TOKEN}).status_code == 401
+    assert httpx.post(f"{server.url}/api/session", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
+    page = httpx.get(server.url)  # the page itself holds no data; its calls need the token its address brings
     assert page.status_code == 200 and "bpp studio" in page.text
 
 
@@ -292,9 +294,9 @@ def test_a_person_draws_a_prompt_and_watches_the_policy(server, tmp_path):
         page.wait_for_timeout(300)
         page.click("#use-drawing")
         page.wait_for_selector("#run:not([disabled])")
-        page.wait_for_function("document.getElementById('prompt-info').textContent.startsWith('prompt ready')")
+        page.wait_for_selector("#prompt-info:text-matches('^prompt ready')")  # selectors: the page's CSP forbids eval
         page.click("#run")
-        page.wait_for_function("document.getElementById('score-a').dataset.done === '1'", timeout=120_000)
+        page.wait_for_selector("#score-a[data-done='1']", state="attached", timeout=120_000)
         score = page.inner_text("#score-a")
         inked = page.evaluate(
             "() => { const d = document.getElementById('ink-a').getContext('2d').getImageData(0, 0, 512, 512).data;"

@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import ipaddress
 import secrets
+import signal
+import socket
 import tempfile
 import threading
 import webbrowser
@@ -23,6 +27,7 @@ class StudioCommand:
     host: str = "127.0.0.1"
     """Address to listen on (0.0.0.0: every interface, e.g. for a phone on the same network)."""
     port: int = 8765
+    """Port to listen on (0: any free one; the printed address names it)."""
     browser: bool = True
     """Open the page in a browser (--no-browser: just print its URL)."""
     runs: tuple[Path, ...] = (Path("runs"),)
@@ -57,30 +62,105 @@ def studio(args: StudioCommand) -> None:
     from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints
     from bpp.benchmarks.draw.studio.server import create_app
 
+    main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
+        # SIGTERM raises as Ctrl-C does, so that the private folder (users' prompts) is deleted either way; uvicorn
+        # catches it while serving and raises it again once it has stopped.
+        signal.signal(signal.SIGTERM, _interrupt)
+    # Listen before printing anything: a busy port or an unknown host fails here, with nothing claimed, and
+    # --port 0 learns the port the system chose.
+    listener = listen(args.host, args.port)
+    port = listener.getsockname()[1]
     torch.set_num_threads(args.threads)
     checkpoints = find_checkpoints(args.runs)
     token = args.token or secrets.token_urlsafe(24)
-    with tempfile.TemporaryDirectory(prefix="bpp-studio-") as workdir:
-        limits = Limits(max_rollouts=args.max_rollouts, max_sessions=max(64, 2 * args.max_rollouts))
-        engine = Studio(checkpoints, Path(workdir), limits, data_dir=args.data_dir)
-        app = create_app(engine, token)
-        shown = "127.0.0.1" if args.host in ("0.0.0.0", "::") else args.host
-        url = f"http://{shown}:{args.port}/?token={token}"
-        if not checkpoints:
-            where = ", ".join(map(str, args.runs))
-            print(f"[studio] no trained DrawAnything policy under {where}: run `bpp demo` first (or pass --runs DIR)")
-        else:
-            print(f"[studio] {len(checkpoints)} checkpoint(s): " + "; ".join(c.label for c in checkpoints[:5]))
-        if not _loopback(args.host):
-            print(f"[studio] listening on {args.host}: anyone who can reach this machine and has the token can use it")
-        print(f"[studio] open {url}")
-        print("[studio] API token (Authorization: Bearer ...): " + token)
-        if args.browser:
-            threading.Timer(1.0, webbrowser.open, (url,)).start()
-        try:
-            uvicorn.run(app, host=args.host, port=args.port, log_level="warning")
-        finally:
-            engine.close()
+    try:
+        with tempfile.TemporaryDirectory(prefix="bpp-studio-") as workdir:
+            limits = Limits(max_rollouts=args.max_rollouts, max_sessions=max(64, 2 * args.max_rollouts))
+            engine = Studio(checkpoints, Path(workdir), limits, data_dir=args.data_dir)
+            names = {socket.gethostname(), socket.getfqdn(), f"{socket.gethostname()}.local", args.host}
+            app = create_app(engine, token, hosts=names)
+            urls = page_urls(args.host, port)
+            if not checkpoints:
+                where = ", ".join(map(str, args.runs))
+                print(
+                    f"[studio] no trained DrawAnything policy under {where}: run `bpp demo` first (or pass --runs DIR)"
+                )
+            else:
+                print(f"[studio] {len(checkpoints)} checkpoint(s): " + "; ".join(c.label for c in checkpoints[:5]))
+            if not _loopback(args.host):
+                print(
+                    f"[studio] listening on {args.host}: anyone who can reach this machine and has the token can use "
+                    "it; the page is plain HTTP, so the token crosses the network readable by anyone on the way: use "
+                    "it only on a network you trust (or reach a loopback studio through `ssh -L`)"
+                )
+            for url in urls:
+                print(f"[studio] open {url}#token={token}")
+            print("[studio] API token (Authorization: Bearer ...): " + token)
+            if args.browser:
+                threading.Timer(1.0, webbrowser.open, (f"{urls[-1]}#token={token}",)).start()
+            config = uvicorn.Config(
+                app, log_level="warning", limit_concurrency=256, timeout_keep_alive=5, timeout_graceful_shutdown=5
+            )
+            try:
+                uvicorn.Server(config).run(sockets=[listener])
+            finally:
+                engine.close()
+    finally:
+        listener.close()
+
+
+def _interrupt(signum: int, _frame) -> None:
+    raise KeyboardInterrupt(signal.Signals(signum).name)
+
+
+def listen(host: str, port: int) -> socket.socket:
+    """A socket listening on `host`:`port` (0: a free port), or a UserError saying why there is none."""
+    from bpp.errors import UserError
+
+    try:
+        family, kind, proto, _, address = socket.getaddrinfo(
+            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
+        )[0]
+    except (socket.gaierror, UnicodeError) as err:
+        raise UserError(f"--host {host!r}: not an address of this machine ({err})") from None
+    sock = socket.socket(family, kind, proto)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a restart reuses the port at once
+        sock.bind(address)
+        sock.listen(128)
+    except OSError as err:
+        sock.close()
+        hint = "another program (another `bpp studio`?) uses it: choose another --port, or --port 0 for any free one"
+        reason = hint if err.errno == errno.EADDRINUSE else err.strerror
+        raise UserError(f"cannot listen on {host} port {port}: {reason}") from None
+    return sock
+
+
+def page_urls(host: str, port: int) -> list[str]:
+    """Addresses of the page (without the token): for a wildcard host, this machine's network addresses (what a
+    phone opens) and then loopback (what this machine opens); else the host itself."""
+    if host in ("0.0.0.0", "::", ""):
+        found = _network_addresses()
+        loopback = "[::1]" if host == "::" and not found else "127.0.0.1"
+        return [*(f"http://{_bracket(a)}:{port}/" for a in found), f"http://{loopback}:{port}/"]
+    return [f"http://{_bracket(host)}:{port}/"]
+
+
+def _network_addresses() -> list[str]:
+    """This machine's non-loopback IPv4 addresses, the default route's first (no packet is sent to find it)."""
+    found = []
+    with contextlib.suppress(OSError), socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.connect(("192.0.2.1", 9))  # TEST-NET-1: connecting a UDP socket only picks the outgoing interface
+        found.append(probe.getsockname()[0])
+    with contextlib.suppress(OSError):
+        for info in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET):
+            found.append(info[4][0])
+    return [a for i, a in enumerate(found) if a not in found[:i] and not ipaddress.ip_address(a).is_loopback]
+
+
+def _bracket(host: str) -> str:
+    return f"[{host}]" if ":" in host else host
 
 
 def _loopback(host: str) -> bool:

@@ -10,11 +10,20 @@ steps are kept as events that clients read as they come. A rollout nobody reads 
 is stopped.
 
 Nothing a client sends is used as a file path: prompts and uploads are written under server-chosen names.
+
+Every token holder may be an abuser, so every kind of work has a bound per session and in total (:class:`Limits`):
+prompts are prepared a few at a time and refused by cheap checks before costly ones, a rollout's rendered frames
+wait for their reader (a rollout runs ahead of its reader by at most ``Limits.frame_backlog`` frames), events are
+kept as compact JSON text, animations are rendered from a bounded number of frames, cached, and stopped when their
+client leaves, and a session that is in use is never evicted to make room for a new one.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import hashlib
+import json
 import secrets
 import shutil
 import threading
@@ -26,9 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from bpp.benchmarks.draw import physics
-from bpp.benchmarks.draw.demonstrator import DemoConfig, Demonstration, demonstrate
+from bpp.benchmarks.draw.demonstrator import LAST_TRY_FACTOR, DemoConfig, Demonstration, demonstrate, replay_paths
 from bpp.benchmarks.draw.drawing import Drawing, DrawingError
-from bpp.benchmarks.draw.geometry import CANVAS_SIZE, MAX_BOARD_ANGLE, canvas_to_unit
+from bpp.benchmarks.draw.geometry import BOARD_SIZE, CANVAS_SIZE, MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.data.store import EpisodeStore, EpisodeWriter
 
 BENCHMARK = "drawanything"
@@ -36,8 +45,10 @@ END_REST_STEPS = DemoConfig().end_rest_steps
 """Pen-up steps appended to a drawn prompt, as the demonstrator rests after its last stroke."""
 
 
-KEEP_FINISHED_ROLLOUTS = 32
+KEEP_FINISHED_ROLLOUTS = 8
 """Finished rollouts a session keeps (for their results and downloads); older ones are forgotten."""
+FASTEST_DEMO_STEP_PX = DemoConfig().speed_range[1] * (1 + DemoConfig().speed_wobble) * 1.3**7
+"""The farthest the demonstrator's hand moves in one step, at its fastest try (it speeds up x1.3 per try)."""
 
 
 class StudioError(ValueError):
@@ -67,6 +78,24 @@ class Limits:
     """A running rollout whose events no client has read for this long is stopped."""
     session_idle_s: float = 3600.0
     """A session unused for this long is forgotten (its prompts deleted)."""
+    session_active_s: float = 300.0
+    """A session used this recently (or with a running rollout, an open stream or a render) is in use: a new
+    session never evicts it; when every session is in use, a new one is refused (429)."""
+    max_sessions_per_client: int = 16
+    """Sessions one client address may hold, so that one client cannot take every place."""
+    max_prompt_jobs: int = 2
+    """Prompts prepared at once in the whole studio (one per session)."""
+    max_streams_per_session: int = 4
+    max_streams: int = 64
+    """Event streams open at once in the whole studio."""
+    frame_backlog: int = 32
+    """Rendered frames a rollout keeps for its reader; with that many unsent it waits for the reader."""
+    max_renders: int = 2
+    """Animations (GIF/MP4) rendered at once in the whole studio (one per session)."""
+    max_animation_frames: int = 200
+    """An animation shows at most this many frames (a longer rollout shows every k-th step, at the same pace)."""
+    body_timeout_s: float = 10.0
+    """A request body must arrive within this many seconds."""
 
 
 @dataclass
@@ -89,15 +118,20 @@ class Prompt:
     steps: int
     store: EpisodeStore = field(repr=False)
     label: str = ""
+    ink: list = field(default_factory=list, repr=False)
+    """What the recorded demonstration inked: canvas polylines [[x, y], ...] (px, 0.1 px), as the page shows it."""
+    target: list = field(default_factory=list, repr=False)
+    """The Chamfer target (the ink, upright), loaded once: rollouts and animations need it after a deletion."""
 
-    def public(self) -> dict:
-        return {
+    def public(self, ink: bool = False) -> dict:
+        out = {
             "id": self.id,
             "source": self.source,
             "label": self.label,
             "board_angle": self.board_angle,
             "steps": self.steps,
         }
+        return {**out, "ink": self.ink} if ink else out
 
 
 @dataclass
@@ -110,11 +144,17 @@ class Rollout:
     max_steps: int
     frames: int = 0
     """Side of the rendered frame sent with every step event as a base64 PNG (0: none)."""
-    events: list = field(default_factory=list)
+    events: list[str] = field(default_factory=list)
+    """Every event as JSON text (a dict per event would take several times the memory)."""
+    pending_frames: dict[int, str] = field(default_factory=dict)
+    """Frames of events not yet sent, by event index: a frame is sent once, live, then forgotten."""
+    readers: int = 0
+    """Event streams open on it."""
     status: str = "starting"
     """starting, running, done, stopped (asked to), abandoned (nobody read it), error."""
     error: str = ""
     actions: list = field(default_factory=list)
+    """Actions taken, as [x, y, pen] lists while running, as a (T, 3) float64 array once finished."""
     best: float = float("inf")
     last_read: float = field(default_factory=time.monotonic)
     stop: threading.Event = field(default_factory=threading.Event)
@@ -130,9 +170,14 @@ class Rollout:
         return self.running and not self.stop.is_set()
 
     def drop_frames(self) -> None:
-        """Forget the frames of sent events (they are only for the live stream; a finished rollout keeps the rest)."""
-        for event in self.events:
-            event.pop("frame", None)
+        """Forget the frames nobody has read (they are only for the live stream)."""
+        self.pending_frames.clear()
+
+    def event_text(self, index: int) -> str:
+        """Event `index` as JSON, with its frame if it has not been sent yet (taking it: frames are sent once)."""
+        text = self.events[index]
+        frame = self.pending_frames.pop(index, None)
+        return text if frame is None else f'{text[:-1]}, "frame": "{frame}"}}'
 
     def public(self) -> dict:
         return {
@@ -156,6 +201,16 @@ class Session:
     prompts: dict[str, Prompt | None] = field(default_factory=dict)
     rollouts: dict[str, Rollout] = field(default_factory=dict)
     last_used: float = field(default_factory=time.monotonic)
+    client: str = ""
+    """The client's address, for the per-client session limit."""
+    streams: int = 0
+    renders: int = 0
+    preparing: bool = False
+    """A prompt of this session is being prepared (one at a time)."""
+
+    def in_use(self, now: float, active_s: float) -> bool:
+        busy = self.streams or self.renders or self.preparing or any(r.running for r in self.rollouts.values())
+        return bool(busy) or now - self.last_used < active_s
 
 
 def find_checkpoints(roots) -> list[CheckpointInfo]:
@@ -201,35 +256,52 @@ class Studio:
         self._human_lock = threading.Lock()
         self.pool = ThreadPoolExecutor(max_workers=limits.max_rollouts, thread_name_prefix="rollout")
         self._human: EpisodeStore | None = None
+        self._prompt_jobs = threading.BoundedSemaphore(limits.max_prompt_jobs)
+        self._renders = threading.BoundedSemaphore(limits.max_renders)
+        self.streams = 0
 
     # ------------------------------------------------------------------------------------------ sessions
-    def new_session(self) -> str:
-        """A new session; when the studio is full, the least recently used idle session (none of its rollouts
-        running) is forgotten to make room."""
+    def new_session(self, client: str = "") -> str:
+        """A new session for the client at address `client`. When the client holds ``max_sessions_per_client``
+        sessions, its own least recently used session that is not in use (``Limits.session_active_s``) is
+        forgotten to make room; when the studio is full, anyone's. A session in use is never pushed out: when all
+        candidates are in use, the new session is refused (429)."""
         with self.lock:
             forgotten = self._forget_idle()
-            if len(self.sessions) >= self.limits.max_sessions:
-                idle = [s for s in self.sessions.values() if not any(r.running for r in s.rollouts.values())]
-                if not idle:
-                    raise StudioError(
-                        f"the studio has {len(self.sessions)} busy sessions, its limit; try again later", "session", 429
-                    )
-                oldest = min(idle, key=lambda s: s.last_used)
-                forgotten.append(self.sessions.pop(oldest.id))
+            now = time.monotonic()
+            mine = [s for s in self.sessions.values() if s.client == client]
+            if len(mine) >= self.limits.max_sessions_per_client:  # a client makes room only among its own
+                forgotten.append(self._evict(mine, now, f"this client's {len(mine)} sessions"))
+            elif len(self.sessions) >= self.limits.max_sessions:
+                forgotten.append(
+                    self._evict(list(self.sessions.values()), now, f"the studio's {len(self.sessions)} sessions")
+                )
             sid = secrets.token_hex(16)
-            self.sessions[sid] = Session(sid, self.workdir / sid)
+            self.sessions[sid] = Session(sid, self.workdir / sid, client=client)
         for session in forgotten:  # outside the lock: deleting files must not hold up requests
-            shutil.rmtree(session.folder, ignore_errors=True)
+            self._discard(session)
         return sid
+
+    def _evict(self, candidates: list[Session], now: float, whose: str) -> Session:
+        """Forget the least recently used of `candidates` that is not in use, or refuse (429) if all are."""
+        idle = [s for s in candidates if not s.in_use(now, self.limits.session_active_s)]
+        if not idle:
+            raise StudioError(f"{whose} are all in use; end one (DELETE /api/session) or try later", "session", 429)
+        return self.sessions.pop(min(idle, key=lambda s: s.last_used).id)
 
     def end_session(self, sid: str) -> None:
         """Stop the session's rollouts and forget it (its prompts are deleted)."""
         session = self.session(sid)
         with self.lock:
             self.sessions.pop(sid, None)
+        self._discard(session)
+
+    @staticmethod
+    def _discard(session: Session) -> None:
         for rollout in session.rollouts.values():
             rollout.stop.set()
         shutil.rmtree(session.folder, ignore_errors=True)
+        release_memory()
 
     def session(self, sid: str) -> Session:
         with self.lock:
@@ -239,6 +311,13 @@ class Studio:
             session.last_used = time.monotonic()
             return session
 
+    def session_info(self, sid: str) -> dict:
+        """What the session holds (the page's keep-alive asks for it)."""
+        session = self.session(sid)
+        prompts = [p.public() for p in list(session.prompts.values()) if p is not None]
+        rollouts = [r.public() for r in list(session.rollouts.values())]
+        return {"session": sid, "prompts": prompts, "rollouts": rollouts, "limits": asdict(self.limits)}
+
     def _forget_idle(self) -> list[Session]:
         """Drop sessions unused for ``session_idle_s`` (none of their rollouts running); returns them, so that
         their folders are deleted outside the lock."""
@@ -246,7 +325,7 @@ class Studio:
         forgotten = []
         for sid, session in list(self.sessions.items()):
             idle = now - session.last_used > self.limits.session_idle_s
-            if idle and not any(r.running for r in session.rollouts.values()):
+            if idle and not session.in_use(now, 0.0):
                 forgotten.append(self.sessions.pop(sid))
         return forgotten
 
@@ -255,6 +334,28 @@ class Studio:
             for rollout in session.rollouts.values():
                 rollout.stop.set()
         self.pool.shutdown(wait=True, cancel_futures=True)
+
+    def open_stream(self, sid: str, rollout: Rollout) -> None:
+        """Count an event stream against the limits (:meth:`close_stream` when it ends)."""
+        session = self.session(sid)
+        with self.lock:
+            if session.streams >= self.limits.max_streams_per_session:
+                raise StudioError(f"this session has {session.streams} event streams open, its limit", "stream", 429)
+            if self.streams >= self.limits.max_streams:
+                raise StudioError(f"the studio has {self.streams} event streams open, its limit", "stream", 429)
+            session.streams += 1
+            self.streams += 1
+            rollout.readers += 1
+
+    def close_stream(self, sid: str, rollout: Rollout) -> None:
+        with self.lock:
+            session = self.sessions.get(sid)
+            if session is not None:
+                session.streams -= 1
+            self.streams -= 1
+            rollout.readers -= 1
+            if not rollout.running and not rollout.readers:
+                rollout.drop_frames()
 
     # ------------------------------------------------------------------------------------------- prompts
     def human_store(self) -> EpisodeStore:
@@ -272,11 +373,44 @@ class Studio:
         episodes = store.task_episodes()
         return [{"task": t, "id": task["id"], "episodes": len(episodes[t])} for t, task in enumerate(store.tasks)]
 
+    def _preparing(self, sid: str):
+        """A context in which session `sid` prepares one prompt: one per session, ``max_prompt_jobs`` in all,
+        refused (429) rather than queued, so that waiting requests cannot pile up."""
+        studio = self
+
+        class _Job:
+            def __enter__(self):
+                session = studio.session(sid)
+                with studio.lock:
+                    if session.preparing:
+                        raise StudioError("this session is already preparing a prompt; wait for it", "prompt", 429)
+                    if len(session.prompts) >= studio.limits.max_prompts_per_session:
+                        raise StudioError(
+                            f"this session has {len(session.prompts)} prompts, its limit; delete one "
+                            "(DELETE /api/prompts/{id})",
+                            "prompt",
+                            429,
+                        )
+                    if not studio._prompt_jobs.acquire(blocking=False):
+                        raise StudioError(
+                            "the studio is busy preparing other prompts; try again shortly", "prompt", 429
+                        )
+                    session.preparing = True
+                self.session = session
+                return session
+
+            def __exit__(self, *_):
+                self.session.preparing = False
+                studio._prompt_jobs.release()
+
+        return _Job()
+
     def _new_prompt(
         self, sid: str, source: str, label: str, drawing: Drawing, demo: Demonstration, field: str
     ) -> Prompt:
         """Store `demo` as a prompt of session `sid`; `field` names the input it came from (for errors)."""
         from bpp.benchmarks.draw.dataset import episode_steps, strokes_array
+        from bpp.benchmarks.draw.rollouts import prompt_target
 
         session = self.session(sid)
         if len(demo) > self.limits.max_prompt_steps:
@@ -295,7 +429,9 @@ class Studio:
             with EpisodeWriter(path, benchmark=BENCHMARK, config={"studio": source}) as writer:
                 task = writer.add_task(drawing.id, {"source": source}, strokes=strokes_array(drawing))
                 writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)
-            prompt = Prompt(pid, source, float(demo.board_angle), len(demo), EpisodeStore(path), label)
+            store = EpisodeStore(path)
+            ink = _polylines(replay_paths(demo.states, demo.actions))
+            prompt = Prompt(pid, source, float(demo.board_angle), len(demo), store, label, ink, prompt_target(store, 0))
         except BaseException:
             session.prompts.pop(pid, None)
             raise
@@ -308,62 +444,78 @@ class Studio:
         samples = np.asarray(samples, dtype=np.float64)
         if samples.ndim != 2 or samples.shape[1] != 3 or len(samples) < 2:
             raise StudioError("samples must be a list of at least 2 [x, y, pen] triples", "samples", 422)
-        if not np.all(np.isfinite(samples)) or samples[:, :2].min() < 0 or samples[:, :2].max() > CANVAS_SIZE:
-            raise StudioError(f"sample positions must be finite canvas pixels in [0, {CANVAS_SIZE}]", "samples", 422)
-        if not np.all(np.isin(samples[:, 2], (0.0, 1.0))):
-            raise StudioError("each sample's pen must be 0 (up) or 1 (down)", "samples", 422)
-        if not samples[:, 2].any():
-            raise StudioError("the drawing has no pen-down sample: draw at least one stroke", "samples", 422)
         if len(samples) + END_REST_STEPS > self.limits.max_prompt_steps:
             raise StudioError(
                 f"{len(samples)} samples; a prompt has at most {self.limits.max_prompt_steps - END_REST_STEPS}",
                 "samples",
                 413,
             )
-        actions = (
-            np.concatenate([samples, np.c_[np.repeat(samples[-1:, :2], END_REST_STEPS, 0), np.zeros(END_REST_STEPS)]])
-            .astype(np.float32)
-            .astype(np.float64)
-        )
-        state = physics.initial_state(actions[0, :2])
-        states = []
-        for action in actions:
-            states.append(state)
-            state, _ = physics.control_step(state, action)
-        states = np.array(states)
-        demo = Demonstration(states, actions, float(board_angle), speed=0.0)
-        return self._new_prompt(
-            sid, "drawn", "your drawing", _drawing_of(states, actions, board_angle), demo, "samples"
-        )
+        if not np.all(np.isfinite(samples)) or samples[:, :2].min() < 0 or samples[:, :2].max() > CANVAS_SIZE:
+            raise StudioError(f"sample positions must be finite canvas pixels in [0, {CANVAS_SIZE}]", "samples", 422)
+        if not np.all(np.isin(samples[:, 2], (0.0, 1.0))):
+            raise StudioError("each sample's pen must be 0 (up) or 1 (down)", "samples", 422)
+        if not samples[:, 2].any():
+            raise StudioError("the drawing has no pen-down sample: draw at least one stroke", "samples", 422)
+        with self._preparing(sid):
+            actions = (
+                np.concatenate(
+                    [samples, np.c_[np.repeat(samples[-1:, :2], END_REST_STEPS, 0), np.zeros(END_REST_STEPS)]]
+                )
+                .astype(np.float32)
+                .astype(np.float64)
+            )
+            state = physics.initial_state(actions[0, :2])
+            states = []
+            for action in actions:
+                states.append(state)
+                state, _ = physics.control_step(state, action)
+            states = np.array(states)
+            demo = Demonstration(states, actions, float(board_angle), speed=0.0)
+            drawing = _drawing_of(states, actions, board_angle)
+            return self._new_prompt(sid, "drawn", "your drawing (as drawn)", drawing, demo, "samples")
 
-    def add_strokes_prompt(self, sid: str, strokes, board_angle: float, seed: int = 0) -> Prompt:
+    def add_strokes_prompt(self, sid: str, strokes, board_angle: float, seed: int = 0, label: str = "") -> Prompt:
         """A drawing (unit-square strokes, y up) demonstrated by the built-in demonstrator at `board_angle`."""
-        from bpp.benchmarks.draw.files import bounded
+        from bpp.benchmarks.draw.files import MAX_POINTS, bounded
 
+        points = sum(len(s) for s in strokes)
+        if points > 4 * MAX_POINTS:  # before any work: merging close points could not bring it under MAX_POINTS
+            raise StudioError(
+                f"strokes have {points} points; at most {MAX_POINTS} (after merging close ones)", "strokes", 422
+            )
         try:
             drawing = bounded(Drawing.from_strokes("drawing", strokes, source="strokes"), "strokes")
         except DrawingError as err:
             raise StudioError(str(err), "strokes", 422) from None
-        return self._demonstrated(sid, drawing, board_angle, seed, "strokes", "strokes")
+        return self._demonstrated(sid, drawing, board_angle, seed, "strokes", "strokes", label or "your drawing")
 
     def add_file_prompt(self, sid: str, name: str, text: str, board_angle: float, seed: int = 0) -> Prompt:
-        """The first drawing of an uploaded JSON stroke or SVG file's content (`name` only chooses the format)."""
+        """The first drawing of an uploaded JSON stroke or SVG file's content (`name` only chooses the format
+        and labels the prompt)."""
         from bpp.benchmarks.draw.files import load_drawings
 
         suffix = Path(name).suffix.lower()
         if suffix not in (".json", ".svg"):
             raise StudioError(f"file name {name!r}: expected a .json or .svg drawing file", "name", 422)
+        # Written under a name of the server's choosing; the client's name only labels the drawing and messages.
+        stem = Path(name.replace("\\", "/")).stem[:64] or "drawing"
         session = self.session(sid)
-        session.folder.mkdir(parents=True, exist_ok=True)
-        upload = session.folder / f"upload-{secrets.token_hex(8)}{suffix}"
-        upload.write_text(text, encoding="utf-8")
-        try:
-            drawing = load_drawings([upload])[0]
-        except DrawingError as err:
-            raise StudioError(str(err).replace(str(upload), name), "text", 422) from None
-        finally:
-            upload.unlink(missing_ok=True)
-        return self._demonstrated(sid, drawing, board_angle, seed, f"file {name}", "text")
+        with self._preparing(sid):
+            session.folder.mkdir(parents=True, exist_ok=True)
+            upload = session.folder / f"upload-{secrets.token_hex(8)}{suffix}"
+            upload.write_text(text, encoding="utf-8")
+            try:
+                drawing = load_drawings([upload])[0]
+            except Exception as err:  # noqa: BLE001 - any parser failure is the file's fault: a 4xx with its message
+                detail = str(err) if isinstance(err, DrawingError) else f"{type(err).__name__}: {err}"
+                detail = detail.replace(str(upload), name).replace(upload.stem, stem)
+                detail = detail if name in detail else f"{name}: cannot read it ({detail})"
+                raise StudioError(detail, "text", 422) from None
+            finally:
+                upload.unlink(missing_ok=True)
+        if drawing.id == upload.stem:  # an SVG drawing is named after its file
+            drawing = Drawing(stem, drawing.strokes, name)
+        return self._demonstrated(sid, drawing, board_angle, seed, f"file {name}", "text", Path(name).name[:200])
 
     def add_stored_prompt(self, sid: str, task: int, demo: int = 0) -> Prompt:
         """Demonstration `demo` of unseen drawing `task` (as ``bpp eval`` prompts it)."""
@@ -375,29 +527,52 @@ class Studio:
         episodes = store.task_episodes()[task]
         if not 0 <= demo < len(episodes):
             raise StudioError(f"demo must be in [0, {len(episodes)}), got {demo}", "demo", 422)
-        episode = int(episodes[demo])
-        steps = store.episode(episode, ("state", "action"))
-        angle = float(store.column("board_angle")[episode])
-        demo_obj = Demonstration(steps["state"], steps["action"].astype(np.float64), angle, 0.0)
-        drawing = task_drawing(store, task)
-        return self._new_prompt(sid, "stored", f"{drawing.id} (demo {demo})", drawing, demo_obj, "task")
+        with self._preparing(sid):
+            episode = int(episodes[demo])
+            steps = store.episode(episode, ("state", "action"))
+            angle = float(store.column("board_angle")[episode])
+            demo_obj = Demonstration(steps["state"], steps["action"].astype(np.float64), angle, 0.0)
+            drawing = task_drawing(store, task)
+            return self._new_prompt(sid, "stored", f"{drawing.id} (demo {demo})", drawing, demo_obj, "task")
 
     def _demonstrated(
-        self, sid: str, drawing: Drawing, board_angle: float, seed: int, source: str, field: str
+        self, sid: str, drawing: Drawing, board_angle: float, seed: int, source: str, field: str, label: str
     ) -> Prompt:
+        # The demonstrator plans a whole stroke before it counts steps, so a drawing whose ink could not be traced
+        # within the prompt's steps even at its fastest is refused here, before seconds of planning.
+        ink_px = drawing.ink_length * BOARD_SIZE
+        fewest = int(ink_px / FASTEST_DEMO_STEP_PX) + 2 * len(drawing.strokes)
+        if fewest > min(self.limits.max_prompt_steps, LAST_TRY_FACTOR * DemoConfig().max_steps):
+            raise StudioError(
+                f"its ink is {ink_px:.0f} px long: demonstrating it takes at least {fewest} steps, and a prompt has at "
+                f"most {self.limits.max_prompt_steps}; use fewer or shorter strokes",
+                field,
+                422,
+            )
         rng = np.random.default_rng(seed)
         start = rng.uniform(50.0, 450.0, size=2)
-        try:
-            demo = demonstrate(drawing, float(board_angle), start, rng, DemoConfig())
-        except DrawingError as err:
-            raise StudioError(str(err), field, 422) from None
-        return self._new_prompt(sid, source, drawing.id, drawing, demo, field)
+        with self._preparing(sid):
+            try:
+                demo = demonstrate(drawing, float(board_angle), start, rng, DemoConfig())
+            except DrawingError as err:
+                raise StudioError(str(err), field, 422) from None
+            return self._new_prompt(sid, source, label, drawing, demo, field)
 
     def prompt(self, sid: str, pid: str) -> Prompt:
         prompt = self.session(sid).prompts.get(pid)  # None while it is still being written
         if prompt is None:
             raise StudioError(f"no prompt {pid!r} in this session", "prompt_id", 404)
         return prompt
+
+    def delete_prompt(self, sid: str, pid: str) -> None:
+        """Forget a prompt and delete its files (its finished rollouts keep what they need)."""
+        session = self.session(sid)
+        prompt = self.prompt(sid, pid)
+        with self.lock:
+            if any(r.running and r.prompt is prompt for r in session.rollouts.values()):
+                raise StudioError("a rollout of this prompt is running; stop it first", "prompt_id", 409)
+            session.prompts.pop(pid, None)
+        shutil.rmtree(prompt.store.path, ignore_errors=True)
 
     def prompt_task_file(self, sid: str, pid: str) -> dict:
         """The prompt's drawing in the JSON stroke format, for ``bpp eval --files``."""
@@ -442,6 +617,8 @@ class Studio:
             finished = [rid for rid, r in session.rollouts.items() if not r.running]
             for rid in finished[: max(0, len(finished) - KEEP_FINISHED_ROLLOUTS)]:  # oldest first (dict order)
                 del session.rollouts[rid]
+                for cached in session.folder.glob(f"rollout-{rid}.*"):
+                    cached.unlink(missing_ok=True)
         self.pool.submit(self._run, rollout)
         return rollout
 
@@ -468,14 +645,30 @@ class Studio:
             self._steps(rollout)
         except Exception as err:  # noqa: BLE001 - reported to the client, the studio goes on
             rollout.error = f"{type(err).__name__}: {err}"
-            rollout.events.append({"type": "end", "status": "error", "error": rollout.error})
+            rollout.events.append(json.dumps({"type": "end", "status": "error", "error": rollout.error}))
             rollout.status = "error"
+        finally:
+            rollout.actions = np.asarray(rollout.actions, dtype=np.float64).reshape(-1, 3)
+            with self.lock:
+                if not rollout.readers:
+                    rollout.drop_frames()
+            release_memory()
+
+    def _wait_for_reader(self, rollout: Rollout) -> str | None:
+        """Wait while the reader has ``frame_backlog`` frames unsent; returns why the rollout must end, if so."""
+        while True:
+            if rollout.stop.is_set():
+                return "stopped"
+            if time.monotonic() - rollout.last_read > self.limits.abandon_s:
+                return "abandoned"
+            if len(rollout.pending_frames) < self.limits.frame_backlog:
+                return None
+            time.sleep(0.02)
 
     def _steps(self, rollout: Rollout) -> None:
         import torch
 
         from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
-        from bpp.benchmarks.draw.rollouts import prompt_target
         from bpp.benchmarks.registry import get_benchmark
         from bpp.data.contexts import task_context
         from bpp.policies.agent import PolicyAgent
@@ -491,17 +684,17 @@ class Studio:
             render_mode="rgb_array" if rollout.frames else None,
             render_size=rollout.frames or CANVAS_SIZE,
         )
-        target = prompt_target(store, 0)
-        obs, _ = env.reset(seed=rollout.seed, options={"board_angle": rollout.board_angle, "target": target})
-        rollout.status = "running"
-        rollout.events.append(
-            {
-                "type": "start",
-                "board_angle": rollout.board_angle,
-                "cursor": env.state[:2].tolist(),
-                "prompt_steps": rollout.prompt.steps,
-            }
+        obs, _ = env.reset(
+            seed=rollout.seed, options={"board_angle": rollout.board_angle, "target": rollout.prompt.target}
         )
+        rollout.status = "running"
+        start = {
+            "type": "start",
+            "board_angle": rollout.board_angle,
+            "cursor": env.state[:2].tolist(),
+            "prompt_steps": rollout.prompt.steps,
+        }
+        rollout.events.append(json.dumps(start))
         calls = 0
         done = False
         status = "done"
@@ -529,17 +722,20 @@ class Studio:
                 "chamfer": round(float(info["chamfer"]), 3),
                 "best_chamfer": round(float(info["best_chamfer"]), 3),
             }
-            if rollout.frames:
-                event["frame"] = _png_base64(env.render())
             if len(agent.attention_log) > calls:
                 calls = len(agent.attention_log)
                 event["attention"] = [round(float(a), 4) for a in agent.attention_log[-1][0]]
-            rollout.events.append(event)
+            if rollout.frames:
+                why = self._wait_for_reader(rollout)
+                if why:
+                    status = why
+                    break
+                rollout.pending_frames[len(rollout.events)] = _png_base64(env.render())
+            rollout.events.append(json.dumps(event))
         best = rollout.public()["best_chamfer"]
-        rollout.events.append({"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)})
+        end = {"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)}
+        rollout.events.append(json.dumps(end))
         rollout.status = status  # after the end event: a stream that sees the rollout finished has it to send
-        if status == "abandoned":
-            rollout.drop_frames()
 
     def stop_rollout(self, sid: str, rid: str) -> Rollout:
         rollout = self.rollout(sid, rid)
@@ -552,35 +748,140 @@ class Studio:
         return {
             **rollout.public(),
             "prompt": rollout.prompt.public(),
-            "actions": rollout.actions,
+            "actions": np.asarray(rollout.actions, dtype=np.float64).tolist(),
             "limits": asdict(self.limits),
         }
 
-    def animation(self, sid: str, rid: str, path: Path, size: int = 256) -> Path:
-        """Replay a rollout's actions (the physics is deterministic) into a GIF or MP4 at `path` (server-chosen)."""
-        from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
-        from bpp.benchmarks.draw.rollouts import prompt_target
-        from bpp.media import save_animation
-
+    def animation(self, sid: str, rid: str, fmt: str, cancel: threading.Event | None = None, size: int = 256) -> Path:
+        """The rollout as a GIF or MP4 (`fmt`), replayed from its actions (the physics is deterministic), rendered
+        once per rollout and kept in the session's folder. One render per session and ``max_renders`` in all
+        (refused, not queued); at most ``max_animation_frames`` frames; `cancel` set stops it (its client left)."""
+        session = self.session(sid)
         rollout = self.rollout(sid, rid)
         if rollout.running:
             raise StudioError("the rollout is still running", "rollout_id", 409)
-        spec_frame = ACTION_FRAMES[self._model(rollout.checkpoint).data_spec().action_key]
-        env = DrawEnv(
-            image_size=None,
-            max_episode_steps=max(1, len(rollout.actions)),
-            render_mode="rgb_array",
-            render_size=size,
-            action_frame=spec_frame,
-            early_stop=False,
-        )
-        target = prompt_target(rollout.prompt.store, 0)
-        env.reset(seed=rollout.seed, options={"board_angle": rollout.board_angle, "target": target})
-        frames = [env.render()]
-        for action in rollout.actions:
-            env.step(np.asarray(action))
-            frames.append(env.render())
-        return save_animation(frames, path)
+        path = session.folder / f"rollout-{rollout.id}.{fmt}"
+        if path.is_file():
+            return path
+        with self.lock:
+            if session.renders:
+                raise StudioError("this session is already rendering an animation; wait for it", "rollout_id", 429)
+            if not self._renders.acquire(blocking=False):
+                raise StudioError("the studio is rendering other animations; try again shortly", "rollout_id", 429)
+            session.renders += 1
+        try:
+            spec_frame = self._action_frame(rollout.checkpoint)
+            partial = path.with_name(f".{path.stem}-{secrets.token_hex(4)}{path.suffix}")  # the suffix picks the format
+            try:
+                _render_animation(rollout, spec_frame, partial, fmt, size, self.limits.max_animation_frames, cancel)
+                partial.replace(path)
+            except _Cancelled:
+                raise StudioError("the client left before the animation was ready", "rollout_id", 499) from None
+            finally:
+                partial.unlink(missing_ok=True)
+        finally:
+            with self.lock:
+                session.renders -= 1
+            self._renders.release()
+            release_memory()
+        return path
+
+    def _action_frame(self, checkpoint: CheckpointInfo) -> str:
+        from bpp.benchmarks.draw.env import ACTION_FRAMES
+
+        return ACTION_FRAMES[self._model(checkpoint).data_spec().action_key]
+
+
+class _Cancelled(Exception):
+    """An animation's client left."""
+
+
+def _render_animation(
+    rollout: Rollout, action_frame: str, path: Path, fmt: str, size: int, max_frames: int, cancel
+) -> None:
+    """Replay `rollout` into `path`, frame by frame into the encoder (never all frames in memory at once)."""
+    from PIL import Image
+
+    from bpp.benchmarks.draw.env import DrawEnv
+    from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
+
+    actions = np.asarray(rollout.actions, dtype=np.float64).reshape(-1, 3)
+    every = max(1, int(np.ceil(len(actions) / max(1, max_frames - 1))))
+    # Without a target the env skips the per-step Chamfer update; the target is blended in here instead.
+    env = DrawEnv(
+        image_size=None,
+        max_episode_steps=max(1, len(actions)),
+        render_mode="rgb_array",
+        render_size=size,
+        action_frame=action_frame,
+        early_stop=False,
+    )
+    env.reset(seed=rollout.seed, options={"board_angle": rollout.board_angle})
+    cover = (0.35 * target_coverage(rollout.prompt.target, rollout.board_angle, size))[..., None]
+    tint = cover * np.asarray(TARGET_RGB, dtype=np.float64)
+
+    def frames():
+        for step in range(len(actions) + 1):
+            if step:
+                env.step(actions[step - 1])
+            if step % every == 0 or step == len(actions):
+                if cancel is not None and cancel.is_set():
+                    raise _Cancelled
+                yield np.rint(env.render() * (1.0 - cover) + tint).astype(np.uint8)
+
+    if fmt == "mp4":
+        import imageio.v2 as iio2
+
+        with iio2.get_writer(path, format="FFMPEG", fps=10 / every, codec="libx264", macro_block_size=16) as out:
+            for frame in frames():
+                out.append_data(frame)
+    else:
+        # A GIF is written at the end; frames are kept as 1-byte palette images (a third of RGB) meanwhile.
+        palette = _palette()
+        images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames()]
+        images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=100 * every, loop=0)
+
+
+def _palette():
+    """A fixed GIF palette: a 6x6x6 colour cube plus 40 greys, so every frame shares it."""
+    from PIL import Image
+
+    levels = [0, 51, 102, 153, 204, 255]
+    colours = [(r, g, b) for r in levels for g in levels for b in levels]
+    colours += [(v, v, v) for v in np.linspace(0, 255, 40).astype(int)]
+    image = Image.new("P", (1, 1))
+    image.putpalette([c for rgb in colours for c in rgb])
+    return image
+
+
+def release_memory() -> None:
+    """Give freed memory back to the system (glibc keeps freed arenas of finished threads otherwise)."""
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _load_libc():
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name) if name else None
+        return libc if libc is not None and hasattr(libc, "malloc_trim") else None
+    except OSError:
+        return None
+
+
+_LIBC = _load_libc()
+
+
+def _polylines(paths: list[np.ndarray]) -> list[list[list[float]]]:
+    """Join consecutive per-step paths that continue each other into polylines, rounded to 0.1 px."""
+    lines: list[list[list[float]]] = []
+    for path in paths:
+        points = np.round(np.asarray(path, dtype=np.float64), 1).tolist()
+        if lines and lines[-1][-1] == points[0]:
+            lines[-1].extend(points[1:])
+        else:
+            lines.append(points)
+    return lines
 
 
 def _png_base64(frame: np.ndarray) -> str:
