@@ -6,7 +6,13 @@ every other one adds a dark occluder polygon (a hand, a pen, an arm's edge), hal
 pose measured by ``canvas_pose`` is compared with the truth; a pose more than 1 cm or 2 degrees off is counted as
 silently wrong, which must never happen. Prints markdown tables.
 
+With ``--simulator N`` the photos come from the simulated arm's scene instead (MuJoCo, robosuite's Panda): N random
+canvas placements on the board (±45 degrees), the light's strength varied, the arm either pulled back or standing
+at a random pose in front of the board (where it may hide markers), the scene camera's photo at 480x480 and its
+extrinsic calibration turning the pose into the robot's base frame, compared with the simulator's placement.
+
     python bench/draw3d_canvas_pose.py [--n 200] [--seed 0]
+    python bench/draw3d_canvas_pose.py --simulator 100
 """
 
 from __future__ import annotations
@@ -80,7 +86,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n", type=int, default=200, help="random placements")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--simulator", type=int, default=0, help="placements in the simulated scene instead")
     args = parser.parse_args()
+    if args.simulator:
+        simulator(args.simulator, args.seed)
+        return
     rng, layout = np.random.default_rng(args.seed), CanvasLayout()
     rows: dict[str, list] = {"no occluder": [], "occluder, no marker hidden": [], "occluder over a marker": []}
     failures: dict[str, Counter] = {group: Counter() for group in rows}
@@ -128,6 +138,63 @@ def main() -> None:
     for reason in sorted(examples):
         counts = " | ".join(str(failures[group][reason]) for group in rows)
         print(f"| {reason} | {counts} | {examples[reason]} |")
+
+
+def simulator(n: int, seed: int) -> None:
+    from bpp.benchmarks.draw3d.canvas import canvas_in_base
+    from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, random_pose
+    from bpp.benchmarks.draw3d.scene import BOARD, HOME_QPOS, Scene, canvas_transform
+    from bpp.benchmarks.poses import invert, pose_to_vector
+
+    rng = np.random.default_rng(seed)
+    scene = Scene(image_size=96)
+    light = scene.model.light_diffuse[0].copy()
+    retracted = np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
+    rows: dict[str, list] = {"arm pulled back": [], "arm in front of the board": []}
+    failures: dict[str, Counter] = {group: Counter() for group in rows}
+    examples: dict[str, str] = {}
+    size = 640
+    for i in range(n):
+        truth = canvas_transform(rng.uniform(-0.25, 0.25), rng.uniform(-0.08, 0.08), rng.uniform(-45, 45))
+        scene.model.light_diffuse[0] = light * rng.uniform(0.5, 1.3)
+        in_front = bool(i % 2)
+        scene.reset(truth, HOME_QPOS if in_front else retracted)
+        if in_front:  # walk the pen to a random pose in front of the canvas, as a demonstration starts
+            goal = truth @ random_pose(rng, ScriptConfig())
+            start = scene.target.copy()
+            for k in range(1, 21):
+                a = k / 20
+                waypoint = goal.copy()
+                waypoint[:3, 3] = (1 - a) * start[:3, 3] + a * goal[:3, 3]
+                scene.step(np.append(pose_to_vector(invert(scene.target) @ waypoint), 0.0))
+        group = list(rows)[in_front]
+        camera = scene.camera_pose("scene")
+        try:
+            found = canvas_pose(
+                scene.render("scene", size), scene.camera_intrinsics("scene", size), up=camera[:3, :3].T @ BOARD[:, 1]
+            )
+        except CanvasNotFound as err:
+            failures[group][err.reason] += 1
+            examples.setdefault(err.reason, str(err))
+            rows[group].append(None)
+            continue
+        position, rotation = pose_error(canvas_in_base(camera, found), truth)
+        rows[group].append((position * 1000, rotation, 0.0))
+    scene.close()
+    print(f"Canvas pose in the simulated scene: {n} placements (seed {seed}), scene camera 640x640, light x0.5-1.3\n")
+    print("| arm | n | poses | failures | position p50 / p95 / max (mm) | rotation p50 / p95 / max (deg) "
+          f"| wrong (> {WRONG_MM:.0f} mm or > {WRONG_DEG:.0f} deg) |")  # fmt: skip
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+    for name, group in rows.items():
+        poses = [r for r in group if r is not None]
+        wrong = sum(p > WRONG_MM or d > WRONG_DEG for p, d, _ in poses)
+        print(
+            f"| {name} | {len(group)} | {len(poses)} | {len(group) - len(poses)} | {stats([p for p, _, _ in poses])} "
+            f"| {stats([d for _, d, _ in poses])} | {wrong} |"
+        )
+    for reason in sorted(examples):
+        counts = ", ".join(f"{group}: {failures[group][reason]}" for group in rows)
+        print(f"\nfailure {reason} ({counts}), e.g.: {examples[reason]}")
 
 
 if __name__ == "__main__":

@@ -86,6 +86,8 @@ def scene_xml() -> str:
     option = root.find("option") if root.find("option") is not None else ET.SubElement(root, "option")
     option.set("timestep", str(TIMESTEP))
     ET.SubElement(option, "flag", contact="disable")  # the pen inks by distance; nothing else touches
+    visual = root.find("visual") if root.find("visual") is not None else ET.SubElement(root, "visual")
+    ET.SubElement(visual, "global", offwidth="1024", offheight="1024")  # photos up to 1024 px
     asset = root.find("asset")
     ET.SubElement(asset, "texture", name="canvas_ink", type="2d", builtin="flat", width=str(TEXTURE),
                   height=str(TEXTURE), rgb1="0.96 0.96 0.93", rgb2="0.96 0.96 0.93")  # fmt: skip
@@ -175,6 +177,7 @@ class Scene:
         self._renderers: dict = {}
         self._visible = mujoco.MjvOption()
         self._visible.geomgroup[0] = 0  # robosuite's collision meshes (the visual meshes are group 1)
+        self._visible.sitegroup[:] = 0  # sites are reference points, not things a camera sees (the tip's is red)
         self.substeps = round(1.0 / (CONTROL_HZ * TIMESTEP))
 
     # ------------------------------------------------------------------ state
@@ -284,10 +287,12 @@ class Scene:
         return renderer.render().copy()
 
     def camera_intrinsics(self, camera: str, size: int | None = None) -> np.ndarray:
-        """The pinhole matrix K (3, 3) of `camera` rendered at size x size (square pixels, centred)."""
+        """The pinhole matrix K (3, 3) of `camera` rendered at size x size, in OpenCV's pixel convention (pixel i's
+        centre at coordinate i, so the image's centre at (size - 1) / 2)."""
         size = size or self.image_size
         focal = size / 2 / np.tan(np.deg2rad(self.model.camera(camera).fovy[0]) / 2)
-        return np.array([[focal, 0.0, size / 2], [0.0, focal, size / 2], [0.0, 0.0, 1.0]])
+        centre = (size - 1) / 2
+        return np.array([[focal, 0.0, centre], [0.0, focal, centre], [0.0, 0.0, 1.0]])
 
     def camera_pose(self, camera: str) -> np.ndarray:
         """``T_base_camera`` of `camera` with OpenCV's axes (x right, y down, z forward): a camera-to-robot
@@ -300,7 +305,7 @@ class Scene:
         """Base-frame points (N, 3) -> their pixels (N, 2) in `camera`'s size x size image."""
         in_camera = (invert(self.camera_pose(camera)) @ np.c_[points, np.ones(len(points))].T)[:3]
         pixels = self.camera_intrinsics(camera, size) @ in_camera
-        return (pixels[:2] / pixels[2]).T
+        return (pixels[:2] / pixels[2]).T  # OpenCV's convention: round to index the image
 
     def close(self) -> None:
         for renderer in self._renderers.values():
