@@ -33,7 +33,13 @@ def _benchmark_folders() -> dict[str, str]:
 
 def test_generic_layers_name_no_benchmark():
     folders = _benchmark_folders()
-    assert folders == {"drawanything": "draw", "libero_gen": "libero", "lerobot_dataset": "lerobot", "iphumi": "iphumi"}
+    assert folders == {
+        "drawanything": "draw",
+        "libero_gen": "libero",
+        "lerobot_dataset": "lerobot",
+        "iphumi": "iphumi",
+        "draw3d": "draw3d",
+    }
     offences = []
     for path in [*GENERIC, *CONTRACT_FILES]:
         text = path.read_text()

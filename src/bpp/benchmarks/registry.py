@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, str] = {
     "libero_gen": "bpp.benchmarks.libero.benchmark:BENCHMARK",
     "lerobot_dataset": "bpp.benchmarks.lerobot.benchmark:BENCHMARK",
     "iphumi": "bpp.benchmarks.iphumi.benchmark:BENCHMARK",
+    "draw3d": "bpp.benchmarks.draw3d.benchmark:BENCHMARK",
 }
 """Benchmark name (as stored in every store) -> ``module:object`` implementing the contract."""
 

@@ -185,7 +185,9 @@ def _measure(redness: np.ndarray, labels: np.ndarray, label: int, box) -> _Blob 
     ring = cv2.dilate(own, kernel, iterations=5).astype(bool) & ~region & ~others
     inside = cv2.erode(own, kernel).astype(bool)
     values = redness[y0:y1, x0:x1]
-    background = float(np.median(values[ring])) if ring.any() else 0.0
+    # a bluish surround (a whiteboard beside the paper) has negative redness: it is no red at all, and subtracting it
+    # would count every surrounding pixel of the region as part red
+    background = max(float(np.median(values[ring])), 0.0) if ring.any() else 0.0
     level = float(np.median(values[inside if inside.any() else own.astype(bool)])) - background
     if level <= 0:
         return None

@@ -157,18 +157,7 @@ def execute(
     """Run a plan made in the frame of `canvas_estimate` (the canvas pose a photo gave, ``T_base_canvas``) on a scene
     already reset: the arm first moves, unrecorded, to the plan's start pose (`approach_steps` control steps, 0 for a
     speed-limited count), then recording starts."""
-    start = canvas_estimate @ plan.poses[0]
-    steps = approach_steps or max(10, int(np.linalg.norm(start[:3, 3] - scene.target[:3, 3]) / 0.1 * 20))
-    origin = scene.target.copy()
-    for k in range(1, steps + 1):
-        from scipy.spatial.transform import Rotation, Slerp
-
-        a = k / steps
-        spin = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([origin[:3, :3], start[:3, :3]])))
-        waypoint = make_pose(spin(a).as_matrix(), (1 - a) * origin[:3, 3] + a * start[:3, 3])
-        scene.step(np.append(pose_to_vector(invert(scene.target) @ waypoint), 0.0))
-    for _ in range(10):  # settle at the start pose before recording
-        scene.step(np.append(pose_to_vector(np.eye(4)), 0.0))
+    execute_approach(scene, canvas_estimate @ plan.poses[0], approach_steps)
     scene.ink.strokes.clear()
     scene.ink.down = False
     actions = actions_of(plan)
@@ -189,6 +178,22 @@ def execute(
         strokes=scene.ink.polylines(),
         frames={camera: np.stack(f) for camera, f in frames.items()},
     )
+
+
+def execute_approach(scene: Scene, start: np.ndarray, steps: int = 0) -> None:
+    """Move the pen, unrecorded, straight to `start` (``T_base_pen``) at about 10 cm/s (or in `steps` control
+    steps), then hold still for half a second."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    steps = steps or max(10, int(np.linalg.norm(start[:3, 3] - scene.target[:3, 3]) / 0.1 * 20))
+    origin = scene.target.copy()
+    spin = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([origin[:3, :3], start[:3, :3]])))
+    for k in range(1, steps + 1):
+        a = k / steps
+        waypoint = make_pose(spin(a).as_matrix(), (1 - a) * origin[:3, 3] + a * start[:3, 3])
+        scene.step(np.append(pose_to_vector(invert(scene.target) @ waypoint), 0.0))
+    for _ in range(10):
+        scene.step(np.append(pose_to_vector(np.eye(4)), 0.0))
 
 
 def ink_chamfer(strokes_m, drawing_strokes) -> float:

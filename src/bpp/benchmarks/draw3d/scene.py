@@ -110,7 +110,9 @@ def scene_xml() -> str:
                   material="canvas_paper")  # fmt: skip
     offset = CANVAS_SIDE / 2 - MARKER_SIDE / 2
     for i, (sx, sy) in enumerate(((-1, 1), (1, 1), (1, -1), (-1, -1))):
-        marker = {"size": f"{MARKER_SIDE / 2} {MARKER_SIDE / 2} 0.0004", "pos": f"{sx * offset} {sy * offset} -0.0002"}
+        # printed on the paper: its face 0.1 mm above the paper, so that no side of it shows
+        half_marker = MARKER_SIDE / 2
+        marker = {"size": f"{half_marker} {half_marker} 0.00015", "pos": f"{sx * offset} {sy * offset} -0.00005"}
         ET.SubElement(canvas, "geom", name=f"marker{i}", group="2", type="box", rgba="0.78 0.12 0.12 1", **marker)
     ET.SubElement(worldbody, "camera", name="scene", mode="fixed", pos=" ".join(map(str, SCENE_CAMERA)), fovy="55",
                   xyaxes=_look_at(SCENE_CAMERA, BOARD_CENTRE))  # fmt: skip

@@ -1,0 +1,94 @@
+"""DrawAnything-Real's evaluation: a policy drawing on the simulated arm, rollouts in lockstep.
+
+Each rollout places the canvas at a new random placement, measures its pose from the scene camera's photo (the
+policy observes the measured pose, as a lab's would), moves the pen unrecorded to a random start in front of the
+canvas, then lets the policy act for ``max_steps`` control steps. The score is DrawAnything's Chamfer distance
+between the ink on the canvas and the task's drawing (:func:`bpp.benchmarks.draw3d.demonstrator.ink_chamfer`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from bpp.benchmarks.contract import RolloutResult
+from bpp.data.store import EpisodeStore
+
+FRAME_EVERY = 10
+"""A recorded rollout keeps one scene-camera frame every this many steps (and the last)."""
+FRAME_SIZE = 256
+
+_SCENES: list = []
+
+
+def _scenes(count: int, image_size: int) -> list:
+    """`count` scenes of this process, built once and reused across batches."""
+    from bpp.benchmarks.draw3d.scene import Scene
+
+    while len(_SCENES) < count:
+        _SCENES.append(Scene(image_size=image_size))
+    for scene in _SCENES[:count]:
+        scene.image_size = image_size
+    return _SCENES[:count]
+
+
+def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    from bpp.benchmarks.poses import pose_to_vector
+
+    values = {
+        "tip_pose": lambda: pose_to_vector(scene.tip_pose()).astype(np.float32),
+        "canvas_pose": lambda: canvas_vector,
+        "ink_length": lambda: np.array([scene.ink.length], np.float32),
+        "pen_down": lambda: np.array([float(scene.ink.down)], np.float32),
+        "wrist": lambda: scene.render("wrist"),
+    }
+    return {key: values[key]() for key in keys}
+
+
+def run_rollouts(
+    agent, store: EpisodeStore, rollouts: Sequence[Mapping], max_steps: int, record_frames: Sequence[bool]
+) -> list[RolloutResult]:
+    """See :meth:`bpp.benchmarks.contract.Benchmark.run_rollouts`."""
+    from bpp.benchmarks.draw.dataset import task_drawing
+    from bpp.benchmarks.draw3d.canvas import CanvasNotFound, pose_error
+    from bpp.benchmarks.draw3d.dataset import measure_canvas
+    from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, ink_chamfer, random_pose
+    from bpp.benchmarks.draw3d.scene import HOME_QPOS, canvas_transform
+    from bpp.benchmarks.poses import pose_to_vector
+
+    spec = agent.data_spec
+    keys = list(agent.obs_keys)
+    scenes = _scenes(len(rollouts), spec.image_size)
+    drawings, canvases, extras = [], [], []
+    for scene, rollout in zip(scenes, rollouts, strict=True):
+        rng = np.random.default_rng(int(rollout["seed"]))
+        truth = canvas_transform(rollout["canvas_u"], rollout["canvas_v"], rollout["canvas_angle"])
+        try:
+            measured, from_photo = measure_canvas(scene, truth), True
+        except CanvasNotFound:
+            measured, from_photo = truth, False  # a lab would move the arm and photograph again
+        scene.reset(truth, HOME_QPOS)
+        execute_approach(scene, measured @ random_pose(rng, ScriptConfig()))
+        scene.ink.strokes.clear()
+        scene.ink.down = False
+        task = int(store.column("task_index")[int(rollout["target_episode"])])
+        drawings.append(task_drawing(store, task))
+        canvases.append(pose_to_vector(measured).astype(np.float32))
+        extras.append({"canvas_from_photo": from_photo, "canvas_pose_error_mm": pose_error(measured, truth)[0] * 1e3})
+    frames: list[list] = [[] for _ in rollouts]
+    for t in range(max_steps):
+        observed = [_observe(scene, canvas, keys) for scene, canvas in zip(scenes, canvases, strict=True)]
+        actions = np.asarray(agent.act_batch({k: np.stack([o[k] for o in observed]) for k in keys}), np.float64)
+        for i, scene in enumerate(scenes):
+            if record_frames[i] and t % FRAME_EVERY == 0:
+                frames[i].append(scene.render("scene", FRAME_SIZE))
+            scene.step(actions[i])
+    results = []
+    for i, scene in enumerate(scenes):
+        if record_frames[i]:
+            frames[i].append(scene.render("scene", FRAME_SIZE))
+        score = ink_chamfer(scene.ink.polylines(), drawings[i].strokes)
+        extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4)}
+        results.append(RolloutResult(score=float(score), steps=max_steps, extra=extra, frames=frames[i]))
+    return results
