@@ -68,7 +68,7 @@ def test_generic_modules_load_no_benchmark_at_import():
 
 
 def test_unknown_benchmarks_and_broken_plugins_are_refused():
-    with pytest.raises(ValueError, match="unknown benchmark 'nope'; registered: drawanything"):
+    with pytest.raises(ValueError, match="unknown benchmark 'nope'; registered: .*drawanything"):
         get_benchmark("nope")
     with pytest.raises(TypeError, match="does not satisfy"):
         register_benchmark("broken", object())
