@@ -577,3 +577,125 @@ def test_a_training_killed_midway_resumes_to_its_last_step(debug_store, tmp_path
     assert _newest(run).name != "step_00000040"
     main([*command, "--save-every", "5", "--workers", "0", "--resume"])
     assert _newest(run).name == "step_00000040"
+
+
+# ----------------------------------------------------------------------------- numbers and shapes from user files
+
+
+def _coordinate(i: Inputs, name: str, value: str) -> Path:
+    """A JSON drawing file whose second point has x = `value`, as written."""
+    return i.text(name, f'{{"drawings": [{{"id": "a", "strokes": [[[0.1, 0.1], [{value}, 0.2]]]}}]}}')
+
+
+NUMBERS = [
+    # Numbers that overflow, or that the format does not allow, refused naming the file, the element and the number.
+    _case(
+        lambda i: _generate_from(_coordinate(i, "far.json", "1e309")),
+        "far.json: drawing 'a', stroke 0, point 1: coordinate 1e309 is not a finite number",
+        "drawing coordinate 1e309",
+    ),
+    _case(
+        lambda i: _generate_from(_coordinate(i, "digits.json", "9" * 5000)),
+        "digits.json: drawing 'a', stroke 0, point 1: coordinate 9999999999999999...9999 (5000 characters) is not",
+        "drawing coordinate of 5000 digits",
+    ),
+    _case(
+        lambda i: _eval(i, "--files", str(_coordinate(i, "far.json", "-Infinity")), *QUICK),
+        "far.json: drawing 'a', stroke 0, point 1: coordinate -Infinity is not a finite number",
+        "eval --files with a coordinate -Infinity",
+    ),
+    *(
+        _case(
+            lambda i, n=name, b=body: _generate_from(i.text(n, _svg(b))), f"{name}: {mention}", f"drawing file {name}"
+        )
+        for name, body, mention in [
+            ("far.svg", '<path d="M 0 0 L 1e309 10"/>', "<path> #1, attribute 'd': 1e309 is not a finite number"),
+            (
+                "scaled.svg",
+                '<g transform="scale(1e10)"><path transform="scale(1e10)" d="M 0 0 L 1 1"/></g>',
+                "<path> #1, attribute 'transform': with the transforms of its groups it scales or moves coordinates",
+            ),
+            (
+                "transform.svg",
+                '<g transform="translate(5) foo(1)"><path d="M 0 0 L 1 1"/></g><path d="M 0 0 L 9 9"/>',
+                "<g> #1, attribute 'transform': cannot read 'translate(5) foo(1)'",
+            ),
+            (
+                "arc.svg",
+                '<path d="M 0 0 L 9 9"/><path id="tiny" d="M 5 5 A 1e-320 1e-320 0 0 1 20 20"/>',
+                "<path id='tiny'>: the length of its segment 0 (Arc) is not a finite number",
+            ),
+            (
+                "points.svg",
+                '<polyline points="0,0 inf,1 2,2"/>',
+                "<polyline> #1, attribute 'points': 'inf' is not a number",
+            ),
+        ]
+    ),
+    # LIBERO views: an empty or malformed --where is refused quoting it.
+    *(
+        _case(lambda i, w=where: ["libero", "tasks", "--where", w], mention, f"libero tasks --where {where!r}")
+        for where, mention in [
+            ("", "where '' is empty"),
+            ("pick=TD;", "where 'pick=TD;': clause 2 is empty"),
+            ("pick==TD", "where 'pick==TD': 'pick==TD' is not field=value"),
+        ]
+    ),
+    _case(
+        lambda i: ["libero", "generate", "--preset", "debug", "--where", "pick=TD", "--out", str(i.tmp / "l.zarr")],
+        "task_indices [0] are not in the view 'pick=TD' (task_indices come from --task-indices or the preset",
+        "libero generate --where outside the preset's task_indices",
+    ),
+    pytest.param(
+        lambda i: ["libero", "import", str(i.text("notes_demo.hdf5", "hello")), "--out", str(i.tmp / "l.zarr")],
+        "{tmp}/notes_demo.hdf5: not an HDF5 file",
+        "",
+        id="libero import of a text file",
+        marks=pytest.mark.libero,
+    ),
+]
+
+
+@pytest.mark.parametrize(("argv", "mention", "leaves"), NUMBERS)
+def test_numbers_and_views_the_format_does_not_allow_are_refused_in_one_line_naming_them(
+    argv, mention, leaves, inputs, capsys
+):
+    test_bad_inputs_are_refused_in_one_line_naming_the_input_and_change_nothing(argv, mention, leaves, inputs, capsys)
+
+
+# ----------------------------------------------------------------------------- outputs: folders and task ids
+
+OUTPUTS = [
+    # An output folder that cannot be made, refused naming it before any work (an evaluation before its rollouts).
+    _case(
+        lambda i: _eval_of(i.run, i)[:-1] + [str(i.text("notes.txt", "mine") / "eval")],
+        "--out {tmp}/notes.txt/eval: {tmp}/notes.txt is not a folder",
+        "eval --out under a file",
+    ),
+    _case(
+        lambda i: _generate(i)[:-1] + [str(i.text("notes.txt", "mine") / "new.zarr")],
+        "{tmp}/notes.txt",
+        "generate --out under a file",
+    ),
+    _case(
+        lambda i: _train(i, "--out", str(i.text("notes.txt", "mine") / "run"), "--steps", "1"),
+        "{tmp}/notes.txt/run",
+        "train --out under a file",
+    ),
+]
+
+
+@pytest.mark.parametrize(("argv", "mention", "leaves"), OUTPUTS)
+def test_output_folders_that_cannot_be_made_are_refused_in_one_line_naming_them(argv, mention, leaves, inputs, capsys):
+    test_bad_inputs_are_refused_in_one_line_naming_the_input_and_change_nothing(argv, mention, leaves, inputs, capsys)
+
+
+def test_task_ids_that_one_file_name_would_merge_get_a_video_each(inputs):
+    """'a/b' and 'a_b' once shared one video, as did 'star.v1' and 'star.v2' (the suffix taken for the file's)."""
+    inputs.tmp.mkdir()
+    ids = ["a/b", "a_b", "star.v1", "star.v2"]
+    drawings = inputs.text("ids.json", json.dumps({"drawings": [{"id": d, "strokes": V} for d in ids]}))
+    out = inputs.tmp / "eval"
+    main(["eval", str(inputs.run), "--files", str(drawings), *QUICK[:-1], "4", "--out", str(out)])
+    results = json.loads((out / "results.json").read_text())
+    assert len({task["video"] for task in results["tasks"]}) == 4 == len(list(out.glob("rollout_*")))

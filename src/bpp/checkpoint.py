@@ -9,7 +9,8 @@ A run directory::
 A checkpoint folder is written under a temporary name and renamed when complete, then ``last`` is replaced
 atomically, so a crash at any moment leaves the previous checkpoint loadable. Only then are checkpoints beyond
 the newest few deleted (each holds the model twice and the optimizer state, so a long CPU run would otherwise
-fill a disk with gigabytes of them).
+fill a disk with gigabytes of them). A save that fails (a full disk) or is interrupted (Ctrl-C, SIGTERM) removes
+its temporary folder; the next save removes those of processes that were killed outright.
 """
 
 from __future__ import annotations
@@ -26,7 +27,15 @@ import torch
 from safetensors.torch import load, save_file
 
 from bpp.errors import UserError
-from bpp.utils import from_dict, read_json, write_json_atomic
+from bpp.utils import (
+    atomic_path,
+    from_dict,
+    process_alive,
+    read_json,
+    remove_stale_partials,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 FORMAT = "bpp-checkpoint"
 VERSION = 1
@@ -69,36 +78,62 @@ def save_checkpoint(
     meta: dict[str, Any],
     keep: int = 0,
 ) -> Path:
-    """Write checkpoint `step` (complete or not at all), point ``last`` at it, then keep only the newest `keep`
-    checkpoints (0: keep all)."""
+    """Write checkpoint `step` (complete or not at all, also when a full disk, Ctrl-C or SIGTERM stops it: the
+    temporary folder is removed, and an OSError names the checkpoint), point ``last`` at it, then keep only the
+    newest `keep` checkpoints (0: keep all)."""
     ckpt_dir = Path(run_dir) / "checkpoints"
     ckpt_dir.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temporaries(ckpt_dir)
     name = f"step_{step:08d}"
-    tmp = ckpt_dir / f".{name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    save_file(_tensors(model.state_dict()), tmp / "model.safetensors")
-    save_file(_tensors(ema.state_dict()), tmp / "ema.safetensors")
-    opt_tensors, opt_skeleton = _flatten_optimizer(optimizer.state_dict())
-    save_file(opt_tensors, tmp / "optimizer.safetensors")
-    rng = {"torch_cpu": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        for i, s in enumerate(torch.cuda.get_rng_state_all()):
-            rng[f"torch_cuda_{i}"] = s
-    save_file(_tensors(rng), tmp / "rng.safetensors")
-    write_json_atomic(
-        tmp / "state.json", {"format": FORMAT, "version": VERSION, "step": step, "optimizer": opt_skeleton, **meta}
-    )
     final = ckpt_dir / name
-    if final.exists():
-        shutil.rmtree(final)
-    os.replace(tmp, final)
-    last_tmp = ckpt_dir / f".last.tmp-{os.getpid()}"
-    last_tmp.write_text(name)
-    os.replace(last_tmp, ckpt_dir / "last")
+    with atomic_path(final) as tmp:
+        tmp.mkdir()
+        _save_tensors(_tensors(model.state_dict()), tmp / "model.safetensors")
+        _save_tensors(_tensors(ema.state_dict()), tmp / "ema.safetensors")
+        opt_tensors, opt_skeleton = _flatten_optimizer(optimizer.state_dict())
+        _save_tensors(opt_tensors, tmp / "optimizer.safetensors")
+        rng = {"torch_cpu": torch.get_rng_state()}
+        if torch.cuda.is_available():
+            for i, s in enumerate(torch.cuda.get_rng_state_all()):
+                rng[f"torch_cuda_{i}"] = s
+        _save_tensors(_tensors(rng), tmp / "rng.safetensors")
+        state = {"format": FORMAT, "version": VERSION, "step": step, "optimizer": opt_skeleton, **meta}
+        write_json_atomic(tmp / "state.json", state)
+        if final.exists():  # the same step saved again (a resumed run repeats the steps after its checkpoint)
+            shutil.rmtree(final)
+    write_text_atomic(ckpt_dir / "last", name)
     if keep:
         prune_checkpoints(ckpt_dir, keep)
     return final
+
+
+def _save_tensors(tensors: dict[str, torch.Tensor], path: Path) -> None:
+    """safetensors' save_file, with its I/O errors (a full disk) as OSErrors naming `path`: safetensors reports them
+    as its own error type."""
+    try:
+        save_file(tensors, path)
+    except Exception as err:  # noqa: BLE001 - SafetensorError; its message carries the system's error number
+        code = re.search(r"os error (\d+)", str(err))
+        if code is None:
+            raise
+        raise OSError(int(code[1]), os.strerror(int(code[1])), str(path)) from None
+
+
+_LEGACY_TEMPORARY = re.compile(r"\.(?:step_\d{8}|last)\.tmp-(?P<pid>\d+)")
+"""The temporary names of checkpoints and ``last`` before bpp removed them on failure; older runs may hold some."""
+
+
+def _remove_stale_temporaries(ckpt_dir: Path) -> None:
+    """Delete the half-written checkpoints of training processes that were killed outright (SIGKILL, a power loss)
+    or, before this was handled, stopped by an error: each holds up to a checkpoint's size."""
+    remove_stale_partials(ckpt_dir)
+    for entry in ckpt_dir.iterdir():
+        match = _LEGACY_TEMPORARY.fullmatch(entry.name)
+        if match and not process_alive(int(match["pid"])):
+            if entry.is_dir():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
 
 
 def prune_checkpoints(ckpt_dir: str | Path, keep: int) -> list[Path]:

@@ -8,7 +8,9 @@ and validated.
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
@@ -23,7 +25,7 @@ from bpp.benchmarks.registry import (
     benchmark_names,
     get_benchmark,
 )
-from bpp.errors import UserError
+from bpp.errors import Interrupted, UserError
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
@@ -263,7 +265,7 @@ def eval_cmd(args: Eval) -> None:
     from bpp.evaluation.evaluate import Protocol, combine, evaluate, resolve_tasks
     from bpp.evaluation.report import markdown_table
     from bpp.policies.agent import PolicyAgent
-    from bpp.utils import write_json_atomic
+    from bpp.utils import write_json_atomic, write_text_atomic
 
     protocol = Protocol(
         rollouts=args.rollouts,
@@ -306,7 +308,7 @@ def eval_cmd(args: Eval) -> None:
         text = markdown_table(["checkpoint", f"{metric.name} ({metric.unit or 'score'})"], rows)
         spread = f"{metric.format(summary['score_mean'])} ± {summary['score_std']:.2f}"
         text += f"\n**{spread}** (mean ± std over checkpoints)\n"
-        (args.out / "summary.md").write_text(text)
+        write_text_atomic(args.out / "summary.md", text)
         print(f"[eval] {len(runs)} checkpoints: {metric.name} {spread}")
 
 
@@ -380,10 +382,13 @@ def _usage() -> str:
 
 def main(argv: list[str] | None = None) -> None:
     """Run the command argv names. A :class:`~bpp.errors.UserError` or an OSError (a file that is missing, not
-    readable or not writable: its message names the path) ends the program with one line naming the command; any
-    other exception is a bug and keeps its traceback. tyro reports bad flags itself."""
+    readable or not writable, a full disk: its message names the path) ends the program with one line naming the
+    command; any other exception is a bug and keeps its traceback. tyro reports bad flags itself. Ctrl-C (SIGINT) and
+    SIGTERM end it with one line and the status 130 or 143, once every writer has removed what it left half-written
+    and every worker process is stopped."""
     argv = list(sys.argv[1:] if argv is None else argv)
     prog = f"bpp {' '.join(argv[:2])}"
+    restore = _stop_on_signals()
     try:
         found = _resolve(argv)
         if found is None:
@@ -400,6 +405,37 @@ def main(argv: list[str] | None = None) -> None:
         run(args)
     except (UserError, OSError) as err:
         sys.exit(f"{prog}: error: {_message(err)}")
+    except KeyboardInterrupt as err:
+        signum = getattr(err, "signum", signal.SIGINT)
+        print(f"{prog}: interrupted by {signal.Signals(signum).name}", file=sys.stderr)
+        sys.exit(128 + signum)
+    finally:
+        restore()
+
+
+def _stop_on_signals() -> Callable[[], None]:
+    """Make SIGINT and SIGTERM raise :class:`~bpp.errors.Interrupted` where the program is, so that both run the
+    clean-up Ctrl-C runs (a signal the process was started ignoring stays ignored); returns what restores the
+    handlers. Signal handlers live in the main thread only: elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None
+    previous = {}
+    for signum, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
+        if signal.getsignal(signum) is default:
+            previous[signum] = signal.signal(signum, _interrupted)
+
+    def restore() -> None:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+    return restore
+
+
+def _interrupted(signum: int, frame) -> None:
+    # The program is stopping: a library's background thread that fails on the way down (torch's file-descriptor
+    # sharing, when a loader process it talks to is stopped) must not print a traceback after the one-line message.
+    threading.excepthook = lambda args: None
+    raise Interrupted(signum)
 
 
 def _message(err: Exception) -> str:

@@ -2,12 +2,27 @@
 
 The command line prints a :class:`UserError` as one line naming the command; any other exception is a bug and keeps
 its traceback. It subclasses ValueError so that library callers catching ValueError keep working.
+
+A command stopped by Ctrl-C (SIGINT) or SIGTERM ends with one line and the status 128 + the signal's number (130,
+143), after every writer has removed what it left half-written: the command line turns both signals into
+:class:`Interrupted`, a KeyboardInterrupt, so that SIGTERM runs the same clean-up as Ctrl-C.
 """
+
+import signal
 
 
 class UserError(ValueError):
     """An input the user gave (flag, file, store, checkpoint, prompt) is wrong; the message names it and what was
     expected."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """The process was asked to stop by signal `signum` (SIGINT or SIGTERM): a KeyboardInterrupt, so that whatever
+    cleans up after Ctrl-C cleans up after either."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
 
 
 def require_extra(module: str, extra: str):

@@ -1,27 +1,64 @@
-"""Pictures and animations for any benchmark: titled image grids and GIF/MP4 files."""
+"""Pictures and animations for any benchmark: titled image grids and GIF/MP4 files, each written complete or not at
+all (:func:`bpp.utils.atomic_path`)."""
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from bpp.utils import atomic_path
+
 
 def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10) -> Path:
-    """Write frames as a GIF (or MP4 if the suffix is .mp4)."""
+    """Write frames as a GIF (or MP4 if the suffix is .mp4), complete or not at all."""
     import imageio.v3 as iio
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if path.suffix.lower() == ".mp4":
-        import imageio.v2 as iio2  # the ffmpeg writer (imageio-ffmpeg ships its own ffmpeg binary)
+    with atomic_path(path) as tmp:
+        if path.suffix.lower() == ".mp4":
+            import imageio.v2 as iio2  # the ffmpeg writer (imageio-ffmpeg ships its own ffmpeg binary)
 
-        with iio2.get_writer(path, fps=fps, codec="libx264", macro_block_size=16) as writer:
-            for frame in frames:
-                writer.append_data(frame)
-    else:
-        iio.imwrite(path, np.stack(frames), duration=1000 / fps, loop=0)
+            with iio2.get_writer(
+                tmp, fps=fps, codec="libx264", macro_block_size=16, ffmpeg_log_level="quiet"
+            ) as writer:
+                for frame in frames:
+                    writer.append_data(frame)
+            _check_video(tmp, len(frames))
+        else:
+            # Encoded in memory, then written: a failed write is then one OSError, not also an encoder's error
+            # printed again when it is garbage-collected.
+            tmp.write_bytes(iio.imwrite("<bytes>", np.stack(frames), extension=".gif", duration=1000 / fps, loop=0))
+    return path
+
+
+def _check_video(path: Path, frames: int) -> None:
+    """Refuse the video ffmpeg wrote to `path` unless it holds all `frames`: imageio-ffmpeg ignores how ffmpeg ended,
+    so a video cut short (a full disk) would otherwise pass as written."""
+    import imageio_ffmpeg
+
+    try:
+        count, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+    except (RuntimeError, OSError):  # ffmpeg cannot read it (cut short before its index)
+        count = None
+    if count != frames:
+        raise OSError(errno.EIO, f"ffmpeg wrote {count or 0} of {frames} frames (is the disk full?)", str(path))
+
+
+def save_figure(fig, path: str | Path, dpi: int) -> Path:
+    """Save a matplotlib figure (its format from `path`'s suffix), complete or not at all, and close it."""
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi)
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -44,8 +81,4 @@ def contact_sheet(
     if title:
         fig.suptitle(title, fontsize=11)
     fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()) if title else None)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=110)

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import signal
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -195,7 +196,15 @@ def batch_loader(dataset, steps: range, workers: int, pin_memory: bool) -> torch
         persistent_workers=False,
         prefetch_factor=4 if workers else None,
         pin_memory=pin_memory,
+        worker_init_fn=_end_quietly_on_sigterm if workers else None,
     )
+
+
+def _end_quietly_on_sigterm(worker_id: int) -> None:
+    """In a loader process: SIGTERM (sent to every process of an interrupted command) ends it as Ctrl-C does, through
+    the KeyboardInterrupt torch's loader loop ends on quietly. torch's own handler dies of the signal, which the
+    training process then reports as a failed loader, traceback and all."""
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
 
 
 def uses_amp(cfg: TrainConfig, device: torch.device) -> bool:
@@ -384,33 +393,39 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     loss_sum, loss_n = torch.zeros((), device=device), 0  # summed on the device: no wait for the GPU per step
     step = start
     model.train()
-    for step, batch in zip(range(start, cfg.steps), loader, strict=False):
-        lr = lr_at(step, cfg)
-        if renderer is not None:
-            batch = render_batch(batch, spec, renderer)
-        loss, grad_norm = train_step(cfg, net, model, ema, optimizer, to_torch(batch, device), step, amp, world, rank)
-        loss_sum += loss.detach().float()
-        loss_n += 1
-        bar.update(1)
-        if main and ((step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps):
-            now = time.perf_counter()
-            rate = (step + 1 - n_last) * cfg.batch_size * world / max(now - t_last, 1e-9)
-            t_last, n_last = now, step + 1
-            mean_loss = loss_sum.item() / loss_n
-            loss_sum, loss_n = torch.zeros((), device=device), 0
-            bar.set_postfix(loss=f"{mean_loss:.4f}", lr=f"{lr:.2e}", samples_s=f"{rate:.0f}")
-            writer.add_scalar("train/loss", mean_loss, step + 1)
-            writer.add_scalar("train/lr", lr, step + 1)
-            writer.add_scalar("train/grad_norm", float(grad_norm), step + 1)
-            writer.add_scalar("train/samples_per_s", rate, step + 1)
-        if (step + 1) % cfg.save_every == 0 or step + 1 == cfg.steps:
-            if main:
-                save_checkpoint(run, step + 1, model, ema, optimizer, meta, keep=cfg.keep_checkpoints)
-            if world > 1:
-                dist.barrier()
-    bar.close()
-    if writer is not None:
-        writer.close()
+    batches = iter(loader)
+    try:  # an error or an interrupt still closes the progress bar and the log (it keeps what it logged)
+        for step, batch in zip(range(start, cfg.steps), batches, strict=False):
+            lr = lr_at(step, cfg)
+            if renderer is not None:
+                batch = render_batch(batch, spec, renderer)
+            loss, grad_norm = train_step(
+                cfg, net, model, ema, optimizer, to_torch(batch, device), step, amp, world, rank
+            )
+            loss_sum += loss.detach().float()
+            loss_n += 1
+            bar.update(1)
+            if main and ((step + 1) % cfg.log_every == 0 or step + 1 == cfg.steps):
+                now = time.perf_counter()
+                rate = (step + 1 - n_last) * cfg.batch_size * world / max(now - t_last, 1e-9)
+                t_last, n_last = now, step + 1
+                mean_loss = loss_sum.item() / loss_n
+                loss_sum, loss_n = torch.zeros((), device=device), 0
+                bar.set_postfix(loss=f"{mean_loss:.4f}", lr=f"{lr:.2e}", samples_s=f"{rate:.0f}")
+                writer.add_scalar("train/loss", mean_loss, step + 1)
+                writer.add_scalar("train/lr", lr, step + 1)
+                writer.add_scalar("train/grad_norm", float(grad_norm), step + 1)
+                writer.add_scalar("train/samples_per_s", rate, step + 1)
+            if (step + 1) % cfg.save_every == 0 or step + 1 == cfg.steps:
+                if main:
+                    save_checkpoint(run, step + 1, model, ema, optimizer, meta, keep=cfg.keep_checkpoints)
+                if world > 1:
+                    dist.barrier()
+    finally:
+        bar.close()
+        if writer is not None:
+            writer.close()
+        del batches  # the loader's processes stop now, not at exit: an interrupted run reports once they are gone
     if world > 1:
         dist.barrier()
         dist.destroy_process_group()

@@ -50,7 +50,7 @@ import numpy as np
 
 from bpp.benchmarks.registry import derived_keys
 from bpp.errors import UserError
-from bpp.utils import read_json, to_dict
+from bpp.utils import naming, read_json, to_dict
 
 try:
     import fcntl
@@ -429,23 +429,25 @@ class EpisodeWriter:
         self._check_destination(overwrite)  # before anything is written, so that a refusal changes nothing
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = _DestinationLock(self.path)
+        self.tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
             self._check_destination(overwrite)  # again, now that no other writer can change it
             remove_stale_partials(self.path)
-            self.tmp = self.path.parent / f".{self.path.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
             self.root = zarr.open_group(str(self.tmp), mode="w")
-        except BaseException:
-            self._lock.release()
+            self.root.attrs.update(
+                {
+                    "format": FORMAT,
+                    "version": VERSION,
+                    "complete": False,
+                    "benchmark": benchmark,
+                    "config": _json_safe(config or {}),
+                }
+            )
+        except BaseException as err:  # a full disk, Ctrl-C: nothing stays behind
+            self.abort()
+            if isinstance(err, OSError):
+                raise naming(err, self.path) from None
             raise
-        self.root.attrs.update(
-            {
-                "format": FORMAT,
-                "version": VERSION,
-                "complete": False,
-                "benchmark": benchmark,
-                "config": _json_safe(config or {}),
-            }
-        )
         self.overwrite = overwrite
         self.chunk_steps = chunk_steps
         self.stats_keys = None if stats_keys is None else set(stats_keys)
@@ -514,12 +516,15 @@ class EpisodeWriter:
     def _flush(self) -> None:
         if not self._buffered:
             return
-        for key, parts in self._buffer.items():
-            data = np.concatenate(parts)
-            name = f"data/{key}"
-            if name not in self._arrays:
-                self._create(name, data, self.chunk_steps)
-            self._arrays[name].append(data)
+        try:
+            for key, parts in self._buffer.items():
+                data = np.concatenate(parts)
+                name = f"data/{key}"
+                if name not in self._arrays:
+                    self._create(name, data, self.chunk_steps)
+                self._arrays[name].append(data)
+        except OSError as err:  # a full disk: zarr names no file; name the store
+            raise naming(err, self.path) from None
         self._buffer = {}
         self._buffered = 0
 
@@ -564,6 +569,9 @@ class EpisodeWriter:
             attrs = read_json(self.tmp / "zarr.json", "store header")["attributes"]
             self.root.attrs["digest"] = _header_digest(attrs)
             self._install()
+        except OSError as err:
+            self.abort()
+            raise naming(err, self.path) from None
         except BaseException:
             self.abort()
             raise

@@ -15,6 +15,7 @@ A checkpoint is read from disk once (:class:`bpp.checkpoint.Checkpoint`) and han
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import sys
@@ -33,7 +34,15 @@ from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.evaluation.protocol import Protocol, TaskResult, results_json, rollout_rows, summarize
-from bpp.utils import read_json, usable_cores, write_json_atomic
+from bpp.utils import (
+    file_stem,
+    read_json,
+    remove_stale_partials,
+    usable_cores,
+    worker_pool,
+    write_json_atomic,
+    write_text_atomic,
+)
 
 __all__ = ["Protocol", "TaskResult", "combine", "evaluate", "resolve_tasks", "run_protocol", "summarize"]
 
@@ -107,23 +116,18 @@ def run_protocol(
     args = (checkpoint, benchmark, str(store.path), protocol, threads)
     bar = tqdm(total=len(tasks) * protocol.rollouts, desc=desc, unit="rollout", disable=not progress)
     out: dict[int, TaskResult] = {}
-    if workers == 1:
-        _init_worker(*args)
-        results = map(_run_task, jobs)
-        pool = None
-    else:
-        # spawn: the parent may already hold torch threads, which fork does not copy safely.
-        pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=args)
-        results = pool.imap_unordered(_run_task, jobs)
-    try:
+    with bar, contextlib.ExitStack() as stack:
+        if workers == 1:
+            _init_worker(*args)
+            results = map(_run_task, jobs)
+        else:
+            # spawn: the parent may already hold torch threads, which fork does not copy safely.
+            pool = stack.enter_context(worker_pool(mp.get_context("spawn"), workers, _init_worker, args))
+            results = pool.imap_unordered(_run_task, jobs)
         for result in results:
             out[result.task] = result
             bar.update(len(result.rollouts))
             bar.set_postfix(score=f"{np.mean([r.mean for r in out.values()]):.2f}")
-    finally:
-        bar.close()
-        if pool is not None:
-            pool.terminate()
     return [out[t] for t in tasks]
 
 
@@ -149,6 +153,40 @@ def load_results(out: Path) -> dict | None:
         print(f"[eval] ignoring {err}", file=sys.stderr)
         return None
     return data if isinstance(data, dict) else None
+
+
+def missing_outputs(out: Path, results: dict) -> list[str]:
+    """The files `results` records as written into `out` (``outputs``: name -> bytes) that are not there whole. A
+    record without ``outputs`` (an older bpp's) cannot vouch for its files: it counts as missing them all."""
+    outputs = results.get("outputs")
+    if not isinstance(outputs, dict) or not outputs:
+        return ["(no record of the outputs)"]
+    missing = []
+    for name, size in outputs.items():
+        path = out / str(name)
+        if Path(str(name)).name != str(name) or not path.is_file() or path.stat().st_size != size:
+            missing.append(str(name))
+    return missing
+
+
+def video_stems(task_ids: list[str]) -> dict[str, str]:
+    """Each task id -> the stem of its rollout video's file (``rollout_<file_stem(id)>``), one per id."""
+    stems = {task_id: f"rollout_{file_stem(task_id)}" for task_id in task_ids}
+    assert len(set(stems.values())) == len(stems), "file_stem gave two ids one name"
+    return stems
+
+
+def check_output_folder(out: Path) -> None:
+    """Refuse `out` before any rollout runs if the results could not be written there: a file, or under one, or in
+    a folder this process may not write to."""
+    out = Path(out)
+    folder = out
+    while not os.path.lexists(folder) and folder.parent != folder:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise UserError(f"--out {out}: {folder} is not a folder")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise UserError(f"--out {out}: {folder} is not writable")
 
 
 # ------------------------------------------------------------------------------------------- task sets
@@ -213,7 +251,12 @@ def evaluate(
     """Run the protocol and write ``results.json``, ``results.md``, ``grid.png``, ``attention.png`` and videos
     into `out`. With `reuse`, results already in `out` are returned without running anything if they provably
     match: the same weights (SHA-256 of the file), the same task store content (:meth:`EpisodeStore.fingerprint`),
-    the same task indices, the same protocol and the same bpp version.
+    the same task indices, the same protocol and the same bpp version, and every file they record is there whole.
+
+    Every file is written complete or not at all (:func:`bpp.utils.atomic_path`), and ``results.json``, which
+    records them (``outputs``: name -> bytes), last: an evaluation stopped by a full disk, Ctrl-C or SIGTERM leaves
+    nothing that a rerun would reuse. A task's video is named from its id by :func:`bpp.utils.file_stem` (one name
+    per id), and the names and the folder are checked before any rollout runs.
     """
     from bpp.evaluation import report
 
@@ -233,8 +276,13 @@ def evaluate(
         and isinstance(previous.get("summary"), dict)
         and "score_mean" in previous["summary"]
     ):
-        print(f"[eval] reusing {out / 'results.json'}: same weights, tasks and protocol")
-        return previous
+        missing = missing_outputs(out, previous)
+        if not missing:
+            print(f"[eval] reusing {out / 'results.json'}: same weights, tasks and protocol")
+            return previous
+        print(f"[eval] not reusing {out / 'results.json'}: missing or incomplete {', '.join(missing)}", file=sys.stderr)
+    check_output_folder(out)
+    video_names = video_stems([str(store.tasks[t]["id"]) for t in tasks[:videos]])  # before any rollout runs
     t0 = time.perf_counter()
     results = run_protocol(ckpt, benchmark, store, tasks, protocol, workers, videos, progress, f"eval {task_set.label}")
     metric = benchmark.metric
@@ -252,33 +300,51 @@ def evaluate(
         "date": time.strftime("%Y-%m-%d %H:%M"),
     }
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_partials(out)
+    # The record goes first and comes back last: files of this evaluation and of an earlier one are never mixed
+    # under a record that vouches for them.
+    (out / "results.json").unlink(missing_ok=True)
+    written: dict[str, int] = {}
+
+    def wrote(path: Path) -> None:
+        written[path.name] = path.stat().st_size
+
     data = results_json(results, meta, metric)
-    write_json_atomic(out / "results.json", data)
     s = data["summary"]
     name = f"{ckpt.method} @ step {ckpt.step}"
     title = f"{name} on {task_set.label}: {metric.format(s['score_mean'])}"
-    report.write_grid(results, benchmark, store, out / "grid.png", title=title)
+    wrote(report.write_grid(results, benchmark, store, out / "grid.png", title=title))
+    video_files = {}
     for r in results:
         if r.frames:
-            report.write_video(r.frames, out / f"rollout_{report.safe_name(r.task_id)}")
+            path = report.write_video(r.frames, out / video_names[r.task_id])
+            wrote(path)
+            video_files[r.task_id] = path.name
     attended = [r for r in results if r.attention is not None and len(r.attention)]
     if attended:
         n_action_steps = protocol.n_action_steps or ckpt.model_config().horizons.n_action_steps
-        report.write_attention(
+        path = report.write_attention(
             attended[0].attention,
             n_action_steps,
             out / "attention.png",
             f"{name}: prompt attention, {attended[0].task_id}",
         )
+        wrote(path)
     rows = [(r.task_id, r.mean, float(np.std([x["score"] for x in r.rollouts])), len(r.rollouts)) for r in results]
     table = report.markdown_table(["task", f"{metric.name} mean", "std over rollouts", "rollouts"], rows)
     good = f"; {100 * s['good_rollouts']:.0f}% of {metric.good_label}" if metric.good_label else ""
-    (out / "results.md").write_text(
+    write_text_atomic(
+        out / "results.md",
         f"# {name} on {task_set.label}\n\nCheckpoint `{ckpt.path}`; {s['tasks']} tasks x {protocol.rollouts} "
         f"rollouts, seed {protocol.seed}{_overrides(protocol)}; score: {metric.description}, averaged per task then "
         "over tasks.\n\n"
         f"**{metric.name} {metric.format(s['score_mean'])}** (std over tasks {s['score_std_over_tasks']:.2f}, "
         f"s.e.m. {s['score_sem_over_tasks']:.2f}); median rollout {metric.format(s['score_median_rollout'])}"
-        f"{good}. {meta['seconds']:.0f} s.\n\n{table}"
+        f"{good}. {meta['seconds']:.0f} s.\n\n{table}",
     )
+    wrote(out / "results.md")
+    data["outputs"] = written
+    for row in data["tasks"]:
+        row["video"] = video_files.get(row["task_id"])
+    write_json_atomic(out / "results.json", data)
     return data

@@ -3,14 +3,13 @@ prompt-attention heatmaps, Markdown tables and bar charts."""
 
 from __future__ import annotations
 
-import re
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from bpp.data.store import EpisodeStore
-from bpp.media import contact_sheet, save_animation
+from bpp.media import contact_sheet, save_animation, save_figure
 
 
 def _pyplot():
@@ -24,16 +23,7 @@ def _pyplot():
 
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    _pyplot().close(fig)
-    return path
-
-
-def safe_name(text: str) -> str:
-    """`text` as a file-name part: letters, digits, '-', '_' and '.' kept, anything else (e.g. '/') as '_'."""
-    return re.sub(r"[^A-Za-z0-9._-]", "_", text).lstrip(".") or "_"
+    return save_figure(fig, path, dpi=120)
 
 
 def write_grid(results, benchmark, store: EpisodeStore, path: Path, per_row: int = 3, title: str = "") -> Path:
@@ -76,19 +66,20 @@ def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, titl
     return _save(fig, path)
 
 
-def write_video(frames: Sequence[np.ndarray], path: Path) -> Path:
-    """MP4 through imageio-ffmpeg; GIF if that fails (e.g. an ffmpeg without libx264)."""
+def write_video(frames: Sequence[np.ndarray], stem: Path) -> Path:
+    """``<stem>.mp4`` through imageio-ffmpeg; ``<stem>.gif`` if that fails (e.g. an ffmpeg without libx264). The
+    suffix is added to `stem`, never put in place of a part of it ('rollout_star.v1' stays whole)."""
     try:
-        return save_animation(frames, path.with_suffix(".mp4"))
+        return save_animation(frames, stem.with_name(f"{stem.name}.mp4"))
     except Exception:  # noqa: BLE001 - any encoder failure: fall back to the always-available GIF writer
-        return save_animation(frames, path.with_suffix(".gif"))
+        return save_animation(frames, stem.with_name(f"{stem.name}.gif"))
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
     """A GitHub Markdown table; floats with two decimals."""
 
-    def cell(v):
-        return f"{v:.2f}" if isinstance(v, float) else str(v)
+    def cell(v):  # a task id may hold '|' or a line break, which would end the cell or the row
+        return f"{v:.2f}" if isinstance(v, float) else " ".join(str(v).replace("|", "\\|").split())
 
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join(" --- " for _ in header) + "|"]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]

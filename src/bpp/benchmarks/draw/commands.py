@@ -24,7 +24,7 @@ from bpp.benchmarks.prompting import run_prompted
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
 from bpp.media import contact_sheet, save_animation
-from bpp.utils import check_fields
+from bpp.utils import check_fields, write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -262,7 +262,7 @@ def demo(args: Demo) -> None:
 def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
     s = result["summary"]
     eval_dir = "eval-human"
-    videos = sorted(p.name for p in (args.out_dir / eval_dir).glob("rollout_*"))
+    videos = [task["video"] for task in result["tasks"] if task.get("video")]  # this evaluation's, not older ones
     lines = [
         "# bpp main job: BPP on DrawAnything-Sim, unseen human-made drawings",
         "",
@@ -298,7 +298,7 @@ def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
             "paper's setting is images and canvas actions (`--obs canvas-ink` is state-only with canvas actions). "
             "See BENCHMARKS.md."
         )
-    (args.out_dir / "report.md").write_text("\n".join(lines) + "\n")
+    write_text_atomic(args.out_dir / "report.md", "\n".join(lines) + "\n")
 
 
 COMMANDS = {

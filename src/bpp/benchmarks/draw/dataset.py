@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 from dataclasses import asdict, dataclass, field
@@ -19,7 +20,7 @@ from bpp.benchmarks.draw.procedural import ProceduralConfig, describe_parts, gen
 from bpp.benchmarks.draw.render import render_frames
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
-from bpp.utils import check_fields
+from bpp.utils import check_fields, worker_pool
 
 BENCHMARK = "drawanything"
 
@@ -133,14 +134,14 @@ def generate(
     workers = workers or os.cpu_count() or 1
     config = {**asdict(cfg), "drawings": [str(p) for p in cfg.drawings]}
     with EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer:
-        if workers > 1 and len(jobs) > 1:
-            # fork: cheap, and works from any entry point; generation never touches torch or threads.
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            pool = ctx.Pool(workers)
-            results = pool.imap(_task_job, jobs, chunksize=max(1, min(16, len(jobs) // (8 * workers))))
-        else:
-            pool, results = None, map(_task_job, jobs)
-        try:
+        with contextlib.ExitStack() as stack:
+            if workers > 1 and len(jobs) > 1:
+                # fork: cheap, and works from any entry point; generation never touches torch or threads.
+                ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+                pool = stack.enter_context(worker_pool(ctx, workers))
+                results = pool.imap(_task_job, jobs, chunksize=max(1, min(16, len(jobs) // (8 * workers))))
+            else:
+                results = map(_task_job, jobs)
             bar = tqdm(results, total=len(jobs), desc=f"generating {Path(out).name}", unit="task", disable=not progress)
             for drawing, info, demos in bar:
                 info = {
@@ -153,9 +154,6 @@ def generate(
                 task = writer.add_task(drawing.id, info, instruction=instruction, strokes=strokes_array(drawing))
                 for demo in demos:
                     writer.add_episode(episode_steps(demo), task, board_angle=demo.board_angle, speed=demo.speed)
-        finally:
-            if pool is not None:
-                pool.terminate()
         return writer.close()
 
 

@@ -13,6 +13,7 @@ Per step: ``tip_pose`` (9: the pen tip's pose in the robot's base frame, positio
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ from bpp.benchmarks.draw.procedural import ProceduralConfig
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
-from bpp.utils import check_fields, usable_cores
+from bpp.utils import check_fields, usable_cores, worker_pool
 
 BENCHMARK = "draw3d"
 CAMERAS = ("wrist",)
@@ -179,9 +180,12 @@ def generate(
     config = {**asdict(cfg), "drawings": [str(p) for p in cfg.drawings]}
     totals = {"tries": 0, "no_canvas_pose": 0, "too_far": 0}
     with EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer:
-        pool = mp.get_context("spawn").Pool(workers) if workers > 1 else None  # MuJoCo's OpenGL does not fork
-        try:
-            results = pool.imap(demonstrate_task, jobs) if pool else map(demonstrate_task, jobs)
+        with contextlib.ExitStack() as stack:  # workers stopped however it ends, Ctrl-C left to this process
+            if workers > 1:
+                pool = stack.enter_context(worker_pool(mp.get_context("spawn"), workers))  # MuJoCo's OpenGL: no fork
+                results = pool.imap(demonstrate_task, jobs)
+            else:
+                results = map(demonstrate_task, jobs)
             bar = tqdm(results, total=len(jobs), desc=f"generating {Path(out).name}", unit="task", disable=not progress)
             for (drawing, _, _), (episodes, counts) in zip(jobs, bar, strict=True):
                 for key in totals:
@@ -194,9 +198,6 @@ def generate(
                 task = writer.add_task(drawing.id, info, strokes=strokes_array(drawing))
                 for steps, columns in episodes:
                     writer.add_episode(steps, task, **columns)
-        finally:
-            if pool is not None:
-                pool.terminate()
         store = writer.close()
     failed = totals["tries"] - store.num_episodes
     if progress:

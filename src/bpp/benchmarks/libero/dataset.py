@@ -33,7 +33,7 @@ from tqdm import tqdm
 from bpp.benchmarks.libero.chain import ChainTask
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.sim import CAMERAS
-from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches
+from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches, parse_where
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, destination_lock
 from bpp.errors import UserError
 from bpp.utils import check_fields, to_dict
@@ -74,9 +74,10 @@ class LiberoDataConfig:
     """Tasks of the split to demonstrate, spread evenly over it (0: all)."""
     task_indices: tuple[int, ...] = ()
     """Exactly these tasks of the split (indices, as ``bpp libero tasks`` lists them) instead of num_tasks."""
-    where: str = ""
+    where: str | None = None
     """A view: only the split's tasks whose fields match, e.g. ``pick=TD`` or ``view!=second_step`` (see
-    :func:`bpp.benchmarks.libero.suites.matches`). Tasks keep their index in the split, so their seeds too."""
+    :func:`bpp.benchmarks.libero.suites.matches`; default: every task, and an empty view is refused). Tasks keep their
+    index in the split, so their seeds too."""
     demos_per_task: int = 5
     max_tries: int = 0
     """Demonstration attempts per task at most (0: twice the demonstrations plus two)."""
@@ -104,6 +105,8 @@ class LiberoDataConfig:
             ("demo.action_noise", 0.0 <= self.demo.action_noise <= 1.0, "in [0, 1] (action units)"),
             ("demo.max_steps", self.demo.max_steps >= 1, ">= 1"),
         )
+        if self.where is not None:
+            parse_where(self.where)  # a malformed view is refused when the config is built, quoting it
 
     @property
     def tries(self) -> int:
@@ -123,11 +126,15 @@ class LiberoDataConfig:
             bad = [i for i in self.task_indices if i >= len(split)]
             if bad:
                 raise UserError(f"task_indices {bad} out of range: {self.suite} {self.split} has {len(split)} tasks")
-            outside = [i for i in self.task_indices if self.where and not matches(split[i], self.where)]
+            outside = [i for i in self.task_indices if self.where is not None and not matches(split[i], self.where)]
             if outside:
-                raise UserError(f"task_indices {outside} are not in the view {self.where!r}")
+                raise UserError(
+                    f"task_indices {outside} are not in the view {self.where!r} (task_indices come from "
+                    "--task-indices or the preset, e.g. debug's (0,)); give --task-indices with indices of tasks in "
+                    "the view, or with none for all of them"
+                )
             return [(i, split[i]) for i in sorted(set(self.task_indices))]
-        chosen = [(i, t) for i, t in enumerate(split) if not self.where or matches(t, self.where)]
+        chosen = [(i, t) for i, t in enumerate(split) if self.where is None or matches(t, self.where)]
         if not chosen:
             raise UserError(f"no {self.split} task of {self.suite} is in the view {self.where!r}")
         n = len(chosen) if not self.num_tasks else min(self.num_tasks, len(chosen))

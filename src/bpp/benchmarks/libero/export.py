@@ -2,7 +2,8 @@
 
     bpp libero export data/libero/combination-train.zarr --out exports/combination
 
-Each task becomes ``<task id>_demo.hdf5`` beside its ``<task id>.bddl``, the way LIBERO ships its datasets:
+Each task becomes ``<task id>_demo.hdf5`` beside its ``<task id>.bddl``, the way LIBERO ships its datasets (an id
+that is not a safe file name, :func:`bpp.utils.file_stem`, as a slug of it and a hash):
 ``data`` holds the problem (``bddl_file_content``, ``problem_info`` with the instruction, ``env_args``) and one group
 ``demo_<i>`` per demonstration with ``actions`` (T, 7), the flattened simulator ``states`` (T, 92), ``robot_states``,
 ``rewards`` and ``dones`` (1 at the last step), and ``obs``: ``joint_states``, ``ee_pos``, ``ee_quat``,
@@ -24,6 +25,7 @@ import numpy as np
 from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.utils import atomic_path, file_stem, write_text_atomic
 
 PROPRIO_PARTS = {
     "joint_states": "joint_pos",
@@ -53,12 +55,12 @@ def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> lis
         problem = task["info"].get("problem")
         if not problem:
             raise UserError(f"{store.path}: task {task['id']!r} has no BDDL problem; generate the store again")
-        (out / f"{task['id']}.bddl").write_text(problem)
-        path = out / f"{task['id']}_demo.hdf5"
-        tmp = path.with_name(f".{path.name}.partial")
-        with h5py.File(tmp, "w") as f:
+        name = file_stem(task["id"])  # the id itself unless it is not a safe file name (problem_name keeps it)
+        write_text_atomic(out / f"{name}.bddl", problem)
+        path = out / f"{name}_demo.hdf5"
+        with atomic_path(path) as tmp, h5py.File(tmp, "w") as f:  # complete or absent (a full disk, Ctrl-C)
             data = f.create_group("data")
-            data.attrs["bddl_file_name"] = f"{task['id']}.bddl"
+            data.attrs["bddl_file_name"] = f"{name}.bddl"
             data.attrs["bddl_file_content"] = problem
             data.attrs["problem_info"] = json.dumps(
                 {"language_instruction": task["instruction"], "problem_name": task["id"], "domain_name": "robosuite"}
@@ -92,6 +94,5 @@ def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> lis
                 total += n
             data.attrs["total"] = total
             data.attrs["num_demos"] = len(by_task[index])
-        tmp.replace(path)
         written.append(path)
     return written
