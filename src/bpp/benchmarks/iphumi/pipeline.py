@@ -14,7 +14,6 @@ import multiprocessing
 import os
 import re
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from bpp.benchmarks.iphumi.process import ProcessSettings, episodes_of
 from bpp.benchmarks.iphumi.recording import RecordingError, find_recordings, group_demonstrations, read_recording
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
-from bpp.utils import usable_cores, write_json_atomic
+from bpp.utils import usable_cores, worker_pool, write_json_atomic
 
 BENCHMARK = "iphumi"
 """The benchmark name written into the stores made here (the registry's key)."""
@@ -67,6 +66,10 @@ def _process(group: str, folders: dict[str, str], index: dict[str, str], setting
     target.with_suffix(".rejected.json").unlink(missing_ok=True)
     write_json_atomic(target.with_suffix(".json"), meta)  # last: its presence marks the part complete
     return group, len(episodes), skipped, None
+
+
+def _process_job(job: tuple):
+    return _process(*job)
 
 
 def process_export(
@@ -125,10 +128,10 @@ def process_export(
             _process(*job)
             bar.update()
     else:
-        # spawned, not forked: a forked child deadlocks on a lock one of OpenCV's or FFmpeg's threads held in the parent
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            for future in as_completed([pool.submit(_process, *job) for job in jobs]):
-                future.result()
+        # spawned, not forked: a forked child deadlocks on a lock one of OpenCV's or FFmpeg's threads held in the
+        # parent; the pool's workers leave Ctrl-C and SIGTERM to this process, which stops them
+        with worker_pool(multiprocessing.get_context("spawn"), workers) as pool:
+            for _ in pool.imap_unordered(_process_job, jobs):
                 bar.update()
     bar.close()
     # the store, from every part (earlier runs' included)
