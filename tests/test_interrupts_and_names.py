@@ -278,7 +278,14 @@ def _interrupt(argv: list[str], ready, signum: int, to_group: bool, workers: int
     process group, as a Ctrl-C in a terminal does, if `to_group`). Returns its stderr and its workers' ids."""
     command = [sys.executable, "-m", "bpp.cli", *argv]
     proc = subprocess.Popen(
-        command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True
+        command,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+        # as from a terminal: pytest-xdist's workers ignore SIGINT, and a child inherits that (a command started
+        # with SIGINT ignored, like a shell's background job, rightly keeps ignoring it)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     deadline = time.monotonic() + 240
     workers_seen: set[int] = set()
