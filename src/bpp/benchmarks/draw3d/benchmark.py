@@ -81,16 +81,9 @@ class DrawAnythingReal:
         """The camera frames generated with the store (resized if another size is asked for)."""
         if key not in store.keys:
             raise ValueError(f"{store.path} has no {key!r} frames: generate it with --cameras {key}")
-        from bpp.benchmarks.lerobot.benchmark import _resize
+        from bpp.benchmarks.lerobot.benchmark import stored_frames
 
-        sl = store.episode_slice(episode)
-        if last_only:
-            rows = store[key][sl.stop - 1 : sl.stop]
-        elif steps is not None:
-            rows = store[key].oindex[sl.start + np.asarray(steps, dtype=np.int64)]
-        else:
-            rows = store[key][sl]
-        return _resize(np.asarray(rows), size)
+        return stored_frames(store, episode, key, size, last_only, steps)
 
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:

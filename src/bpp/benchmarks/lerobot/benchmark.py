@@ -98,14 +98,7 @@ class LeRobotDatasets:
         if key not in cameras:
             have = f"the cameras {', '.join(cameras)}" if cameras else "no cameras (train with --obs state)"
             raise UserError(f"{store.path} has {have}; got {key!r}")
-        sl = store.episode_slice(episode)
-        if last_only:
-            rows = store[key][sl.stop - 1 : sl.stop]
-        elif steps is not None:
-            rows = store[key].oindex[sl.start + np.asarray(steps, dtype=np.int64)]
-        else:
-            rows = store[key][sl]
-        return _resize(np.asarray(rows), size)
+        return stored_frames(store, episode, key, size, last_only, steps)
 
     # ------------------------------------------------------------ evaluation
     def task_set(self, name: str, data_dir: Path) -> TaskSet:
@@ -137,6 +130,19 @@ class LeRobotDatasets:
 
     def describe_rollout(self, row: Mapping) -> str:
         return f"episode {row.get('replayed_episode', '?')}, open loop"
+
+
+def stored_frames(store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None):
+    """Camera `key`'s frames of a stored episode as the contract's ``frames`` gives them (all, the last, or `steps`),
+    resized if another size is asked for: for benchmarks whose stores hold their camera frames."""
+    sl = store.episode_slice(episode)
+    if last_only:
+        rows = store[key][sl.stop - 1 : sl.stop]
+    elif steps is not None:
+        rows = store[key].oindex[sl.start + np.asarray(steps, dtype=np.int64)]
+    else:
+        rows = store[key][sl]
+    return _resize(np.asarray(rows), size)
 
 
 def _resize(frames: np.ndarray, size: int) -> np.ndarray:
