@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import ipaddress
+import os
 import secrets
 import signal
 import socket
@@ -53,16 +54,20 @@ class StudioCommand:
 
 
 def studio(args: StudioCommand) -> None:
+    from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints, make_memory_releasable
+
+    make_memory_releasable()  # before the studio's threads allocate
     import torch
 
     from bpp.errors import require_extra
 
     uvicorn = require_extra("uvicorn", "studio")
     require_extra("fastapi", "studio")
-    from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints
     from bpp.benchmarks.draw.studio.server import create_app
 
     main_thread = threading.current_thread() is threading.main_thread()
+    if main_thread and os.environ.get("BPP_STUDIO_TRACEMALLOC"):
+        _trace_allocations(os.environ["BPP_STUDIO_TRACEMALLOC"])
     if main_thread and signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
         # SIGTERM raises as Ctrl-C does, so that the private folder (users' prompts) is deleted either way; uvicorn
         # catches it while serving and raises it again once it has stopped.
@@ -108,6 +113,25 @@ def studio(args: StudioCommand) -> None:
                 engine.close()
     finally:
         listener.close()
+
+
+def _trace_allocations(path: str) -> None:
+    """A debugging aid, set by the environment variable BPP_STUDIO_TRACEMALLOC=FILE: on each SIGUSR1, write a
+    tracemalloc snapshot of Python's live allocations to FILE. The first signal starts tracing (10 frames; the
+    studio runs several times slower from then on), so a snapshot holds what was allocated since then and is still
+    alive (``bench/studio_abuse.py --tracemalloc`` compares them between rounds of abuse)."""
+    import gc
+    import tracemalloc
+
+    def dump(_signum, _frame) -> None:
+        if not tracemalloc.is_tracing():
+            tracemalloc.start(10)
+        gc.collect()
+        partial = f"{path}.partial"
+        tracemalloc.take_snapshot().dump(partial)
+        os.replace(partial, path)  # whole or absent: the reader waits for it to appear
+
+    signal.signal(signal.SIGUSR1, dump)
 
 
 def _interrupt(signum: int, _frame) -> None:
