@@ -179,7 +179,7 @@ def test_svg_numbers_that_svg_does_not_allow_are_refused_not_skipped(tmp_path, b
     assert f"{path}: {expected}" in _refusal(path)
 
 
-def test_svg_shapes_of_zero_size_are_not_drawn_as_in_svg(tmp_path):
+def test_svg_shapes_of_zero_size_leave_no_ink_as_in_svg(tmp_path):
     """A zero width, height or radius disables an element's rendering in SVG; svgpathtools drew such a rect as a line
     and such a circle as a dot."""
     path = _svg_file(tmp_path, '<rect width="0" height="50"/><circle cx="9" cy="9"/><path d="M 0 0 L 100 100"/>')

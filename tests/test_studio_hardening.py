@@ -466,7 +466,7 @@ def chamfer_px(lines_a, lines_b) -> float:
     return chamfer_distance(ink_mask([np.asarray(a) for a in lines_a]), ink_mask([np.asarray(b) for b in lines_b]))
 
 
-def test_a_traced_drawing_records_what_was_drawn(server):
+def test_a_traced_drawing_records_the_strokes_it_was_given(server):
     from bpp.benchmarks.draw.geometry import unit_to_canvas
 
     drawn = [unit_to_canvas(np.asarray(s), 0.0) for s in HOUSE]
