@@ -3,11 +3,13 @@
     python bench/studio_load.py --clients 20 --seconds 60 [--run runs/demo-bpp]
 
 Starts ``bpp studio --no-browser`` in a subprocess (on a trained run: --run, else a 2-step debug run trained here),
-then each client, in its own thread, repeats: upload a prompt (a random triangle, demonstrated by the server),
-start a rollout of --max-steps steps at a random angle, read its event stream to the end. Records the latency of
-every API call, the time to a rollout's first step event, the gap between step events, completed rollouts and
-every error (any non-2xx answer or broken stream; 429 "at capacity" answers are counted apart and retried after
-a pause, since refusing work over the limit is the server doing its job).
+then runs each client in its own thread and from its own loopback address (127.0.0.2, 127.0.0.3, ...: the studio
+counts sessions per client address, as it would count users on separate machines). Each repeats: upload a prompt
+(a random triangle, demonstrated by the server), start a rollout of --max-steps steps at a random angle, read its
+event stream to the end. Records the latency of every API call, the time to a rollout's first step event, the gap
+between step events, completed rollouts and every error (any non-2xx answer or broken stream; 429 "at capacity"
+answers are counted apart and retried after a pause, since refusing work over the limit is the server doing its
+job).
 """
 
 from __future__ import annotations
@@ -83,6 +85,8 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=100, help="steps per rollout")
     parser.add_argument("--run", type=Path, default=None, help="a trained run (default: a debug run trained here)")
     args = parser.parse_args()
+    if not 1 <= args.clients <= 250:
+        parser.error("--clients must be 1 to 250 (one loopback address each)")
     with tempfile.TemporaryDirectory(prefix="studio-load-") as tmp:
         runs = args.run if args.run else debug_run(Path(tmp))
         with socket.socket() as s:
@@ -140,17 +144,17 @@ def _load(url: str, args) -> dict:
         with lock:
             stats[key].append(value)
 
-    def timed(key, call):
+    def timed(key, call):  # answered calls only: refusals (429) are counted apart
         t0 = time.perf_counter()
-        try:
-            return call()
-        finally:
-            record(key, time.perf_counter() - t0)
+        result = call()
+        record(key, time.perf_counter() - t0)
+        return result
 
     def client(index: int) -> None:
         rng = random.Random(index)
         try:
-            c = timed("session", lambda: StudioClient(url, TOKEN))
+            address = f"127.0.0.{2 + index}"
+            c = timed("session", lambda: StudioClient(url, TOKEN, local_address=address))
             checkpoint = c.checkpoints()[0]["id"]
         except Exception as err:  # noqa: BLE001
             record("errors", f"client {index}: {type(err).__name__}: {err}")

@@ -438,6 +438,16 @@ DAMAGED = [
         "eval of a state.json nested 100k deep",
     ),
     _case(
+        _damaged_run(lambda run: (_newest(run) / "state.json").write_text('{"step": ' + "9" * 5000 + "}")),
+        "state.json: the checkpoint state holds an integer of 5000 digits",
+        "eval of a state.json with a 5000-digit step",
+    ),
+    _case(
+        _damaged_run(lambda run: (_newest(run) / "state.json").write_text('{"step": 1e999}')),
+        "state.json: the checkpoint state holds the number 1e999, which overflows a float",
+        "eval of a state.json with a number past float's range",
+    ),
+    _case(
         _damaged_run(lambda run: (_newest(run) / "state.json").write_text('{"format": "other"}')),
         "damaged-run/checkpoints/step_00000002: not a bpp checkpoint",
         "eval of a checkpoint of another format",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -356,3 +357,36 @@ def test_an_interrupted_evaluation_ends_in_one_line_and_writes_nothing(signum, t
     err, workers = _interrupt([*argv, "--workers", "2", "--out", str(out)], lambda: True, signum, to_group, 2)
     _check_interrupted(err, "eval", signum, workers)
     assert not out.exists()
+
+
+def _catches(pid: int, signum: int) -> bool:
+    """Whether process `pid` has a handler for `signum` (Linux's /proc)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("SigCgt:"):
+            return bool(int(line.split()[1], 16) >> (signum - 1) & 1)
+    return False
+
+
+@needs_proc
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_command_interrupted_while_it_loads_ends_in_one_line(signum):
+    """The command line takes seconds to import torch and the benchmarks: a signal then ends it as it would later."""
+    from importlib.metadata import entry_points
+
+    assert entry_points(group="console_scripts", name="bpp")[0].value == "bpp.launch:main"  # the `bpp` program too
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "bpp", "train", "--help"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
+    deadline = time.monotonic() + 30
+    while not _catches(proc.pid, signal.SIGTERM) and time.monotonic() < deadline:  # the entry point's handlers are in
+        time.sleep(0.002)
+    loading = "libtorch" not in Path(f"/proc/{proc.pid}/maps").read_text()
+    proc.send_signal(signum)
+    assert loading, "the command line took signals only once torch was loaded"
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signum and "Traceback" not in err, err[-3000:]
+    assert re.fullmatch(rf"bpp( train)?: interrupted by {signal.Signals(signum).name}", err.strip()), err[-500:]

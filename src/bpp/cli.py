@@ -25,7 +25,7 @@ from bpp.benchmarks.registry import (
     benchmark_names,
     get_benchmark,
 )
-from bpp.errors import Interrupted, UserError
+from bpp.errors import UserError, raise_interrupted
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
@@ -421,21 +421,14 @@ def _stop_on_signals() -> Callable[[], None]:
         return lambda: None
     previous = {}
     for signum, default in ((signal.SIGINT, signal.default_int_handler), (signal.SIGTERM, signal.SIG_DFL)):
-        if signal.getsignal(signum) is default:
-            previous[signum] = signal.signal(signum, _interrupted)
+        if signal.getsignal(signum) in (default, raise_interrupted):  # the latter: installed by `bpp.launch`
+            previous[signum] = signal.signal(signum, raise_interrupted)
 
     def restore() -> None:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 
     return restore
-
-
-def _interrupted(signum: int, frame) -> None:
-    # The program is stopping: a library's background thread that fails on the way down (torch's file-descriptor
-    # sharing, when a loader process it talks to is stopped) must not print a traceback after the one-line message.
-    threading.excepthook = lambda args: None
-    raise Interrupted(signum)
 
 
 def _message(err: Exception) -> str:

@@ -25,6 +25,16 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+def raise_interrupted(signum: int, frame) -> None:
+    """The signal handler that turns SIGINT and SIGTERM into :class:`Interrupted`. The program is stopping: a
+    library's background thread that fails on the way down (torch's file-descriptor sharing, when a loader process it
+    talks to is stopped) must not print a traceback after the one-line message."""
+    import threading
+
+    threading.excepthook = lambda args: None
+    raise Interrupted(signum)
+
+
 def require_extra(module: str, extra: str):
     """Import `module`, which only optional extra `extra` installs; a missing one is a UserError saying what to
     install (``pip install 'bpp[extra]'``) rather than an ImportError from deep inside a command."""

@@ -7,10 +7,12 @@ import dataclasses
 import functools
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
 import signal
+import sys
 import threading
 import typing
 import uuid
@@ -86,26 +88,41 @@ def worker_pool(context, workers: int, initializer=None, initargs: tuple = ()) -
     a job scheduler or systemd may send to all of them too, from their start (a spawned worker imports torch for
     seconds before `initializer` runs), so that none prints a traceback of its own, and none dies halfway through
     passing a task or a result, which would leave the pool's teardown waiting for ever. The pool stops them with
-    SIGKILL instead. ``initializer(*initargs)`` then runs in each."""
+    SIGKILL instead. On Linux they also die with this process when nothing stops them (a library caller killed by
+    SIGTERM's default, or by SIGKILL). ``initializer(*initargs)`` then runs in each."""
     method = context.get_start_method()
     assert method in _KILLING_CONTEXTS, f"worker_pool supports fork and spawn, not {method}"
     pool = None
     try:
         with _held_for_workers():
-            pool = _KILLING_CONTEXTS[method]().Pool(workers, _start_worker, (initializer, initargs))
+            pool = _KILLING_CONTEXTS[method]().Pool(workers, _start_worker, (initializer, initargs, os.getpid()))
         yield pool
     finally:
         if pool is not None:
             pool.terminate()
 
 
-def _start_worker(initializer, initargs: tuple) -> None:
+def _start_worker(initializer, initargs: tuple, parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, _STOP_SIGNALS)  # what came meanwhile is dropped
+    _die_with(parent)
     if initializer is not None:
         initializer(*initargs)
+
+
+def _die_with(parent: int) -> None:
+    """Have Linux kill this process (SIGKILL) when `parent`, which started it, ends; elsewhere, nothing."""
+    if not sys.platform.startswith("linux"):
+        return
+    import ctypes
+
+    pr_set_pdeathsig = 1
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    if os.getppid() != parent:  # it ended before the request was in place
+        os._exit(1)
 
 
 class _KilledSpawnProcess(mp_context.SpawnProcess):
@@ -179,7 +196,8 @@ MAX_JSON_BYTES = 64 << 20
 
 def read_json(path: str | Path, what: str = "JSON file", max_bytes: int = MAX_JSON_BYTES) -> Any:
     """Parse the JSON file `path`, or raise a UserError naming it and `what` it should be: unreadable, over
-    `max_bytes`, not UTF-8, not JSON, or nested too deeply for the parser (Python's RecursionError)."""
+    `max_bytes`, not UTF-8, not JSON, nested too deeply for the parser (Python's RecursionError), or holding a number
+    no float can hold (an integer of more than 300 digits, a decimal that overflows to infinity)."""
     path = Path(path)
     try:
         size = path.stat().st_size
@@ -190,11 +208,30 @@ def read_json(path: str | Path, what: str = "JSON file", max_bytes: int = MAX_JS
     except (OSError, UnicodeDecodeError) as err:
         raise UserError(f"{path}: cannot read the {what} ({err})") from None
     try:
-        return json.loads(text)
+        return json.loads(text, parse_int=_json_int, parse_float=_json_float)
     except json.JSONDecodeError as err:
         raise UserError(f"{path}: the {what} is not valid JSON ({err})") from None
+    except _NumberTooLarge as err:
+        raise UserError(f"{path}: the {what} holds {err}") from None
     except RecursionError:
         raise UserError(f"{path}: the {what} is nested too deeply to parse") from None
+
+
+class _NumberTooLarge(ValueError):
+    pass
+
+
+def _json_int(text: str) -> int:
+    if len(text.lstrip("-")) > 300:  # past float's range; Python refuses to convert over 4300 digits anyway
+        raise _NumberTooLarge(f"an integer of {len(text.lstrip('-'))} digits ({text[:12]}...), too large for a number")
+    return int(text)
+
+
+def _json_float(text: str) -> float:
+    value = float(text)
+    if math.isinf(value):
+        raise _NumberTooLarge(f"the number {text[:24]}{'...' if len(text) > 24 else ''}, which overflows a float")
+    return value
 
 
 def write_json_atomic(path: str | Path, data: Any) -> None:

@@ -17,9 +17,9 @@ journal removed.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
-import os
 import shutil
 import time
 from collections import Counter
@@ -36,7 +36,7 @@ from bpp.benchmarks.libero.sim import CAMERAS
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches, parse_where
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, destination_lock
 from bpp.errors import UserError
-from bpp.utils import check_fields, to_dict
+from bpp.utils import atomic_path, check_fields, remove_stale_partials, to_dict, usable_cores, worker_pool
 
 BENCHMARK = "libero_gen"
 GOAL_KEY = "goal_agentview"
@@ -216,9 +216,8 @@ def _task_job(job) -> dict:
             env.close()
     summary["kept"] = len(episodes)
     arrays = {f"{i}/{k}": v for i, ep in enumerate(episodes) for k, v in ep.items()}
-    tmp = journal / f".task-{index:04d}.{os.getpid()}.npz"
-    np.savez(tmp, summary=json.dumps(summary), **arrays)
-    os.replace(tmp, journal / f"task-{index:04d}.npz")
+    with atomic_path(journal / f"task-{index:04d}.npz") as tmp:
+        np.savez(tmp, summary=json.dumps(summary), **arrays)
     return summary
 
 
@@ -246,6 +245,7 @@ def _journal(out: Path, cfg: LiberoDataConfig) -> Path:
             print(f"[generate] discarding {journal}: it was started with another configuration")
             shutil.rmtree(journal)
     journal.mkdir(parents=True, exist_ok=True)
+    remove_stale_partials(journal)  # what a worker killed outright was writing
     (journal / "config.json").write_text(config)
     return journal
 
@@ -269,11 +269,12 @@ def _generate(cfg: LiberoDataConfig, out: Path, workers: int, overwrite: bool, p
     journal = _journal(out, cfg)
     done = {int(p.stem.split("-")[1]) for p in journal.glob("task-*.npz")}
     jobs = [(i, t, cfg, journal) for i, t in tasks if i not in done]
-    workers = min(workers or os.cpu_count() or 1, max(len(jobs), 1))
+    workers = min(workers or usable_cores(), max(len(jobs), 1))
     t0 = time.perf_counter()
-    pool = mp.get_context("spawn").Pool(workers) if workers > 1 else None
-    stop = _exit_on_sigterm()  # a `kill` stops the workers too (the journal keeps every finished task)
-    try:
+    # Interrupted (Ctrl-C, SIGTERM through the CLI), the pool's workers are stopped and the journal keeps every
+    # finished task for the next run.
+    with contextlib.ExitStack() as stack:
+        pool = stack.enter_context(worker_pool(mp.get_context("spawn"), workers)) if workers > 1 else None
         results = pool.imap_unordered(_task_job, jobs) if pool else map(_task_job, jobs)
         bar = tqdm(results, total=len(tasks), initial=len(tasks) - len(jobs), desc=f"demonstrating {out.name}",
                    unit="task", disable=not progress)  # fmt: skip
@@ -281,10 +282,6 @@ def _generate(cfg: LiberoDataConfig, out: Path, workers: int, overwrite: bool, p
         for summary in bar:
             made += summary["kept"]
             bar.set_postfix(demos_per_hour=round(3600 * made / (time.perf_counter() - t0)))
-    finally:
-        if pool is not None:
-            pool.terminate()
-        stop()
     seconds = time.perf_counter() - t0
     timing = {"seconds_this_run": round(seconds, 1), "demos_per_hour_this_run": round(3600 * made / seconds, 1)}
     report = _write_store(cfg, tasks, journal, out, overwrite, timing)
@@ -293,22 +290,6 @@ def _generate(cfg: LiberoDataConfig, out: Path, workers: int, overwrite: bool, p
     if progress:
         print(describe_report(report))
     return store
-
-
-def _exit_on_sigterm():
-    """Turn SIGTERM into SystemExit while generating (the default would leave the pool's workers running);
-    returns the function that restores the previous handler."""
-    import signal
-    import threading
-
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None
-
-    def exit_(signum, frame):
-        raise SystemExit(128 + signum)
-
-    previous = signal.signal(signal.SIGTERM, exit_)
-    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:

@@ -31,8 +31,13 @@ class StudioClientError(RuntimeError):
 class StudioClient:
     """One session of a studio server."""
 
-    def __init__(self, url: str, token: str, timeout: float = 120.0):
-        self.http = httpx.Client(base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=timeout)
+    def __init__(self, url: str, token: str, timeout: float = 120.0, local_address: str | None = None):
+        """A session of the studio at `url`; `local_address` is the address to connect from (the studio counts
+        sessions per client address)."""
+        transport = httpx.HTTPTransport(local_address=local_address) if local_address else None
+        self.http = httpx.Client(
+            base_url=url, headers={"Authorization": f"Bearer {token}"}, timeout=timeout, transport=transport
+        )
         self.session = self._call("POST", "/api/session")["session"]
         self.http.headers["X-Studio-Session"] = self.session
 
