@@ -275,8 +275,46 @@ def test_demonstrator_noise_perturbs_the_executed_position_actions_never_the_rec
             arm.step(action)
         executed, recorded = np.array(sent), np.array(arm.actions)
         assert (recorded == action).all() and (executed[:, 3:] == action[3:]).all()  # rotation and gripper as given
+        assert (np.array(arm.executed) == executed).all()  # kept to replay the demonstration
         error = executed[:, :3] - action[:3]
         if noise:
             assert 0.05 < error.std() < 0.15 and np.abs(executed).max() <= 1.0
         else:
             assert not error.any()
+
+
+def _goal_env(history: list[dict[str, bool]]):
+    """A stand-in for a LIBERO env whose goal is (A) then (B); its predicates take `history`'s values in turn."""
+    from types import SimpleNamespace
+
+    now = {"t": 0}
+    inner = SimpleNamespace(
+        parsed_problem={"goal_state": [["a"], ["b"]]},
+        _eval_predicate=lambda term: history[now["t"]][term[0]],
+    )
+    return SimpleNamespace(env=inner), now
+
+
+@pytest.mark.parametrize(
+    ("history", "done", "first"),
+    [
+        pytest.param("- A AB", True, True, id="in order"),
+        pytest.param("- B AB", False, True, id="the other way round"),
+        pytest.param("- AB", True, True, id="both at once"),
+        pytest.param("B AB", False, True, id="second held from the start"),
+        pytest.param("B - A AB", True, True, id="second undone, then redone after the first"),
+        pytest.param("- A - B", False, True, id="first undone"),
+        pytest.param("- B", False, False, id="second only"),
+    ],
+)
+def test_a_chain_is_done_only_when_its_steps_are_reached_in_order(history, done, first):
+    from bpp.benchmarks.libero.sim import GoalOrder
+
+    states = [{"a": "A" in word, "b": "B" in word} for word in history.split()]
+    env, now = _goal_env(states)
+    order = GoalOrder(env)
+    for t in range(1, len(states)):
+        now["t"] = t
+        order.update()
+    assert (order.done, order.first_reached) == (done, first)
+    assert order.final == (states[-1]["a"] and states[-1]["b"])  # LIBERO's own success ignores the order

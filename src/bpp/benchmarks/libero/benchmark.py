@@ -166,10 +166,11 @@ _RENDER_ENV: dict = {}
 
 
 def _render(store: EpisodeStore, episode: int, states: np.ndarray, camera: str, size: int) -> np.ndarray:
-    """Frames of stored states of `episode`. The env is reset with the episode's own seed first: the fixtures'
-    placement (cabinet, stove: about 1.5 cm between seeds) is part of the model, not of the stored state."""
+    """Frames of stored states of `episode`. The env is reset with the episode's own seed and its fixtures are put
+    where the episode had them: their placement (cabinet, stove: about 1.5 cm between resets) is part of the model,
+    not of the stored state."""
     from bpp.benchmarks.libero.rollouts import task_problem
-    from bpp.benchmarks.libero.sim import make_env, render_states
+    from bpp.benchmarks.libero.sim import make_env, place_fixtures, render_states
 
     problem = task_problem(store, episode)
     if _RENDER_ENV.get("problem") != problem:
@@ -183,6 +184,9 @@ def _render(store: EpisodeStore, episode: int, states: np.ndarray, camera: str, 
     env = _RENDER_ENV["env"]
     env.seed(int(store.column("seed")[episode]))
     env.reset()
+    fixtures = dataset.episode_fixtures(store, episode)
+    if fixtures is not None:
+        place_fixtures(env, *fixtures)
     return render_states(env, states, camera, size)
 
 

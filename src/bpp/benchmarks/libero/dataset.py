@@ -34,13 +34,17 @@ from bpp.benchmarks.libero.chain import ChainTask
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.sim import CAMERAS
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches, parse_where
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, destination_lock
+from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, StoreKeyError, destination_lock
 from bpp.errors import UserError
 from bpp.utils import atomic_path, check_fields, remove_stale_partials, to_dict, usable_cores, worker_pool
 
 BENCHMARK = "libero_gen"
 GOAL_KEY = "goal_agentview"
 """Per-episode column: the demonstration's final agent-view frame (upright), the Goal-Image baseline's goal."""
+FIXTURE_KEY = "fixture_pose"
+"""Per-episode column: (8, 7) where the episode's reset put its scene's fixtures (position, wxyz quaternion), one row
+per name in the task's ``info["fixtures"]``, NaN below them. With the episode's first ``sim_state`` it rebuilds the
+exact scene (:func:`bpp.benchmarks.libero.sim.replay`)."""
 STEP_KEYS = ("action", "proprio", "object_state", "sim_state")
 PROPRIO_LAYOUT = {
     "joint_pos": range(0, 7),
@@ -160,6 +164,29 @@ long, so the 311 tasks also generate in about an hour on 2 cores) and ``held-out
 steps per demonstration: a chain is two operators in one episode, and the scripted push alone takes about 550)."""
 
 
+def episode_fixtures(store: EpisodeStore, episode: int) -> tuple[list[str], np.ndarray] | None:
+    """(names, poses) of the fixtures as `episode`'s reset placed them, or None for a store written before they were
+    kept (its scenes are rebuilt from the episode's seed, which LIBERO does not reproduce exactly)."""
+    try:
+        poses = store.column(FIXTURE_KEY)[episode]
+    except StoreKeyError:
+        return None
+    names = list(store.tasks[int(store.column("task_index")[episode])]["info"].get("fixtures", []))
+    return names, np.asarray(poses[: len(names)], dtype=np.float64)
+
+
+def replay_episode(env, store: EpisodeStore, episode: int) -> tuple[np.ndarray, bool]:
+    """Replay stored `episode` open-loop in `env` (made from its task's problem) from its first simulator state,
+    with its fixtures and the actions its controller received: (the simulator states before each action and after
+    the last, whether LIBERO's goal holds at the end); see :func:`bpp.benchmarks.libero.sim.replay`."""
+    from bpp.benchmarks.libero.sim import replay
+
+    actions = "executed_action" if "executed_action" in store.keys else "action"
+    steps = store.episode(episode, ["sim_state", actions])
+    seed = int(store.column("seed")[episode])
+    return replay(env, seed, steps["sim_state"], steps[actions], episode_fixtures(store, episode))
+
+
 def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:
     return f"{split}-{index:03d}-{task.name}"
 
@@ -183,7 +210,7 @@ def _task_job(job) -> dict:
     import tempfile
 
     from bpp.benchmarks.libero.demonstrator import demonstrate_task
-    from bpp.benchmarks.libero.sim import make_env, render_now, render_states
+    from bpp.benchmarks.libero.sim import MAX_FIXTURES, fixture_poses, make_env, render_now, render_states
 
     summary = {"index": index, "kept": 0, "tries": 0}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
@@ -201,12 +228,18 @@ def _task_job(job) -> dict:
                 if not demo.success:
                     continue
                 episode = {
-                    "action": demo.actions.astype(np.float32),
+                    "action": demo.actions.astype(np.float64),  # exactly what was commanded: the physics is chaotic
                     "proprio": demo.observations["robot0_proprio-state"].astype(np.float32),
                     "object_state": demo.observations["object-state"].astype(np.float32),
                     "sim_state": demo.states.astype(np.float64),
                     "seed": np.int64(seed),
                 }
+                if demo.executed is not None:  # DART noise: the clean actions train, these replay
+                    episode["executed_action"] = demo.executed.astype(np.float64)
+                names, poses = fixture_poses(env)  # where this reset put the fixtures: not in the simulator state
+                summary["fixtures"] = names
+                episode[FIXTURE_KEY] = np.full((MAX_FIXTURES, 7), np.nan)
+                episode[FIXTURE_KEY][: len(poses)] = poses
                 if cfg.goal_size:
                     episode[GOAL_KEY] = render_now(env, CAMERAS["agentview"], cfg.goal_size)  # the final state
                 for camera in cfg.cameras:
@@ -311,11 +344,12 @@ def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwri
                 continue
             info = {k: v for k, v in task.describe().items() if k != "instruction"}
             info.update(suite=cfg.suite, split=cfg.split, problem=problem_text(task, original))
+            info["fixtures"] = summary["fixtures"]  # the rows of each episode's fixture_pose
             if original:  # rollouts start from LIBERO's own initial states of the task
                 info["initial_states"] = "{}/{}.pruned_init".format(*task.libero_source)
             task_index = writer.add_task(task_id(cfg.split, index, task), info, instruction=task.instruction)
             for episode in episodes:
-                columns = {"seed": int(episode.pop("seed"))}
+                columns = {"seed": int(episode.pop("seed")), FIXTURE_KEY: episode.pop(FIXTURE_KEY)}
                 if GOAL_KEY in episode:
                     columns[GOAL_KEY] = episode.pop(GOAL_KEY)
                 writer.add_episode(episode, task_index, **columns)

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bpp.benchmarks.libero.chain import parse_step
-from bpp.benchmarks.libero.sim import holds
+from bpp.benchmarks.libero.sim import GoalOrder, holds, seat
 from bpp.benchmarks.libero.suites import BOWL, BOWLS, LOCATION_TARGETS, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
@@ -76,6 +76,9 @@ class Demonstration:
     states: np.ndarray | None = None
     """(T, S) flattened simulator states before each action (to re-render any camera later)."""
     success: bool = False
+    """LIBERO's goal holds at the end, and a goal of several terms (a Chain's steps) was reached in their order."""
+    executed: np.ndarray | None = None
+    """(T, 7) the actions the controller received, when they differ from `actions` (``DemoConfig.action_noise``)."""
 
 
 def target_position(env, obs: dict, task: PickPlace) -> np.ndarray:
@@ -91,7 +94,7 @@ def target_position(env, obs: dict, task: PickPlace) -> np.ndarray:
 class Arm:
     """The robot of a LIBERO env driven through waypoints, every step recorded (the state and observation before it,
     and the action). :meth:`start` resets and settles the env; the operators below move the arm; :meth:`result`
-    judges the whole demonstration by LIBERO's predicate."""
+    judges the whole demonstration by LIBERO's predicate, and a goal of several terms by their order too."""
 
     def __init__(self, env, cfg: DemoConfig, upright: bool = False, seed: int = 0):
         self.env, self.cfg = env, cfg
@@ -100,9 +103,11 @@ class Arm:
         """Hold the hand pointing straight down while it moves (the controller takes rotation *deltas*, so without
         this its tracking errors add up: after a drawer was pulled the hand was 9 degrees off and missed a rim)."""
         self.actions: list[np.ndarray] = []
+        self.executed: list[np.ndarray] = []
         self.states: list[np.ndarray] = []
         self.observed: list[dict] = []
         self.obs: dict = {}
+        self.order: GoalOrder | None = None
 
     @classmethod
     def start(cls, env, seed: int, cfg: DemoConfig = DemoConfig(), upright: bool = False) -> Arm:
@@ -110,7 +115,9 @@ class Arm:
         env.seed(seed)
         arm.obs = env.reset()
         for _ in range(SETTLE_STEPS):
-            arm.obs, *_ = env.step(np.zeros(7))
+            env.step(np.zeros(7))
+        arm.obs = seat(env)  # as a replay starts
+        arm.order = GoalOrder(env)
         return arm
 
     def step(self, action) -> None:
@@ -124,7 +131,10 @@ class Arm:
         executed = np.array(action, dtype=np.float64)
         if self.cfg.action_noise:
             executed[:3] = np.clip(executed[:3] + self.noise.normal(0.0, self.cfg.action_noise, 3), -1.0, 1.0)
+        self.executed.append(executed)
         self.obs, *_ = self.env.step(executed)
+        if self.order is not None:
+            self.order.update()
 
     def go(self, target, grip: float, tol: float = 0.005, limit: int = 80, across=None, pose=None) -> None:
         """Move the gripper to `target`; with `across` (a horizontal axis), also yaw it until its fingers close
@@ -173,11 +183,13 @@ class Arm:
 
     def result(self) -> Demonstration:
         keys = self.observed[0].keys() if self.observed else ()
+        in_order = self.order is None or self.order.done
         return Demonstration(
             np.array(self.actions),
             {k: np.stack([o[k] for o in self.observed]) for k in keys},
             np.array(self.states),
-            bool(self.env.env._check_success()),
+            bool(self.env.env._check_success()) and in_order,
+            np.array(self.executed) if self.cfg.action_noise else None,
         )
 
 

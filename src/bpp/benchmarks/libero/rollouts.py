@@ -1,9 +1,12 @@
 """LIBERO-Gen rollouts: a policy, already given each rollout's task context, acts in LIBERO from a new initial
-state; LIBERO's own goal predicates score it (success at any step ends the rollout), as in the paper's protocol.
-Each rollout also records how far it got: whether it lifted an object its goal moves (``lifted``) and whether it
-lifted any other object (``lifted_other``), by at least :data:`LIFT` above where the object started. With two
-identical bowls (Combination), picking the right one is what the prompt has to convey. A task whose goal has
-several terms (a Chain's two steps) also records whether its first term held at some step (``first_step``).
+state; LIBERO's own goal predicates score it (the goal holding at any step ends the rollout), as in the paper's
+protocol. A Chain task succeeds only if its steps were done in their order (:class:`~bpp.benchmarks.libero.sim.
+GoalOrder`): three unseen chains have the same final goal as a training chain with its two steps the other way round.
+Its rollouts also record the final goal alone (``final_goal``, order ignored) and whether the first step was done
+(``first_step``); LIBERO's own tasks keep LIBERO's success, which ignores the order. Each rollout also records how far
+it got: whether it lifted an object its goal moves (``lifted``) and whether it lifted any other object
+(``lifted_other``), by at least :data:`LIFT` above where the object started. With two identical bowls (Combination),
+picking the right one is what the prompt has to convey.
 
 Rollouts step in lockstep through one batched agent; each has its own env (physics only unless the policy
 observes cameras or a video is recorded). Camera observations are rendered from the simulator state after each
@@ -21,7 +24,7 @@ import numpy as np
 from bpp.benchmarks.contract import RolloutResult
 from bpp.benchmarks.libero.dataset import BENCHMARK
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
-from bpp.benchmarks.libero.sim import CAMERAS, holds, initial_states, make_env, render_now
+from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now
 from bpp.data.store import EpisodeStore, with_derived
 from bpp.errors import UserError
 
@@ -95,12 +98,12 @@ def run_rollouts(
         raise UserError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
     n = len(rollouts)
     record = list(record_frames) if record_frames is not None else [False] * n
-    envs, obs, heights, first_goals = [], [], [], []
+    envs, obs, heights, orders, ordered = [], [], [], [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
         starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
         lifts: dict[int, tuple[list[str], list[str]]] = {}  # a task's goal objects and other objects
-        firsts: dict[int, str | None] = {}  # the first of a task's several goal terms
+        in_order: dict[int, bool] = {}  # whether a task's several goal terms must be reached in order (Chain)
         try:
             for row, rec in zip(rollouts, record, strict=True):
                 episode = int(row["target_episode"])
@@ -110,10 +113,9 @@ def run_rollouts(
                     problems[task] = Path(folder) / f"task-{task}.bddl"
                     problems[task].write_text(text)
                     lifts[task] = goal_objects(text)
-                    terms = goal_terms(text)
-                    firsts[task] = "({})".format(" ".join(terms[0])) if len(terms) > 1 else None
                     named = store.tasks[task]["info"].get("initial_states")
                     starts[task] = initial_states(named) if named else None
+                    in_order[task] = len(store.tasks[task]["info"].get("steps", ())) > 1 and not named
                 env = make_env(problems[task], render=bool(cameras) or rec)
                 envs.append(env)
                 env.seed(int(row["init_seed"]))
@@ -125,12 +127,13 @@ def run_rollouts(
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
                 heights.append(_Heights(raw, *lifts[task]))
-                first_goals.append(firsts[task])
+                orders.append(GoalOrder(env) if len(env.env.parsed_problem["goal_state"]) > 1 else None)
+                ordered.append(in_order[task])
             frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
             done = np.zeros(n, dtype=bool)
             success = np.zeros(n, dtype=bool)
             steps = np.zeros(n, dtype=int)
-            first_step = np.zeros(n, dtype=bool)
+            final = np.zeros(n, dtype=bool)
             while not done.all():
                 actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
                 for i in np.flatnonzero(~done):
@@ -138,16 +141,22 @@ def run_rollouts(
                     steps[i] += 1
                     heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)
-                    success[i] = bool(envs[i].env._check_success())
-                    if first_goals[i] is not None and not first_step[i]:
-                        first_step[i] = success[i] or holds(envs[i], first_goals[i])
-                    done[i] = success[i] or steps[i] >= max_steps
+                    final[i] = bool(envs[i].env._check_success())
+                    if orders[i] is not None:
+                        orders[i].update()
+                    success[i] = orders[i].done if ordered[i] else final[i]
+                    done[i] = final[i] or steps[i] >= max_steps
                     if record[i] and (done[i] or steps[i] % VIDEO_STRIDE == 0):
                         frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
         finally:
             for env in envs:
                 env.close()
-    extras = [heights[i].extra() | ({"first_step": float(first_step[i])} if first_goals[i] else {}) for i in range(n)]
+    extras = [heights[i].extra() for i in range(n)]
+    for i, order in enumerate(orders):
+        if order is not None:
+            extras[i]["first_step"] = float(order.first_reached or final[i])
+            if ordered[i]:
+                extras[i]["final_goal"] = float(final[i])
     return [RolloutResult(float(success[i]), int(steps[i]), extras[i], frames[i]) for i in range(n)]
 
 

@@ -12,6 +12,8 @@ import contextlib
 import os
 from pathlib import Path
 
+import numpy as np
+
 from bpp.errors import UserError
 
 
@@ -86,8 +88,6 @@ CAMERAS = {"agentview": "agentview", "eye_in_hand": "robot0_eye_in_hand"}
 def initial_states(name: str):
     """LIBERO's own initial states of one of its tasks, (N, 92) flattened simulator states; `name` is relative to
     LIBERO's init_files folder, e.g. ``libero_spatial/<problem>.pruned_init``."""
-    import numpy as np
-
     path = Path(_libero().get_libero_path("init_states")) / name
     path = path if path.suffix == ".npz" else path.with_name(path.name + ".npz")
     if not path.is_file():
@@ -155,8 +155,6 @@ def render_now(env, camera: str = "agentview", size: int = 128):
     """(size, size, 3) uint8: the env's current state seen from LIBERO camera `camera`, upright. MuJoCo's
     offscreen images come out rotated by 180 degrees (LIBERO's own observations too); every frame bpp stores,
     trains on or shows is turned upright here."""
-    import numpy as np
-
     frame = env.env.sim.render(camera_name=camera, height=size, width=size)
     return np.ascontiguousarray(np.asarray(frame, dtype=np.uint8)[::-1, ::-1])
 
@@ -167,8 +165,6 @@ def render_states(env, states, camera: str = "agentview", size: int = 128):
     not from the env's observation dictionary: robosuite samples camera observables inside its control loop, so
     those lag the state stored at the end of a step (see docs/libero-gen.md). `env` must be able to render (made with
     cameras or with ``render=True``); its state is restored afterwards."""
-    import numpy as np
-
     sim = env.env.sim
     saved = sim.get_state().flatten()
     frames = []
@@ -186,11 +182,115 @@ def render_states(env, states, camera: str = "agentview", size: int = 128):
 def place_object(env, name: str, position) -> None:
     """Move object `name` (its free joint) to `position` (x, y, z), keeping its orientation (for tests and
     scripted checks of a problem's goal)."""
-    import numpy as np
-
     sim = env.env.sim
     joint = f"{name}_joint0"
     qpos = np.array(sim.data.get_joint_qpos(joint), dtype=float)
     qpos[:3] = position
     sim.data.set_joint_qpos(joint, qpos)
     sim.forward()
+
+
+MAX_FIXTURES = 8
+"""Fixtures per scene a store keeps the pose of (LIBERO's scenes have up to 4: the table, a cabinet, a stove, a
+rack)."""
+
+
+def fixture_poses(env) -> tuple[list[str], np.ndarray]:
+    """(names, (n, 7) position + wxyz quaternion) of the env's fixtures (table, cabinet, stove, ...) as its last reset
+    placed them. LIBERO samples their placement at every reset (about a centimetre between seeds), and a fixture has
+    no joint, so its pose is part of the model, not of the simulator state a demonstration stores."""
+    inner = env.env
+    names = sorted(inner.fixtures_dict)
+    ids = [inner.sim.model.body_name2id(inner.fixtures_dict[name].root_body) for name in names]
+    model = inner.sim.model
+    return names, np.concatenate([model.body_pos[ids], model.body_quat[ids]], axis=1).astype(np.float64)
+
+
+def place_fixtures(env, names: list[str], poses) -> None:
+    """Put the env's fixtures where :func:`fixture_poses` found them (after a reset, before setting a state)."""
+    inner = env.env
+    if sorted(inner.fixtures_dict) != list(names):
+        raise UserError(f"the scene's fixtures {sorted(inner.fixtures_dict)} are not the stored {list(names)}")
+    for name, pose in zip(names, poses, strict=False):
+        body = inner.sim.model.body_name2id(inner.fixtures_dict[name].root_body)
+        inner.sim.model.body_pos[body] = pose[:3]
+        inner.sim.model.body_quat[body] = pose[3:7]
+    inner.sim.forward()
+
+
+def seat(env, state=None) -> dict:
+    """Start the env from simulator state `state` (default: its current one) with nothing else carried over from
+    before: MuJoCo's solver warm start is cleared and the controllers recompute what they cache from the state. A
+    demonstration starts this way and :func:`replay` starts this way, so that replaying its actions reproduces its
+    states bit for bit (the physics is chaotic: a 1e-10 difference in the controller's cached end-effector pose grew to
+    centimetres). Returns the observation."""
+    inner = env.env
+    obs = env.set_init_state(inner.sim.get_state().flatten() if state is None else np.asarray(state, np.float64))
+    inner.sim.data.qacc_warmstart[:] = 0.0
+    for robot in inner.robots:
+        robot.controller.update(force=True)
+    return obs
+
+
+def replay(env, seed: int, states, actions, fixtures: tuple[list[str], np.ndarray] | None = None):
+    """Replay a demonstration open-loop: reset `env` (made from its problem) with its `seed`, put the fixtures where
+    it had them (``fixtures``: names and poses), set its first simulator state and execute every action. Returns the
+    simulator states before each action (as stored) and after the last one, and whether LIBERO's goal holds at the
+    end."""
+    env.seed(int(seed))
+    env.reset()
+    if fixtures is not None:
+        place_fixtures(env, *fixtures)
+    seat(env, states[0])
+    sim = env.env.sim
+    seen = [sim.get_state().flatten()]
+    for action in actions:
+        env.step(np.asarray(action, dtype=np.float64))
+        seen.append(sim.get_state().flatten())
+    return np.stack(seen), bool(env.env._check_success())
+
+
+class GoalOrder:
+    """Whether the terms of an env's goal (a Chain's steps, in the problem's order) were reached in that order. Term k
+    counts as reached at the first step where it holds, provided it last became true no earlier than term k-1 was
+    reached; :attr:`done` when every term is reached and all of them hold. So a chain whose two steps are done the
+    other way round is not done, although its final goal holds (LIBERO's own success, :meth:`final`). Construct it
+    once the episode's start has settled, then call :meth:`update` after every step."""
+
+    def __init__(self, env):
+        self.env = env
+        self.terms = [list(t) for t in env.env.parsed_problem["goal_state"]]
+        self.reached: list[int] = []
+        self.rose = [0] * len(self.terms)
+        self.held = [False] * len(self.terms)
+        self.t = 0
+        self._observe()
+
+    def update(self) -> None:
+        self.t += 1
+        self._observe()
+
+    def _observe(self) -> None:
+        now = [bool(self.env.env._eval_predicate(term)) for term in self.terms]
+        for k, (holds_now, held) in enumerate(zip(now, self.held, strict=True)):
+            if holds_now and not held:
+                self.rose[k] = self.t
+        self.held = now
+        while len(self.reached) < len(self.terms):
+            k = len(self.reached)
+            if not (now[k] and (k == 0 or self.rose[k] >= self.reached[-1])):
+                break
+            self.reached.append(self.t)
+
+    @property
+    def done(self) -> bool:
+        return len(self.reached) == len(self.terms) and all(self.held)
+
+    @property
+    def final(self) -> bool:
+        """Every term holds now, whatever the order (LIBERO's own success)."""
+        return all(self.held)
+
+    @property
+    def first_reached(self) -> bool:
+        return bool(self.reached)
