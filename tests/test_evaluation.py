@@ -159,3 +159,39 @@ def test_bad_agent_options_are_refused_before_any_worker_starts(debug_store, tmp
     )
     assert out.returncode != 0 and "executes all N=10 actions" in out.stderr and "Traceback" not in out.stderr
     assert not (tmp_path / "eval").exists()
+
+
+def test_evaluate_renders_only_the_frames_it_writes(debug_store, tmp_path, monkeypatch):
+    """Without videos an evaluation renders one frame per task (the grid's), not the whole first rollout; with a
+    video, that task's first rollout is rendered at every step."""
+    from bpp.benchmarks.draw.env import DrawEnv
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    rendered = []
+    render = DrawEnv.render
+    monkeypatch.setattr(DrawEnv, "render", lambda env: rendered.append(env) or render(env))
+    protocol = Protocol(rollouts=2, max_steps=12)
+    for videos, expected in ((0, 2), (1, 1 + 12 + 1)):
+        rendered.clear()
+        out = tmp_path / f"eval-{videos}"
+        evaluate(run, TaskSet(debug_store, "debug"), [0, 1], out, protocol, workers=1, videos=videos, progress=False)
+        assert len(rendered) == expected
+        assert (out / "grid.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_a_task_set_made_for_an_evaluation_uses_its_workers(debug_store, tmp_path, monkeypatch, workers):
+    import bpp.benchmarks.draw.dataset as draw_dataset
+    from bpp.checkpoint import Checkpoint
+    from bpp.evaluation.evaluate import resolve_tasks
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    asked = []
+    generate = draw_dataset.generate
+    monkeypatch.setattr(draw_dataset, "generate", lambda *a, **k: asked.append(a[2]) or generate(*a, **k))
+    resolve_tasks("human", Checkpoint.load(run), data_dir=tmp_path / "data", workers=workers)
+    assert asked == [workers]

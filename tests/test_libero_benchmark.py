@@ -97,6 +97,19 @@ def test_a_drawer_scene_is_rebuilt_from_its_episode(tmp_path):
     np.testing.assert_array_equal(frame, store.episode(0, ["agentview"])["agentview"][:1])
 
 
+def test_a_video_rendered_from_states_ends_without_renderer_errors(store, tmp_path):
+    """The renderer's envs are closed before its display is terminated at exit: no EGL traceback on stderr."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "hand.gif"
+    argv = ["-m", "bpp", "libero", "video", str(store.path), "--camera", "eye_in_hand", "--size", "16"]
+    argv += ["--out", str(out)]
+    done = subprocess.run([sys.executable, *argv], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and out.stat().st_size > 0, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and "EGLError" not in done.stderr, done.stderr[-2000:]
+
+
 def test_a_spawned_process_reads_the_derived_keys_of_the_benchmark(store):
     """A fresh interpreter that has imported nothing of LIBERO-Gen (a data-loader worker under the spawn start
     method) sees the store's derived key ``eef``: it comes from the benchmark contract through the registry, not from

@@ -102,10 +102,10 @@ class Reach:
     def frames(self, store, episode, key, size, last_only=False):
         raise ValueError("reach has no cameras")
 
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         raise ValueError(f"reach has no named task set {name!r}")
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         raise ValueError("reach takes no task files")
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

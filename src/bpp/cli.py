@@ -243,7 +243,7 @@ class Eval:
     inference_steps: int = 0
     """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
     workers: int = 0
-    """Processes (0: one per core)."""
+    """Processes (0: one per core), for the rollouts and for generating a named task set or --files the first time."""
     videos: int = 2
     """Tasks whose first rollout is saved as a video."""
     out: Path = Path("outputs/eval")
@@ -288,7 +288,7 @@ def eval_cmd(args: Eval) -> None:
     for ckpt in checkpoints:  # one task set for all (a store from --files is built once), but each its own `train`
         own = tasks == "train" and not args.files
         if own or not jobs:
-            jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks))
+            jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks, args.workers))
         else:
             jobs.append(jobs[0])
     runs = []

@@ -95,6 +95,15 @@ CommandTable = Mapping[str, tuple[type, Callable[[Any], None]]]
 """``{name: (tyro dataclass, function)}``: a benchmark's own commands, ``bpp <command> <name> ...``."""
 
 
+def frames_to_record(entry: bool | str) -> str:
+    """``"all"``, ``"last"`` or ``""`` (none) for an entry of :meth:`Benchmark.run_rollouts`'s `record_frames`."""
+    if entry in ("all", "last"):
+        return entry
+    if entry is True or entry is False or entry in ("", None):
+        return "all" if entry is True else ""
+    raise ValueError(f"record_frames entries are True, False, 'all' or 'last', not {entry!r}")
+
+
 @runtime_checkable
 class Benchmark(Protocol):
     """What a benchmark provides. See the module docstring for how the protocol uses it."""
@@ -149,13 +158,15 @@ class Benchmark(Protocol):
     task_sets: Mapping[str, str]
     """Named task sets besides ``train`` and store paths: name -> description (e.g. ``human``)."""
 
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
-        """A named task set's store (generated into `data_dir` on first use)."""
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
+        """A named task set's store (generated into `data_dir` on first use, over `workers` processes; 0: one per
+        core)."""
         ...
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
-        """Tasks from user files in the benchmark's own format, demonstrated by its demonstrator; files are validated
-        before anything is written. Raise ValueError if the benchmark takes no files."""
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
+        """Tasks from user files in the benchmark's own format, demonstrated by its demonstrator (over `workers`
+        processes); files are validated before anything is written. Raise ValueError if the benchmark takes no
+        files."""
         ...
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:
@@ -169,9 +180,12 @@ class Benchmark(Protocol):
         store: EpisodeStore,
         rollouts: Sequence[Mapping],
         max_steps: int,
-        record_frames: Sequence[bool],
+        record_frames: Sequence[bool | str],
     ) -> list[RolloutResult]:
         """Run rollouts in lockstep with an agent already reset with their contexts (``agent.act_batch``).
+
+        ``record_frames[i]`` says which frames rollout i returns (:func:`frames_to_record`): True or ``"all"`` (a
+        video), ``"last"`` (its final frame alone: rendering costs as much as the physics in a 3-D scene), or False.
 
         rollouts[i] has ``target_episode`` (the demonstration whose task scores it), ``seed`` and the keys of
         :meth:`rollout_conditions`. Of the agent (:class:`bpp.policies.agent.PolicyAgent`) a runner uses

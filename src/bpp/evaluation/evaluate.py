@@ -75,9 +75,9 @@ def _run_task(job: tuple[int, bool]) -> TaskResult:
     task, video = job
     agent, benchmark, store, protocol = (_WORKER[k] for k in ("agent", "benchmark", "store", "protocol"))
     plan = protocol.plan(store, task, benchmark)
-    results, attention = run_prompted(
-        agent, benchmark, store, plan, protocol.max_steps, [r == 0 for r in range(len(plan))]
-    )
+    # The first rollout's final frame goes into the report's grid; all of its frames only into a video.
+    record = [("all" if video else "last") if r == 0 else False for r in range(len(plan))]
+    results, attention = run_prompted(agent, benchmark, store, plan, protocol.max_steps, record)
     rows = rollout_rows(benchmark, plan, results)
     first = results[0]
     return TaskResult(
@@ -196,6 +196,7 @@ def resolve_tasks(
     files: tuple[Path, ...] = (),
     data_dir: Path | None = None,
     num_tasks: int = 0,
+    workers: int = 0,
 ) -> tuple[Benchmark, TaskSet, list[int]]:
     """(benchmark, task set, task indices) to evaluate `checkpoint` on; the benchmark is the checkpoint's own.
 
@@ -203,16 +204,18 @@ def resolve_tasks(
     * one of the benchmark's named sets (e.g. ``human``), generated into `data_dir` on first use;
     * a store path: any store of the same benchmark (e.g. a validation split);
     * with `files`: the benchmark's tasks from those files in its file format, demonstrated by its demonstrator.
+
+    A task set generated here is demonstrated over `workers` processes (0: one per core).
     """
     benchmark = get_benchmark(checkpoint.benchmark)
     data_dir = Path(data_dir) if data_dir is not None else benchmark.default_data_dir
     if files:
-        task_set = benchmark.task_set_from_files(tuple(Path(p) for p in files), data_dir)
+        task_set = benchmark.task_set_from_files(tuple(Path(p) for p in files), data_dir, workers)
     elif tasks == "train":
         task_set = TaskSet(EpisodeStore(checkpoint.state["dataset"]["path"]), "training tasks")
         num_tasks = num_tasks or 50
     elif tasks in benchmark.task_sets:
-        task_set = benchmark.task_set(tasks, data_dir)
+        task_set = benchmark.task_set(tasks, data_dir, workers)
     elif Path(tasks).exists() or tasks.endswith(".zarr"):
         task_set = TaskSet(EpisodeStore(tasks), f"tasks of {Path(tasks).name}")
     else:

@@ -110,20 +110,20 @@ class DrawAnything:
         return DrawFrameTable(store, device)
 
     # ------------------------------------------------------------ evaluation
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         if name != "human":
             raise UserError(f"DrawAnything has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         path = Path(data_dir) / "human.zarr"
         try:
             store = EpisodeStore(path)
         except StoreError:
-            store = dataset.generate(dataset.PRESETS["human"], path, overwrite=True)
+            store = dataset.generate(dataset.PRESETS["human"], path, workers, overwrite=True)
         return TaskSet(store, "unseen human-made drawings")
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         cfg = dataset.DrawDataConfig(source="files", drawings=tuple(Path(p) for p in files))
         key = hashlib.sha1("\n".join(str(Path(p).resolve()) for p in files).encode()).hexdigest()[:10]
-        store = dataset.generate(cfg, Path(data_dir) / f"files-{key}.zarr", overwrite=True, progress=False)
+        store = dataset.generate(cfg, Path(data_dir) / f"files-{key}.zarr", workers, overwrite=True, progress=False)
         return TaskSet(store, "drawings: " + ", ".join(Path(p).name for p in files))
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult
+from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.benchmarks.draw.dataset import episode_paths
 from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.benchmarks.draw.geometry import canvas_to_upright
@@ -30,7 +30,7 @@ def run_rollouts(
     store: EpisodeStore,
     rollouts: Sequence[Mapping],
     max_steps: int = 400,
-    record_frames: Sequence[bool] | None = None,
+    record_frames: Sequence[bool | str] | None = None,
     render_size: int = 256,
 ) -> list[RolloutResult]:
     """Rollout i draws on a board at ``rollouts[i]["board_angle"]``, seeded by ``rollouts[i]["seed"]`` (cursor
@@ -38,12 +38,12 @@ def run_rollouts(
     with the rollouts' contexts; all rollouts step together and a finished one stops stepping."""
     spec = agent.data_spec
     n = len(rollouts)
-    record_frames = list(record_frames) if record_frames is not None else [False] * n
+    record = [frames_to_record(r) for r in (record_frames if record_frames is not None else [False] * n)]
     frame = ACTION_FRAMES.get(spec.action_key)
     if frame is None:
         raise UserError(f"DrawAnything has no action frame for {spec.action_key!r}; known: {sorted(ACTION_FRAMES)}")
     envs, obs = [], []
-    for row, rec in zip(rollouts, record_frames, strict=True):
+    for row, rec in zip(rollouts, record, strict=True):
         env = DrawEnv(
             image_size=spec.image_size if spec.image_keys else None,
             max_episode_steps=max_steps,
@@ -55,7 +55,7 @@ def run_rollouts(
         o, _ = env.reset(seed=int(row["seed"]), options={"board_angle": float(row["board_angle"]), "target": target})
         envs.append(env)
         obs.append(o)
-    frames = [[env.render()] if rec else [] for env, rec in zip(envs, record_frames, strict=True)]
+    frames = [[env.render()] if rec == "all" else [] for env, rec in zip(envs, record, strict=True)]
     done = np.zeros(n, dtype=bool)
     infos: list[dict] = [{"best_chamfer": env.best_chamfer, "chamfer": env.chamfer} for env in envs]
     while not done.all():
@@ -63,7 +63,7 @@ def run_rollouts(
         for i in np.flatnonzero(~done):
             obs[i], _, terminated, truncated, infos[i] = envs[i].step(actions[i])
             done[i] = terminated or truncated
-            if record_frames[i]:
+            if record[i] == "all" or (record[i] == "last" and done[i]):
                 frames[i].append(envs[i].render())
     return [
         RolloutResult(

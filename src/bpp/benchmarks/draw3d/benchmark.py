@@ -86,24 +86,24 @@ class DrawAnythingReal:
         return stored_frames(store, episode, key, size, last_only, steps)
 
     # ------------------------------------------------------------ evaluation
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         if name not in self.task_sets:
             raise UserError(f"unknown task set {name!r}; DrawAnything-Real has {', '.join(self.task_sets)}")
-        return self._generated(Draw3DConfig(num_tasks=50, source="human"), Path(data_dir) / "human.zarr", name)
+        return self._generated(Draw3DConfig(num_tasks=50, source="human"), Path(data_dir) / "human.zarr", name, workers)
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         import hashlib
 
         key = hashlib.sha256("\0".join(str(Path(f).resolve()) for f in files).encode()).hexdigest()[:12]
         cfg = Draw3DConfig(source="files", drawings=tuple(Path(f) for f in files), demos_per_task=2)
-        return self._generated(cfg, Path(data_dir) / f"files-{key}.zarr", "your drawings")
+        return self._generated(cfg, Path(data_dir) / f"files-{key}.zarr", "your drawings", workers)
 
-    def _generated(self, cfg: Draw3DConfig, path: Path, label: str) -> TaskSet:
+    def _generated(self, cfg: Draw3DConfig, path: Path, label: str, workers: int) -> TaskSet:
         from bpp.data.store import stored_with
 
         store = stored_with(path, cfg) if path.exists() else None
         if store is None:
-            store = self.generate(cfg, path, overwrite=path.exists())
+            store = self.generate(cfg, path, workers=workers, overwrite=path.exists())
         return TaskSet(store, label)
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult
+from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore
 
 FRAME_EVERY = 10
@@ -47,7 +47,7 @@ def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str,
 
 
 def run_rollouts(
-    agent, store: EpisodeStore, rollouts: Sequence[Mapping], max_steps: int, record_frames: Sequence[bool]
+    agent, store: EpisodeStore, rollouts: Sequence[Mapping], max_steps: int, record_frames: Sequence[bool | str]
 ) -> list[RolloutResult]:
     """See :meth:`bpp.benchmarks.contract.Benchmark.run_rollouts`."""
     from bpp.benchmarks.draw.dataset import task_drawing
@@ -76,17 +76,18 @@ def run_rollouts(
         drawings.append(task_drawing(store, task))
         canvases.append(pose_to_vector(measured).astype(np.float32))
         extras.append({"canvas_from_photo": from_photo, "canvas_pose_error_mm": pose_error(measured, truth)[0] * 1e3})
+    record = [frames_to_record(r) for r in record_frames]
     frames: list[list] = [[] for _ in rollouts]
     for t in range(max_steps):
         observed = [_observe(scene, canvas, keys) for scene, canvas in zip(scenes, canvases, strict=True)]
         actions = np.asarray(agent.act_batch({k: np.stack([o[k] for o in observed]) for k in keys}), np.float64)
         for i, scene in enumerate(scenes):
-            if record_frames[i] and t % FRAME_EVERY == 0:
+            if record[i] == "all" and t % FRAME_EVERY == 0:
                 frames[i].append(scene.render("scene", FRAME_SIZE))
             scene.step(actions[i])
     results = []
     for i, scene in enumerate(scenes):
-        if record_frames[i]:
+        if record[i]:
             frames[i].append(scene.render("scene", FRAME_SIZE))
         score = ink_chamfer(scene.ink.polylines(), drawings[i].strokes)
         extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4)}

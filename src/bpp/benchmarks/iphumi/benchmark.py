@@ -73,13 +73,13 @@ class IPhUMIRecordings(LeRobotDatasets):
             "(bpp iphumi synth DIR writes synthetic recordings to try it)"
         )
 
-    def task_set(self, name: str, data_dir: Path):
+    def task_set(self, name: str, data_dir: Path, workers: int = 0):
         raise UserError(
             f"iPhUMI stores have no named task set {name!r}; evaluate on the held-out store bpp iphumi process wrote "
             "(bpp eval RUN --tasks STORE-heldout.zarr) or on the training tasks (--tasks train)"
         )
 
-    def task_set_from_files(self, files, data_dir: Path):
+    def task_set_from_files(self, files, data_dir: Path, workers: int = 0):
         raise UserError("iPhUMI stores take no task files; evaluate on a store (--tasks STORE)")
 
     def describe_rollout(self, row: Mapping) -> str:

@@ -101,13 +101,13 @@ class LeRobotDatasets:
         return stored_frames(store, episode, key, size, last_only, steps)
 
     # ------------------------------------------------------------ evaluation
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         raise UserError(
             f"imported LeRobot datasets have no named task set {name!r}; evaluate on the held-out store the import "
             "wrote (bpp eval RUN --tasks STORE-heldout.zarr) or on the training tasks (--tasks train)"
         )
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         raise UserError("imported LeRobot datasets take no task files; evaluate on a store (--tasks STORE)")
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

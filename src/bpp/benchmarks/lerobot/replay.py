@@ -17,7 +17,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult
+from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 
@@ -54,7 +54,7 @@ def run_rollouts(
     store: EpisodeStore,
     rollouts: Sequence[Mapping],
     max_steps: int,
-    record_frames: Sequence[bool],
+    record_frames: Sequence[bool | str],
     frames: Callable[..., np.ndarray],
 ) -> list[RolloutResult]:
     """Replay each rollout's episode (see the module docstring) through ``agent.act_batch`` in lockstep, at most
@@ -86,7 +86,8 @@ def run_rollouts(
             "action_mae_raw": float(np.abs(error).mean()),
             "action_l2_raw": float(np.linalg.norm(error, axis=1).mean()),
         }
-        chart = [action_chart(recorded[i][:n], predicted[i], f"episode {episode}")] if record_frames[i] else []
+        charted = frames_to_record(record_frames[i])  # one picture, whichever frames were asked for
+        chart = [action_chart(recorded[i][:n], predicted[i], f"episode {episode}")] if charted else []
         results.append(RolloutResult(float((np.abs(error) / half).mean()), n, extra, chart))
     return results
 

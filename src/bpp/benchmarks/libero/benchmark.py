@@ -123,7 +123,7 @@ class LiberoGen:
         return _render(store, episode, rows, CAMERAS[key], size)
 
     # ------------------------------------------------------------ evaluation
-    def task_set(self, name: str, data_dir: Path) -> TaskSet:
+    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         if name not in self.task_sets:
             raise UserError(f"LIBERO-Gen has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         cfg = dataset.PRESETS[name]
@@ -131,10 +131,10 @@ class LiberoGen:
         store = stored_with(path, cfg)
         if store is None:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
-            store = dataset.generate(cfg, path, overwrite=True)
+            store = dataset.generate(cfg, path, workers, overwrite=True)
         return TaskSet(store, self._task_sets[name][0])
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path) -> TaskSet:
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         raise UserError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult
+from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.benchmarks.libero.dataset import BENCHMARK
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now
@@ -85,7 +85,7 @@ def run_rollouts(
     store: EpisodeStore,
     rollouts: Sequence[Mapping],
     max_steps: int = 550,
-    record_frames: Sequence[bool] | None = None,
+    record_frames: Sequence[bool | str] | None = None,
 ) -> list[RolloutResult]:
     """Rollout i starts from the initial state LIBERO samples with ``rollouts[i]["init_seed"]`` in the problem of
     ``rollouts[i]["target_episode"]``'s task (for LIBERO's own tasks: its initial state number init_seed modulo
@@ -97,7 +97,7 @@ def run_rollouts(
     if unknown:
         raise UserError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
     n = len(rollouts)
-    record = list(record_frames) if record_frames is not None else [False] * n
+    record = [frames_to_record(r) for r in (record_frames if record_frames is not None else [False] * n)]
     envs, obs, heights, orders, ordered = [], [], [], [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
@@ -129,7 +129,10 @@ def run_rollouts(
                 heights.append(_Heights(raw, *lifts[task]))
                 orders.append(GoalOrder(env) if len(env.env.parsed_problem["goal_state"]) > 1 else None)
                 ordered.append(in_order[task])
-            frames = [[render_now(e, "agentview", VIDEO_SIZE)] if r else [] for e, r in zip(envs, record, strict=True)]
+            frames = [
+                [render_now(env, "agentview", VIDEO_SIZE)] if rec == "all" else []
+                for env, rec in zip(envs, record, strict=True)
+            ]
             done = np.zeros(n, dtype=bool)
             success = np.zeros(n, dtype=bool)
             steps = np.zeros(n, dtype=int)
@@ -146,7 +149,7 @@ def run_rollouts(
                         orders[i].update()
                     success[i] = orders[i].done if ordered[i] else final[i]
                     done[i] = final[i] or steps[i] >= max_steps
-                    if record[i] and (done[i] or steps[i] % VIDEO_STRIDE == 0):
+                    if (record[i] == "all" and steps[i] % VIDEO_STRIDE == 0) or (record[i] and done[i]):
                         frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
         finally:
             for env in envs:

@@ -8,8 +8,10 @@ MuJoCo's headless OpenGL: ``MUJOCO_GL`` defaults to ``egl`` here (Debian's Mesa 
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
+import weakref
 from pathlib import Path
 
 import numpy as np
@@ -120,7 +122,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
         raise UserError(f"{path}: no such BDDL problem")
     try:
         if not cameras:
-            return ControlEnv(
+            env = ControlEnv(
                 bddl_file_name=str(path),
                 horizon=HORIZON,
                 has_renderer=False,
@@ -128,13 +130,14 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 use_camera_obs=False,
                 camera_names=list(CAMERAS.values()),
             )
-        return OffScreenRenderEnv(
-            bddl_file_name=str(path),
-            horizon=HORIZON,
-            camera_names=list(cameras),
-            camera_heights=image_size,
-            camera_widths=image_size,
-        )
+        else:
+            env = OffScreenRenderEnv(
+                bddl_file_name=str(path),
+                horizon=HORIZON,
+                camera_names=list(cameras),
+                camera_heights=image_size,
+                camera_widths=image_size,
+            )
     except Exception as err:
         if "gl" in str(err).lower() or "egl" in type(err).__name__.lower():
             raise LiberoUnavailable(
@@ -142,6 +145,29 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
             ) from None
         raise
+    if render or cameras:
+        _close_at_exit(env)
+    return env
+
+
+_RENDERING: weakref.WeakSet = weakref.WeakSet()
+"""The rendering envs not yet garbage: closed at exit, while their OpenGL display still exists."""
+
+
+def _close_at_exit(env) -> None:
+    # The renderer terminates its EGL display at exit, from an exit handler it registers with its first context; ours,
+    # registered after it, runs first. Left to the garbage collector after that, every context's release fails
+    # with an EGL error printed as a traceback.
+    if not _RENDERING and not getattr(_close_at_exit, "registered", False):
+        atexit.register(_close_rendering_envs)
+        _close_at_exit.registered = True
+    _RENDERING.add(env)
+
+
+def _close_rendering_envs() -> None:
+    for env in list(_RENDERING):
+        with contextlib.suppress(Exception):
+            env.close()
 
 
 def holds(env, predicate: str) -> bool:
