@@ -109,13 +109,21 @@ def test_the_scripted_demonstrator_draws_procedural_drawings_on_canvases_anywher
         plan = plan_drawing(drawing.strokes, rng, ScriptConfig(), CONTROL_HZ)
         recorded = execute(scene, canvas, plan)
         assert len(recorded.actions) == len(plan.poses) - 1 == len(recorded.tip)
-        assert ink_chamfer(recorded.strokes, drawing.strokes) < 1.0  # DrawAnything pixels: under 0.7 mm here
+        exact = ink_chamfer(recorded.strokes, drawing.strokes)
+        assert exact < 1.0  # DrawAnything pixels: under 0.7 mm here
         assert recorded.pen_down[0, 0] == 0 and recorded.ink_length[0, 0] == 0  # recording starts in the air
         # the actions are the relative steps between the commanded poses: integrated, they give the plan back
         from bpp.benchmarks.poses import integrate_actions
 
         replayed = integrate_actions(plan.poses[0], recorded.actions[:, :9])
         np.testing.assert_allclose(replayed, np.stack(plan.poses), atol=1e-9)
+        # a lab's score, from a photo of the board rectified through the markers, is close to the exact one
+        from bpp.benchmarks.draw3d.photo import photo_chamfer
+
+        other, _ = generate_drawing(np.random.default_rng(seed + 10), ProceduralConfig(max_parts=3), "other")
+        wrong = ink_chamfer(recorded.strokes, other.strokes)
+        assert abs(photo_chamfer(scene, drawing.strokes) - exact) < 1.0
+        assert wrong > 10 and abs(photo_chamfer(scene, other.strokes) - wrong) < 0.1 * wrong
 
 
 @pytest.mark.parametrize("placement", [(-0.15, 0.05, -40.0), (0.0, 0.0, 0.0), (0.18, -0.06, 30.0)])

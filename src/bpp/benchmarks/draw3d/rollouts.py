@@ -46,6 +46,18 @@ def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str,
     return {key: values[key]() for key in keys}
 
 
+def _from_photo(scene, strokes) -> dict:
+    """The score a lab would measure (:func:`bpp.benchmarks.draw3d.photo.photo_chamfer`), once the rollout is over;
+    ``chamfer_from_photo`` is absent when the photo does not give the canvas pose."""
+    from bpp.benchmarks.draw3d.canvas import CanvasNotFound
+    from bpp.benchmarks.draw3d.photo import photo_chamfer
+
+    try:
+        return {"chamfer_from_photo": float(photo_chamfer(scene, strokes)), "photo_found_canvas": 1.0}
+    except CanvasNotFound:
+        return {"photo_found_canvas": 0.0}
+
+
 def run_rollouts(
     agent, store: EpisodeStore, rollouts: Sequence[Mapping], max_steps: int, record_frames: Sequence[bool | str]
 ) -> list[RolloutResult]:
@@ -90,6 +102,6 @@ def run_rollouts(
         if record[i]:
             frames[i].append(scene.render("scene", FRAME_SIZE))
         score = ink_chamfer(scene.ink.polylines(), drawings[i].strokes)
-        extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4)}
+        extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4), **_from_photo(scene, drawings[i].strokes)}
         results.append(RolloutResult(score=float(score), steps=max_steps, extra=extra, frames=frames[i]))
     return results

@@ -201,6 +201,13 @@ class Scene:
         self._paper_dirty = True
         self._record_ink()
 
+    def fold(self, qpos: np.ndarray) -> None:
+        """Put the arm at `qpos` at rest, leaving the canvas and its ink as they are (to photograph the board)."""
+        self.data.qpos[:7] = qpos
+        self.data.qvel[:] = 0.0
+        self.mujoco.mj_forward(self.model, self.data)
+        self.ink.down = False
+
     def tip_pose(self) -> np.ndarray:
         """``T_base_tip`` (4, 4): the pen tip, z along the pen (toward the board when drawing)."""
         rotation = self.data.site_xmat[self.tip].reshape(3, 3)
