@@ -57,6 +57,8 @@ def test_a_generated_store_holds_demonstrations_that_match_their_drawings(store)
     assert picture.shape == (128, 128, 3) and picture.min() < 100 < picture.max()  # the demonstration's ink
     with pytest.raises(ValueError, match="generate it with --cameras wrist"):
         BENCHMARK.frames(store, 0, "wrist", 96)
+    goal = BENCHMARK.frames(store, 0, "scene", 64, last_only=True)  # the Goal-Image baseline's goal
+    assert goal.shape == (1, 64, 64, 3) and goal.min() < goal.max()
 
 
 def test_bpp_trains_on_it_and_bpp_eval_draws_on_new_canvas_placements(store, tmp_path):
@@ -71,4 +73,15 @@ def test_bpp_trains_on_it_and_bpp_eval_draws_on_new_canvas_placements(store, tmp
     rows = results["rollouts"]
     assert all(-45 <= row["canvas_angle"] <= 45 and row["steps"] == 20 for row in rows)
     assert all(np.isfinite(row["score"]) and row["canvas_pose_error_mm"] < 10 for row in rows)
+    assert all(row["photo_found_canvas"] == 0 or abs(row["chamfer_from_photo"] - row["score"]) < 2 for row in rows)
     assert (out / "grid.png").is_file()
+
+
+def test_goal_image_trains_on_the_state_preset_with_the_final_photo_as_its_goal(store, tmp_path):
+    run = tmp_path / "goal"
+    _bpp("train", "--data", str(store.path), "--out", str(run), "--preset", "debug", "--method", "goal_image",
+         "--steps", "2", "--batch-size", "4", "--workers", "0")  # fmt: skip
+    out = tmp_path / "eval"
+    _bpp("eval", str(run), "--tasks", "train", "--num-tasks", "1", "--rollouts", "1", "--max-steps", "10",
+         "--workers", "1", "--videos", "0", "--out", str(out))  # fmt: skip
+    assert json.loads((out / "results.json").read_text())["summary"]["tasks"] == 1

@@ -12,6 +12,16 @@ import numpy as np
 from bpp.utils import atomic_path
 
 
+def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
+    """(T, H, W, 3) uint8 frames as (T, size, size, 3), bilinearly resized (returned as they are if already so)."""
+    frames = np.asarray(frames, dtype=np.uint8)
+    if frames.shape[1:3] == (size, size):
+        return frames
+    from PIL import Image
+
+    return np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BILINEAR)) for f in frames])
+
+
 def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10) -> Path:
     """Write frames as a GIF (or MP4 if the suffix is .mp4), complete or not at all."""
     import imageio.v3 as iio

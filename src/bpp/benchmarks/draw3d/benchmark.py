@@ -25,7 +25,7 @@ OBSERVATIONS: Mapping[str, ObservationPreset] = {
     "state": ObservationPreset(
         proprio_keys=("tip_pose", "pen_down"),
         lowdim_keys=("canvas_pose", "ink_length"),
-        goal_camera="wrist",
+        goal_camera="scene",
         description="the pen tip's pose, whether it touches, the canvas pose measured from a photo, the ink drawn so "
         "far (m); for CPUs",
     ),
@@ -78,10 +78,20 @@ class DrawAnythingReal:
     def frames(
         self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
     ) -> np.ndarray:
-        """The camera frames generated with the store (resized if another size is asked for)."""
+        """The camera frames generated with the store (resized if another size is asked for); camera ``scene`` has one
+        frame per demonstration, its final photo of the board (:data:`~bpp.benchmarks.draw3d.dataset.GOAL_KEY`)."""
+        from bpp.benchmarks.lerobot.benchmark import stored_frames
+
+        if key == "scene" and last_only:
+            from bpp.benchmarks.draw3d.dataset import GOAL_KEY
+            from bpp.media import resize_frames
+
+            try:
+                return resize_frames(store.column(GOAL_KEY)[episode][None], size)
+            except KeyError:
+                raise ValueError(f"{store.path} has no final photos: generate it with --goal-size (e.g. 64)") from None
         if key not in store.keys:
             raise ValueError(f"{store.path} has no {key!r} frames: generate it with --cameras {key}")
-        from bpp.benchmarks.lerobot.benchmark import stored_frames
 
         return stored_frames(store, episode, key, size, last_only, steps)
 

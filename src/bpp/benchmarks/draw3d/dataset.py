@@ -34,6 +34,9 @@ PLACEMENT = {"u": (-0.25, 0.25), "v": (-0.08, 0.08), "angle": (-45.0, 45.0)}
 """Where a canvas goes on the board: metres right and up its slope from its centre, and degrees about its normal."""
 PHOTO_SIZE = 640
 """The scene camera's photo for the canvas pose (px, square)."""
+GOAL_KEY = "goal_scene"
+"""Per-episode column: the scene camera's photo of the board once the demonstration is done (the arm swung aside),
+the Goal-Image baseline's goal (camera ``scene``, the final frame)."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +53,9 @@ class Draw3DConfig:
     cameras: tuple[str, ...] = ()
     """Cameras rendered per step (wrist; none for the state-only preset)."""
     image_size: int = 96
+    goal_size: int = 64
+    """Side (px) of each demonstration's final photo of the board (:data:`GOAL_KEY`; 0: none), the Goal-Image
+    baseline's goal."""
     max_chamfer: float = 3.0
     """A demonstration whose ink is farther than this from its drawing (DrawAnything px) fails and is not stored."""
     max_tries_factor: int = 3
@@ -64,6 +70,7 @@ class Draw3DConfig:
             ("source", self.source in ("procedural", "human", "files"), "procedural, human or files"),
             ("cameras", set(self.cameras) <= set(CAMERAS), f"some of {', '.join(CAMERAS)}"),
             ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
+            ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
             ("max_chamfer", self.max_chamfer > 0, "> 0 px"),
             ("max_tries_factor", self.max_tries_factor >= 1, ">= 1"),
         )
@@ -145,6 +152,11 @@ def demonstrate_task(job: tuple) -> tuple[list, dict]:
             **recorded.frames,
         }
         columns = {f"canvas_{k}": v for k, v in placement.items()} | {"chamfer": score}
+        if cfg.goal_size:
+            from bpp.benchmarks.draw3d.photo import ASIDE
+
+            scene.fold(ASIDE)
+            columns[GOAL_KEY] = scene.render("scene", cfg.goal_size)
         episodes.append((steps, columns))
     return episodes, counts
 

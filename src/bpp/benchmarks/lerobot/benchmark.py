@@ -18,6 +18,7 @@ from bpp.benchmarks.lerobot.importer import BENCHMARK as NAME
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.media import resize_frames
 
 IMAGE_SIZE = 96
 """The presets' camera size (the import's default: frames are then used as stored)."""
@@ -142,15 +143,7 @@ def stored_frames(store: EpisodeStore, episode: int, key: str, size: int, last_o
         rows = store[key].oindex[sl.start + np.asarray(steps, dtype=np.int64)]
     else:
         rows = store[key][sl]
-    return _resize(np.asarray(rows), size)
-
-
-def _resize(frames: np.ndarray, size: int) -> np.ndarray:
-    if frames.shape[1] == size:
-        return frames
-    from PIL import Image
-
-    return np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BILINEAR)) for f in frames])
+    return resize_frames(np.asarray(rows), size)
 
 
 BENCHMARK = LeRobotDatasets()

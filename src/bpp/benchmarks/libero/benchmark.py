@@ -19,6 +19,7 @@ from bpp.benchmarks.libero import dataset
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
+from bpp.media import resize_frames
 
 STATE = ObservationPreset(
     proprio_keys=("proprio",),
@@ -108,7 +109,7 @@ class LiberoGen:
             raise UserError(f"LIBERO-Gen has the cameras {', '.join(CAMERAS)}; got {key!r}")
         if last_only and key == "agentview":
             try:
-                return _resize(store.column(dataset.GOAL_KEY)[episode][None], size)
+                return resize_frames(store.column(dataset.GOAL_KEY)[episode][None], size)
             except KeyError:
                 pass
         sl = store.episode_slice(episode)
@@ -119,7 +120,7 @@ class LiberoGen:
         source = key if key in store.keys else "sim_state"
         rows = store[source][sl] if isinstance(sl, slice) else store[source].oindex[sl]
         if key in store.keys:
-            return _resize(rows, size)
+            return resize_frames(rows, size)
         return _render(store, episode, rows, CAMERAS[key], size)
 
     # ------------------------------------------------------------ evaluation
@@ -150,15 +151,6 @@ class LiberoGen:
 
     def describe_rollout(self, row: Mapping) -> str:
         return f"initial state {row['init_seed']}"
-
-
-def _resize(frames: np.ndarray, size: int) -> np.ndarray:
-    frames = np.asarray(frames, dtype=np.uint8)
-    if frames.shape[1] == size:
-        return frames
-    from PIL import Image
-
-    return np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BILINEAR)) for f in frames])
 
 
 _RENDER_ENV: dict = {}
