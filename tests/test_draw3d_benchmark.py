@@ -85,3 +85,27 @@ def test_goal_image_trains_on_the_state_preset_with_the_final_photo_as_its_goal(
     _bpp("eval", str(run), "--tasks", "train", "--num-tasks", "1", "--rollouts", "1", "--max-steps", "10",
          "--workers", "1", "--videos", "0", "--out", str(out))  # fmt: skip
     assert json.loads((out / "results.json").read_text())["summary"]["tasks"] == 1
+
+
+def test_a_lab_calibration_is_checked_against_touched_markers(tmp_path, capsys):
+    """The simulator stands in for a lab: its scene camera's calibration agrees with the touched markers; a
+    calibration whose extrinsic is 1 cm off, or a malformed file, is refused in one line naming the file."""
+    from bpp.cli import main
+
+    lab = tmp_path / "lab"
+    result = subprocess.run([sys.executable, "-m", "bpp", "draw3d", "calibration", "--simulate", str(lab)],
+                            capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert result.returncode == 0 and "check passed" in result.stdout, result.stderr[-2000:]
+    calibration = json.loads((lab / "calibration.json").read_text())
+    assert {"intrinsics", "T_base_camera", "width", "height"} <= set(calibration)
+    check = ["draw3d", "calibration", "--photo", str(lab / "photo.png"), "--touched", str(lab / "touched.json")]
+    calibration["T_base_camera"][0][3] += 0.01  # the camera 1 cm off where the file says
+    moved = tmp_path / "moved.json"
+    moved.write_text(json.dumps(calibration))
+    with pytest.raises(SystemExit, match="moved.json: the calibration does not agree with the touched markers"):
+        main([*check, "--calibration", str(moved)])
+    assert "FAILED" in capsys.readouterr().out
+    calibration["T_base_camera"][0][0] = 2.0  # not a rotation
+    moved.write_text(json.dumps(calibration))
+    with pytest.raises(SystemExit, match="moved.json: .*rotation is not a rotation"):
+        main([*check, "--calibration", str(moved)])

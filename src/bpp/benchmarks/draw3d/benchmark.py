@@ -45,7 +45,7 @@ class DrawAnythingReal:
 
     name = NAME
     command = "draw3d"
-    command_table = ""
+    command_table = "bpp.benchmarks.draw3d.commands:COMMANDS"
     description = (
         "DrawAnything-Real on a simulated Panda: a canvas with red corner markers anywhere on a whiteboard (±45 "
         "degrees), its pose from a photo, 6-DoF relative pen actions, DrawAnything's Chamfer on the ink"
