@@ -109,3 +109,30 @@ def test_a_lab_calibration_is_checked_against_touched_markers(tmp_path, capsys):
     moved.write_text(json.dumps(calibration))
     with pytest.raises(SystemExit, match="moved.json: .*rotation is not a rotation"):
         main([*check, "--calibration", str(moved)])
+
+
+def test_a_robot_reaches_a_served_policy_with_the_simulator_standing_in_for_its_driver(store, tmp_path):
+    """`bpp serve` on one side; on the other `bpp robot-client`, whose rollouts are the simulated arm: what a lab's
+    driver does (observe, send, execute the relative poses) over the same connection."""
+    import re
+    import signal
+
+    run = tmp_path / "run"
+    _bpp("train", "--data", str(store.path), "--out", str(run), "--preset", "debug", "--steps", "1",
+         "--batch-size", "4", "--workers", "0")  # fmt: skip
+    server = subprocess.Popen([sys.executable, "-m", "bpp", "serve", str(run), "--port", "0"],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)  # fmt: skip
+    try:
+        found = None
+        while found is None and server.poll() is None:
+            found = re.search(r"on (ws://127\.0\.0\.1:\d+) ", server.stdout.readline())
+        assert found, server.stderr.read()[-2000:]
+        out = tmp_path / "served.json"
+        _bpp("robot-client", "--tasks", str(store.path), "--server", found.group(1), "--rollouts", "1",
+             "--max-steps", "10", "--client", "bpp", "--out", str(out))  # fmt: skip
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.communicate(timeout=60)
+    results = json.loads(out.read_text())
+    assert results["summary"]["tasks"] == 2 and all(row["steps"] == 10 for row in results["rollouts"])
+    assert all(-45 <= row["canvas_angle"] <= 45 for row in results["rollouts"])
