@@ -7,7 +7,7 @@ pose measured by ``canvas_pose`` is compared with the truth; a pose more than 1 
 silently wrong, which must never happen. Prints markdown tables.
 
 With ``--simulator N`` the photos come from the simulated arm's scene instead (MuJoCo, robosuite's Panda): N random
-canvas placements on the board (±45 degrees), the light's strength varied, the arm either pulled back or standing
+canvas placements on the board (±45 degrees), the light's strength varied, the arm either swung aside or standing
 at a random pose in front of the board (where it may hide markers), the scene camera's photo at 480x480 and its
 extrinsic calibration turning the pose into the robot's base frame, compared with the simulator's placement.
 
@@ -149,8 +149,9 @@ def simulator(n: int, seed: int) -> None:
     rng = np.random.default_rng(seed)
     scene = Scene(image_size=96)
     light = scene.model.light_diffuse[0].copy()
-    retracted = np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
-    rows: dict[str, list] = {"arm pulled back": [], "arm in front of the board": []}
+    from bpp.benchmarks.draw3d.dataset import ASIDE
+
+    rows: dict[str, list] = {"arm swung aside": [], "arm in front of the board": []}
     failures: dict[str, Counter] = {group: Counter() for group in rows}
     examples: dict[str, str] = {}
     size = 640
@@ -158,7 +159,7 @@ def simulator(n: int, seed: int) -> None:
         truth = canvas_transform(rng.uniform(-0.25, 0.25), rng.uniform(-0.08, 0.08), rng.uniform(-45, 45))
         scene.model.light_diffuse[0] = light * rng.uniform(0.5, 1.3)
         in_front = bool(i % 2)
-        scene.reset(truth, HOME_QPOS if in_front else retracted)
+        scene.reset(truth, HOME_QPOS if in_front else ASIDE)
         if in_front:  # walk the pen to a random pose in front of the canvas, as a demonstration starts
             goal = truth @ random_pose(rng, ScriptConfig())
             start = scene.target.copy()

@@ -2,7 +2,7 @@
 demonstration fails, and how fast the simulation runs.
 
 For each of N procedural drawings (DrawAnything's training distribution), the canvas is placed at random on the
-board (±45 degrees); its pose is measured from the scene camera's photo (the arm pulled back), as a lab would; the
+board (±45 degrees); its pose is measured from the scene camera's photo (the arm swung aside), as a lab would; the
 demonstrator plans in that measured frame and the arm executes the plan. The ink is scored against the drawing with
 DrawAnything's Chamfer metric (pixels of its 512-px canvas; the drawing's unit square is its 350-px board). A
 demonstration fails when the photo gives no pose (a marker hidden or unclear) or its Chamfer is over the threshold.
@@ -24,12 +24,10 @@ import numpy as np
 
 from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
 from bpp.benchmarks.draw3d.canvas import CanvasNotFound, canvas_in_base, canvas_pose, pose_error
+from bpp.benchmarks.draw3d.dataset import ASIDE
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, pixels_to_mm, plan_drawing
 from bpp.benchmarks.draw3d.photo import photo_chamfer
 from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
-
-RETRACTED = np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
-"""The arm folded back, out of the scene camera's view of the board, for the photo."""
 
 
 def main() -> None:
@@ -46,7 +44,7 @@ def main() -> None:
     for i in range(args.n):
         drawing, _ = generate_drawing(np.random.default_rng([args.seed, i]), ProceduralConfig(), f"d{i}")
         truth = canvas_transform(rng.uniform(-0.25, 0.25), rng.uniform(-0.08, 0.08), rng.uniform(-45, 45))
-        scene.reset(truth, RETRACTED)
+        scene.reset(truth, ASIDE)
         camera = scene.camera_pose("scene")
         try:
             seen = canvas_pose(scene.render("scene", 640), scene.camera_intrinsics("scene", 640),

@@ -17,6 +17,7 @@ pytestmark = pytest.mark.libero  # robosuite's Panda model ships with the libero
 import_optional("robosuite", "libero")
 
 from bpp.benchmarks.draw3d.canvas import canvas_in_base, canvas_pose, pose_error  # noqa: E402
+from bpp.benchmarks.draw3d.dataset import ASIDE  # noqa: E402
 from bpp.benchmarks.draw3d.scene import (  # noqa: E402
     BOARD,
     CANVAS_SIDE,
@@ -82,7 +83,7 @@ def test_the_pen_draws_a_square_where_it_is_told_and_only_there(scene):
 
 def test_the_ink_is_painted_where_the_cameras_see_the_canvas(scene):
     canvas = canvas_transform(0.1, 0.0, -20.0)
-    scene.reset(canvas, np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78]))  # the arm pulled back, out of sight
+    scene.reset(canvas, ASIDE)  # the arm out of sight
     before = scene.render("scene", 256)
     import cv2
 
@@ -129,7 +130,7 @@ def test_the_scripted_demonstrator_draws_procedural_drawings_on_canvases_anywher
 @pytest.mark.parametrize("placement", [(-0.15, 0.05, -40.0), (0.0, 0.0, 0.0), (0.18, -0.06, 30.0)])
 def test_the_canvas_pose_is_found_from_the_scene_cameras_photo(scene, placement):
     canvas = canvas_transform(*placement)
-    scene.reset(canvas, np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78]))  # the arm pulled back
+    scene.reset(canvas, ASIDE)  # the arm out of sight
     size = 480
     camera = scene.camera_pose("scene")  # the camera-to-robot extrinsic calibration
     up = camera[:3, :3].T @ BOARD[:, 1]  # the board's up direction, seen from the camera

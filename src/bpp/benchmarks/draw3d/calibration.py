@@ -192,8 +192,7 @@ def simulated_lab(folder: str | Path, seed: int = 0, touch_noise_mm: float = 0.5
     import imageio.v3 as iio
 
     from bpp.benchmarks.draw3d.canvas import CanvasLayout
-    from bpp.benchmarks.draw3d.dataset import PHOTO_SIZE, random_placement
-    from bpp.benchmarks.draw3d.photo import ASIDE
+    from bpp.benchmarks.draw3d.dataset import ASIDE, PHOTO_SIZE, random_placement
     from bpp.benchmarks.draw3d.scene import BOARD, Scene, canvas_transform
 
     folder = Path(folder)

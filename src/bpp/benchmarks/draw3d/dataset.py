@@ -2,7 +2,7 @@
 its own random canvas placement, into an episode store (``bpp draw3d generate``).
 
 Per demonstration: the canvas is placed at random on the board; its pose is measured from the scene camera's photo
-(the arm folded back out of view), as a lab measures it; the demonstrator plans in that measured frame and the arm
+(the arm swung aside, out of view), as a lab measures it; the demonstrator plans in that measured frame and the arm
 executes the plan. A demonstration whose photo gives no pose (a marker unclear) or whose ink is too far from the
 drawing is counted as a failure and not stored; the task is demonstrated again with the next placement.
 
@@ -28,8 +28,9 @@ from bpp.utils import check_fields, usable_cores, worker_pool
 
 BENCHMARK = "draw3d"
 CAMERAS = ("wrist",)
-RETRACTED = np.array([0.0, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
-"""The arm folded back, out of the scene camera's view of the board, when the canvas is photographed."""
+ASIDE = np.array([1.6, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
+"""The arm folded and swung to the side whenever the board is photographed: out of the scene camera's view, its shadow
+off the board (folded straight back, its shadow fell on the canvas and made markers look partly hidden)."""
 PLACEMENT = {"u": (-0.25, 0.25), "v": (-0.08, 0.08), "angle": (-45.0, 45.0)}
 """Where a canvas goes on the board: metres right and up its slope from its centre, and degrees about its normal."""
 PHOTO_SIZE = 640
@@ -103,12 +104,12 @@ def _scene(image_size: int):
 
 
 def measure_canvas(scene, truth: np.ndarray) -> np.ndarray:
-    """Place the canvas at `truth` with the arm folded back, photograph it with the scene camera and return the
+    """Place the canvas at `truth` with the arm swung aside, photograph it with the scene camera and return the
     canvas pose the photo gives in the base frame (:class:`bpp.benchmarks.draw3d.canvas.CanvasNotFound` if none)."""
     from bpp.benchmarks.draw3d.canvas import canvas_in_base, canvas_pose
     from bpp.benchmarks.draw3d.scene import BOARD
 
-    scene.reset(truth, RETRACTED)
+    scene.reset(truth, ASIDE)
     camera = scene.camera_pose("scene")
     photo = scene.render("scene", PHOTO_SIZE)
     found = canvas_pose(photo, scene.camera_intrinsics("scene", PHOTO_SIZE), up=camera[:3, :3].T @ BOARD[:, 1])
@@ -153,8 +154,6 @@ def demonstrate_task(job: tuple) -> tuple[list, dict]:
         }
         columns = {f"canvas_{k}": v for k, v in placement.items()} | {"chamfer": score}
         if cfg.goal_size:
-            from bpp.benchmarks.draw3d.photo import ASIDE
-
             scene.fold(ASIDE)
             columns[GOAL_KEY] = scene.render("scene", cfg.goal_size)
         episodes.append((steps, columns))

@@ -19,8 +19,6 @@ INK_THRESHOLD = 128
 a red marker's red channel about 200."""
 EDGE_MARGIN = 0.003
 """Metres inside the canvas's edge where ink is looked for: the edge's own pixels mix paper with the board."""
-ASIDE = np.array([1.6, -1.2, 0.0, -2.9, 0.0, 2.2, 0.78])
-"""The arm swung to the side for the photo: out of the scene camera's view, its shadow off the board."""
 PEN_RADIUS_PX = 4.0
 """The photo's ink is widened by this many of DrawAnything's canvas pixels: a line about 3.5 px wide in the photo then
 covers about the 12 px DrawAnything's pen inks."""
@@ -72,6 +70,7 @@ def photo_chamfer(scene, drawing_strokes, photo_size: int = 640) -> float:
     from bpp.benchmarks.draw.geometry import unit_to_canvas
     from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
     from bpp.benchmarks.draw3d.canvas import canvas_pose
+    from bpp.benchmarks.draw3d.dataset import ASIDE
     from bpp.benchmarks.draw3d.scene import BOARD
 
     scene.fold(ASIDE)
