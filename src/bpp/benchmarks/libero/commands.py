@@ -88,9 +88,11 @@ def libero_video(args: LiberoVideo) -> None:
 
 @dataclass(frozen=True)
 class LiberoExport:
-    """Export a store in LIBERO's dataset layout (robomimic-style HDF5 + BDDL, one pair per task).
+    """Export a store in the layout of LIBERO's released dataset files (robomimic-style HDF5 + BDDL, one pair per task),
+    which LIBERO's and robomimic's loaders and LIBERO-to-LeRobot converters read unchanged.
 
-    Each file holds the actions, simulator states, proprioception, object states and any stored camera frames."""
+    Each file holds the actions, simulator states, robot states, LIBERO's observation keys, any stored camera frames,
+    and each demonstration's scene model, in which its actions replay its states bit for bit."""
 
     store: tyro.conf.Positional[Path]
     out: Path = Path("exports/libero")
@@ -110,8 +112,8 @@ class LiberoImport:
     """Import LIBERO dataset files (robomimic-style HDF5, e.g. LIBERO's own demonstrations of its four suites, or
     files `bpp libero export` wrote) into a store: one task per file.
 
-    The observations are recomputed from each stored simulator state, so they are what a rollout observes; LIBERO's
-    own problems are evaluated from LIBERO's initial states."""
+    Each demonstration is replayed in the scene of its file's model, so its observations are what a rollout observes
+    (about 10 s per demonstration); LIBERO's own problems are evaluated from LIBERO's initial states."""
 
     files: tyro.conf.Positional[tuple[Path, ...]]
     out: Path = Path("data/libero/imported.zarr")
