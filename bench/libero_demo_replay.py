@@ -30,11 +30,14 @@ def replay_store(store: EpisodeStore, rounded: bool) -> list[dict]:
     rows = []
     actions_key = "executed_action" if "executed_action" in store.keys else "action"
     with tempfile.TemporaryDirectory(prefix="libero-replay-") as folder:
-        envs: dict[int, object] = {}
+        envs: dict[int, object] = {}  # the current task's env only: one holds a few hundred MB
         try:
             for episode in range(store.num_episodes):
                 task = int(store.column("task_index")[episode])
                 if task not in envs:
+                    for env in envs.values():
+                        env.close()
+                    envs.clear()
                     path = Path(folder) / f"task-{task}.bddl"
                     path.write_text(task_problem(store, episode))
                     envs[task] = make_env(path)
@@ -71,6 +74,7 @@ def main() -> None:
     parser.add_argument("--num-tasks", type=int, default=50)
     parser.add_argument("--demos-per-task", type=int, default=2)
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--variants", nargs="+", default=["stored", "float32"], choices=["stored", "float32"])
     args = parser.parse_args()
     stores = list(args.stores)
     if args.generate:
@@ -83,7 +87,7 @@ def main() -> None:
     print("| --- | ---: | ---: | ---: | ---: | ---: |")
     for path in stores:
         store = EpisodeStore(path)
-        for rounded in (False, True):
+        for rounded in [variant == "float32" for variant in args.variants]:
             t0 = time.perf_counter()
             rows = replay_store(store, rounded)
             label = f"{path.name}: {'rounded to float32' if rounded else 'as stored'}"
