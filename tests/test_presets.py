@@ -43,7 +43,7 @@ def test_preset_builds_and_takes_a_finite_loss(store, method, size, obs):
     assert loss.ndim == 0 and math.isfinite(loss.item())
 
 
-def test_canvas_ink_is_canvas_with_the_ink_drawn():
+def test_canvas_ink_is_canvas_with_the_ink_on_it():
     canvas, ink = BENCHMARK.observations["canvas"], BENCHMARK.observations["canvas-ink"]
     assert ink.lowdim_keys == canvas.lowdim_keys and ink.action_key == canvas.action_key == "action"
     assert ink.proprio_keys == (*canvas.proprio_keys, "ink_length")
