@@ -97,10 +97,10 @@ CommandTable = Mapping[str, tuple[type, Callable[[Any], None]]]
 
 def frames_to_record(entry: bool | str) -> str:
     """``"all"``, ``"last"`` or ``""`` (none) for an entry of :meth:`Benchmark.run_rollouts`'s `record_frames`."""
-    if entry in ("all", "last"):
-        return entry
-    if entry is True or entry is False or entry in ("", None):
-        return "all" if entry is True else ""
+    if entry is True:
+        return "all"
+    if entry in (False, None, "", "all", "last"):
+        return entry or ""
     raise ValueError(f"record_frames entries are True, False, 'all' or 'last', not {entry!r}")
 
 

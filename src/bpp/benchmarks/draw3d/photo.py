@@ -11,6 +11,8 @@ Chamfer. ``bench/draw3d_photo_chamfer.py`` measures how far it is from the exact
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import ndimage
 
@@ -24,14 +26,18 @@ PEN_RADIUS_PX = 4.0
 covers about the 12 px DrawAnything's pen inks."""
 
 
+@functools.cache
 def _canvas_plane() -> np.ndarray:
-    """(512, 512, 2) the canvas-frame point (m) under each of DrawAnything's canvas pixel centres."""
+    """(512, 512, 2) the canvas-frame point (m) under each of DrawAnything's canvas pixel centres (computed once;
+    read-only)."""
     from bpp.benchmarks.draw.geometry import CANVAS_SIZE, canvas_to_unit
     from bpp.benchmarks.draw3d.demonstrator import drawing_to_canvas
 
     rows, cols = np.mgrid[0:CANVAS_SIZE, 0:CANVAS_SIZE].astype(np.float64)
     unit = canvas_to_unit(np.stack([cols, rows], axis=-1).reshape(-1, 2), 0.0)
-    return drawing_to_canvas(unit).reshape(CANVAS_SIZE, CANVAS_SIZE, 2)
+    plane = drawing_to_canvas(unit).reshape(CANVAS_SIZE, CANVAS_SIZE, 2)
+    plane.flags.writeable = False
+    return plane
 
 
 def rectify(photo: np.ndarray, intrinsics: np.ndarray, T_camera_canvas: np.ndarray) -> np.ndarray:
@@ -39,9 +45,9 @@ def rectify(photo: np.ndarray, intrinsics: np.ndarray, T_camera_canvas: np.ndarr
     at the centre), through the canvas pose `T_camera_canvas` and the camera's pinhole `intrinsics`."""
     import cv2
 
-    plane = _canvas_plane().reshape(-1, 2)
-    pixels = intrinsics @ (T_camera_canvas[:3, :2] @ plane.T + T_camera_canvas[:3, 3:4])
-    shape = _canvas_plane().shape[:2]
+    plane = _canvas_plane()
+    shape = plane.shape[:2]
+    pixels = intrinsics @ (T_camera_canvas[:3, :2] @ plane.reshape(-1, 2).T + T_camera_canvas[:3, 3:4])
     u = (pixels[0] / pixels[2]).reshape(shape).astype(np.float32)
     v = (pixels[1] / pixels[2]).reshape(shape).astype(np.float32)
     return cv2.remap(photo, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)

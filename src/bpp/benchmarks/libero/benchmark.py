@@ -162,7 +162,7 @@ def _render(store: EpisodeStore, episode: int, states: np.ndarray, camera: str, 
     where the episode had them: their placement (cabinet, stove: about 1.5 cm between resets) is part of the model,
     not of the stored state."""
     from bpp.benchmarks.libero.rollouts import task_problem
-    from bpp.benchmarks.libero.sim import make_env, place_fixtures, render_states
+    from bpp.benchmarks.libero.sim import make_env, render_states, reset_scene
 
     problem = task_problem(store, episode)
     if _RENDER_ENV.get("problem") != problem:
@@ -174,11 +174,7 @@ def _render(store: EpisodeStore, episode: int, states: np.ndarray, camera: str, 
         path.write_text(problem)
         _RENDER_ENV.update(problem=problem, env=make_env(path, render=True), folder=folder)
     env = _RENDER_ENV["env"]
-    env.seed(int(store.column("seed")[episode]))
-    env.reset()
-    fixtures = dataset.episode_fixtures(store, episode)
-    if fixtures is not None:
-        place_fixtures(env, *fixtures)
+    reset_scene(env, int(store.column("seed")[episode]), dataset.episode_fixtures(store, episode))
     return render_states(env, states, camera, size)
 
 

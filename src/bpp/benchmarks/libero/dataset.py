@@ -210,7 +210,7 @@ def _task_job(job) -> dict:
     import tempfile
 
     from bpp.benchmarks.libero.demonstrator import demonstrate_task
-    from bpp.benchmarks.libero.sim import MAX_FIXTURES, fixture_poses, make_env, render_now, render_states
+    from bpp.benchmarks.libero.sim import fixture_row, make_env, render_now, render_states
 
     summary = {"index": index, "kept": 0, "tries": 0}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:
@@ -236,10 +236,8 @@ def _task_job(job) -> dict:
                 }
                 if demo.executed is not None:  # DART noise: the clean actions train, these replay
                     episode["executed_action"] = demo.executed.astype(np.float64)
-                names, poses = fixture_poses(env)  # where this reset put the fixtures: not in the simulator state
-                summary["fixtures"] = names
-                episode[FIXTURE_KEY] = np.full((MAX_FIXTURES, 7), np.nan)
-                episode[FIXTURE_KEY][: len(poses)] = poses
+                # where this reset put the fixtures: not in the simulator state
+                summary["fixtures"], episode[FIXTURE_KEY] = fixture_row(env)
                 if cfg.goal_size:
                     episode[GOAL_KEY] = render_now(env, CAMERAS["agentview"], cfg.goal_size)  # the final state
                 for camera in cfg.cameras:

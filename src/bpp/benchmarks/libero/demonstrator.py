@@ -117,7 +117,7 @@ class Arm:
         for _ in range(SETTLE_STEPS):
             env.step(np.zeros(7))
         arm.obs = seat(env)  # as a replay starts
-        arm.order = GoalOrder(env)
+        arm.order = GoalOrder.of(env)
         return arm
 
     def step(self, action) -> None:

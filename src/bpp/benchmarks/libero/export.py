@@ -254,12 +254,9 @@ def scene_xml(env, seed: int, fixtures: tuple[list[str], np.ndarray] | None) -> 
     replay of the demonstration in it diverged by centimetres."""
     import xml.etree.ElementTree as ET
 
-    from bpp.benchmarks.libero.sim import place_fixtures
+    from bpp.benchmarks.libero.sim import reset_scene
 
-    env.seed(seed)
-    env.reset()
-    if fixtures is not None:
-        place_fixtures(env, *fixtures)
+    reset_scene(env, seed, fixtures)
     inner = env.env
     model = inner.sim.model
     root = ET.fromstring(inner.model.get_xml())

@@ -191,7 +191,7 @@ def import_files(
 
     h5py = require_extra("h5py", "libero")
 
-    from bpp.benchmarks.libero.sim import CAMERAS, MAX_FIXTURES, fixture_poses, make_env, render_now
+    from bpp.benchmarks.libero.sim import CAMERAS, fixture_row, make_env, render_now
 
     if not paths:
         raise UserError("no files to import")
@@ -224,8 +224,7 @@ def import_files(
                     for demo in read_demos(f, path):
                         where = f"{path}:{demo.name}"
                         rebuild_scene(env, demo, where)
-                        poses = np.full((MAX_FIXTURES, 7), np.nan)
-                        poses[: len(info["fixtures"])] = fixture_poses(env)[1]
+                        poses = fixture_row(env)[1]
                         proprio, object_state = observe_demo(env, demo.states, demo.actions, where)
                         columns = {"seed": demo.seed, FIXTURE_KEY: poses}
                         if goal_size:  # after the last action, as generation renders it
@@ -249,8 +248,9 @@ def rebuild_scene(env, demo: Demo, where: str) -> None:
     the asset files it names found in this installation, else the reset with its seed. The env is reset first, as
     LIBERO's own replay does: loading a model keeps the robot's gripper as the last episode left it (robosuite's
     gripper integrates its commands), and the first demonstration's grip then changed the next one's steps."""
-    env.seed(demo.seed)
-    env.reset()
+    from bpp.benchmarks.libero.sim import reset_scene
+
+    reset_scene(env, demo.seed)
     if demo.model is None:
         return
     try:

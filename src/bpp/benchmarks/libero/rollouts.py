@@ -127,7 +127,7 @@ def run_rollouts(
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
                 heights.append(_Heights(raw, *lifts[task]))
-                orders.append(GoalOrder(env) if len(env.env.parsed_problem["goal_state"]) > 1 else None)
+                orders.append(GoalOrder.of(env))
                 ordered.append(in_order[task])
             frames = [
                 [render_now(env, "agentview", VIDEO_SIZE)] if rec == "all" else []
@@ -144,9 +144,11 @@ def run_rollouts(
                     steps[i] += 1
                     heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)
-                    final[i] = bool(envs[i].env._check_success())
-                    if orders[i] is not None:
+                    if orders[i] is None:
+                        final[i] = bool(envs[i].env._check_success())
+                    else:  # it evaluates the goal's terms once for both
                         orders[i].update()
+                        final[i] = orders[i].final
                     success[i] = orders[i].done if ordered[i] else final[i]
                     done[i] = final[i] or steps[i] >= max_steps
                     if (record[i] == "all" and steps[i] % VIDEO_STRIDE == 0) or (record[i] and done[i]):

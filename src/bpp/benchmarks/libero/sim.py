@@ -152,15 +152,17 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
 
 _RENDERING: weakref.WeakSet = weakref.WeakSet()
 """The rendering envs not yet garbage: closed at exit, while their OpenGL display still exists."""
+_CLOSING_REGISTERED = False
 
 
 def _close_at_exit(env) -> None:
     # The renderer terminates its EGL display at exit, from an exit handler it registers with its first context; ours,
-    # registered after it, runs first. Left to the garbage collector after that, every context's release fails
-    # with an EGL error printed as a traceback.
-    if not _RENDERING and not getattr(_close_at_exit, "registered", False):
+    # registered after it (with the first rendering env made), runs first. Left to the garbage collector after that,
+    # every context's release fails with an EGL error printed as a traceback.
+    global _CLOSING_REGISTERED
+    if not _CLOSING_REGISTERED:
         atexit.register(_close_rendering_envs)
-        _close_at_exit.registered = True
+        _CLOSING_REGISTERED = True
     _RENDERING.add(env)
 
 
@@ -232,6 +234,15 @@ def fixture_poses(env) -> tuple[list[str], np.ndarray]:
     return names, np.concatenate([model.body_pos[ids], model.body_quat[ids]], axis=1).astype(np.float64)
 
 
+def fixture_row(env) -> tuple[list[str], np.ndarray]:
+    """(names, (MAX_FIXTURES, 7) poses, NaN below the scene's fixtures): :func:`fixture_poses` as a store's
+    per-episode column keeps them."""
+    names, poses = fixture_poses(env)
+    row = np.full((MAX_FIXTURES, 7), np.nan)
+    row[: len(poses)] = poses
+    return names, row
+
+
 def place_fixtures(env, names: list[str], poses) -> None:
     """Put the env's fixtures where :func:`fixture_poses` found them (after a reset, before setting a state)."""
     inner = env.env
@@ -258,15 +269,20 @@ def seat(env, state=None) -> dict:
     return obs
 
 
-def replay(env, seed: int, states, actions, fixtures: tuple[list[str], np.ndarray] | None = None):
-    """Replay a demonstration open-loop: reset `env` (made from its problem) with its `seed`, put the fixtures where
-    it had them (``fixtures``: names and poses), set its first simulator state and execute every action. Returns the
-    simulator states before each action (as stored) and after the last one, and whether LIBERO's goal holds at the
-    end."""
+def reset_scene(env, seed: int, fixtures: tuple[list[str], np.ndarray] | None = None) -> None:
+    """Reset `env` with `seed` and put its fixtures where a demonstration had them (``fixtures``: names and poses;
+    None: where this reset put them, which only approximates the demonstration's scene)."""
     env.seed(int(seed))
     env.reset()
     if fixtures is not None:
         place_fixtures(env, *fixtures)
+
+
+def replay(env, seed: int, states, actions, fixtures: tuple[list[str], np.ndarray] | None = None):
+    """Replay a demonstration open-loop: rebuild its scene in `env` (made from its problem; :func:`reset_scene`), set
+    its first simulator state and execute every action. Returns the simulator states before each action (as stored)
+    and after the last one, and whether LIBERO's goal holds at the end."""
+    reset_scene(env, seed, fixtures)
     seat(env, states[0])
     sim = env.env.sim
     seen = [sim.get_state().flatten()]
@@ -282,6 +298,11 @@ class GoalOrder:
     reached; :attr:`done` when every term is reached and all of them hold. So a chain whose two steps are done the
     other way round is not done, although its final goal holds (LIBERO's own success, :meth:`final`). Construct it
     once the episode's start has settled, then call :meth:`update` after every step."""
+
+    @classmethod
+    def of(cls, env) -> GoalOrder | None:
+        """The order of `env`'s goal, or None for a goal of one term (nothing to order)."""
+        return cls(env) if len(env.env.parsed_problem["goal_state"]) > 1 else None
 
     def __init__(self, env):
         self.env = env
