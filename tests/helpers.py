@@ -25,6 +25,7 @@ OPTIONAL_PARTS = {
     "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
     "lerobot": (("ledataset",), "the lerobot extra: pip install -e '.[lerobot]'"),
     "iphumi": (("cv2",), "the iphumi extra: pip install -e '.[iphumi]'"),
+    "ray": (("ray",), "the ray extra: pip install -e '.[ray]'"),
     "openpi": ((), "the robot environment with openpi's client: make install-all (.venv-robot)"),
     "browser": (("playwright",), "playwright (the dev extra) and Debian's chromium (apt-get install chromium)"),
 }

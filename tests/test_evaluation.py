@@ -93,6 +93,38 @@ def test_evaluate_reuses_results_only_under_the_same_protocol(debug_store, tmp_p
     assert "reusing" not in capsys.readouterr().out
 
 
+def test_an_interrupted_evaluation_resumes_with_the_tasks_it_had_finished(debug_store, tmp_path, monkeypatch):
+    import bpp.evaluation.evaluate as evaluation
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    protocol, tasks = Protocol(rollouts=2, max_steps=10), TaskSet(debug_store, "debug")
+    evaluate(run, tasks, [0, 3, 5], tmp_path / "whole", protocol, workers=1, videos=1, progress=False)
+    real, ran = evaluation._run_task, []
+
+    def killed_on_the_third(job):
+        ran.append(job[0])
+        if len(ran) == 3:
+            raise KeyboardInterrupt
+        return real(job)
+
+    monkeypatch.setattr(evaluation, "_run_task", killed_on_the_third)
+    out = tmp_path / "eval"
+    with pytest.raises(KeyboardInterrupt):
+        evaluate(run, tasks, [0, 3, 5], out, protocol, workers=1, videos=1, progress=False)
+    assert not out.exists() and len(list((tmp_path / ".eval.journal").glob("task-*.npz"))) == 2
+    ran.clear()
+    evaluate(run, tasks, [0, 3, 5], out, protocol, workers=1, videos=1, progress=False)
+    assert ran == [5]  # tasks 0 and 3 (with its video frames) came from the journal
+    whole, resumed = (json.loads((tmp_path / name / "results.json").read_text()) for name in ("whole", "eval"))
+    for key in ("summary", "tasks", "rollouts"):
+        assert resumed[key] == whole[key]
+    assert (out / "grid.png").read_bytes() == (tmp_path / "whole" / "grid.png").read_bytes()
+    assert sorted(p.name for p in out.iterdir()) == sorted(p.name for p in (tmp_path / "whole").iterdir())
+    assert not (tmp_path / ".eval.journal").exists()  # gone with the results written
+
+
 @pytest.mark.slow
 def test_agent_overrides_set_denoising_steps_and_replanning(debug_store, tmp_path, capsys):
     from bpp.policies.icrt import ICRTModel

@@ -26,6 +26,7 @@ from bpp.benchmarks.registry import (
     get_benchmark,
 )
 from bpp.errors import UserError, raise_interrupted
+from bpp.executor import make_executor
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
@@ -46,9 +47,16 @@ class Generate:
     it)."""
     workers: int = 0
     """Worker processes (0: one per core)."""
+    executor: Literal["local", "ray"] = "local"
+    """Where the tasks are demonstrated: local processes, or a Ray cluster (pip install 'bpp[ray]'): the same store."""
+    ray_address: str = ""
+    """The Ray cluster's head (host:port, or auto); default: RAY_ADDRESS, else a cluster on this machine."""
     overwrite: bool = False
     """Replace an existing store."""
     data: Any = None
+
+    def __post_init__(self):
+        make_executor(self.executor, self.workers, self.ray_address)  # checks the three flags together
 
 
 def _generate_class(benchmark) -> type:
@@ -72,7 +80,8 @@ def generate_cmd(args: Generate, benchmark) -> None:
     import time
 
     t0 = time.perf_counter()
-    store = benchmark.generate(args.data, args.out, workers=args.workers, overwrite=args.overwrite)
+    executor = make_executor(args.executor, args.workers, args.ray_address)
+    store = benchmark.generate(args.data, args.out, workers=executor, overwrite=args.overwrite)
     print(f"wrote {store}")
     print(f"  {time.perf_counter() - t0:.1f} s, {store.disk_bytes() / 1e6:.1f} MB on disk")
 
@@ -244,6 +253,10 @@ class Eval:
     """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
     workers: int = 0
     """Processes (0: one per core), for the rollouts and for generating a named task set or --files the first time."""
+    executor: Literal["local", "ray"] = "local"
+    """Where the tasks' rollouts run: local processes, or a Ray cluster (pip install 'bpp[ray]'): the same results."""
+    ray_address: str = ""
+    """The Ray cluster's head (host:port, or auto); default: RAY_ADDRESS, else a cluster on this machine."""
     videos: int = 2
     """Tasks whose first rollout is saved as a video."""
     out: Path = Path("outputs/eval")
@@ -258,6 +271,7 @@ class Eval:
             ("workers", self.workers >= 0, ">= 0 (0: one per core)"),
             ("videos", self.videos >= 0, ">= 0"),
         )
+        make_executor(self.executor, self.workers, self.ray_address)
 
 
 def eval_cmd(args: Eval) -> None:
@@ -283,18 +297,19 @@ def eval_cmd(args: Eval) -> None:
         raise UserError(f"the checkpoints were trained on different benchmarks ({', '.join(sorted(benchmarks))})")
     for ckpt in checkpoints:
         PolicyAgent(ckpt.build_model(), **protocol.agent_options())
+    executor = make_executor(args.executor, args.workers, args.ray_address)
     tasks = args.tasks or _default_tasks(checkpoints[0])
     jobs = []
     for ckpt in checkpoints:  # one task set for all (a store from --files is built once), but each its own `train`
         own = tasks == "train" and not args.files
         if own or not jobs:
-            jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks, args.workers))
+            jobs.append(resolve_tasks(tasks, ckpt, args.files, args.data_dir, args.num_tasks, executor))
         else:
             jobs.append(jobs[0])
     runs = []
     for i, (ckpt, (benchmark, task_set, indices)) in enumerate(zip(checkpoints, jobs, strict=True)):
         out = args.out if len(checkpoints) == 1 else args.out / f"{i}-{Path(args.checkpoints[i]).name}"
-        data = evaluate(ckpt, task_set, indices, out, protocol, args.workers, args.videos)
+        data = evaluate(ckpt, task_set, indices, out, protocol, executor, args.videos)
         s, metric = data["summary"], benchmark.metric
         score, spread = metric.format(s["score_mean"]), s["score_std_over_tasks"]
         print(f"[eval] {ckpt.path}: {task_set.label}: {metric.name} {score} (std over tasks {spread:.2f})")

@@ -814,11 +814,11 @@ class EpisodeStore:
 
     def fingerprint(self) -> str:
         """SHA-256 of the store's content: every file's relative path and bytes, except that the header's creation
-        time (and its digest, which covers it) is left out (so a store generated again from the same input has the
-        same fingerprint). Cached."""
+        time, its ``timing`` (how fast a generator made it) and its digest, which covers them, are left out (so a
+        store generated again from the same input, on any machine, has the same fingerprint). Cached."""
         if "_fingerprint" not in self.__dict__:
             digest = hashlib.sha256()
-            header = {k: v for k, v in self.attrs.items() if k not in ("created", "digest")}
+            header = {k: v for k, v in self.attrs.items() if k not in ("created", "timing", "digest")}
             digest.update(json.dumps(header, sort_keys=True).encode())
             for file in sorted(p for p in self.path.rglob("*") if p.is_file() and p != self.path / "zarr.json"):
                 digest.update(str(file.relative_to(self.path)).encode() + b"\0")

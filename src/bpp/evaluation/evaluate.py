@@ -16,8 +16,9 @@ A checkpoint is read from disk once (:class:`bpp.checkpoint.Checkpoint`) and han
 from __future__ import annotations
 
 import contextlib
-import multiprocessing as mp
+import json
 import os
+import shutil
 import sys
 import time
 from dataclasses import asdict, replace
@@ -34,12 +35,12 @@ from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.evaluation.protocol import Protocol, TaskResult, results_json, rollout_rows, summarize
+from bpp.executor import Executor, as_executor, local_path
 from bpp.utils import (
+    atomic_path,
     file_stem,
     read_json,
     remove_stale_partials,
-    usable_cores,
-    worker_pool,
     write_json_atomic,
     write_text_atomic,
 )
@@ -51,7 +52,7 @@ __all__ = ["Protocol", "TaskResult", "combine", "evaluate", "resolve_tasks", "ru
 _WORKER: dict = {}
 
 
-def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_path: str, protocol: Protocol, threads: int):
+def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_folder, protocol: Protocol, threads: int):
     import torch
 
     from bpp.policies.agent import PolicyAgent
@@ -63,7 +64,7 @@ def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_path: str, 
         model = checkpoint.build_model()
         _WORKER["agent"] = PolicyAgent(model, record_attention=True, **protocol.agent_options())
         _WORKER["benchmark"] = benchmark
-        _WORKER["store"] = EpisodeStore(store_path)
+        _WORKER["store"] = EpisodeStore(local_path(store_folder))
         _WORKER["protocol"] = protocol
     except Exception as err:  # noqa: BLE001 - re-raised by _run_task, in the parent
         _WORKER["error"] = err
@@ -96,39 +97,82 @@ def run_protocol(
     store: EpisodeStore,
     tasks: list[int],
     protocol: Protocol,
-    workers: int = 0,
+    workers: int | Executor = 0,
     video_tasks: int = 2,
     progress: bool = True,
     desc: str = "eval",
+    journal: Journal | None = None,
 ) -> list[TaskResult]:
-    """Evaluate `checkpoint` on `tasks` of `store`; tasks are spread over `workers` processes (0: all cores).
+    """Evaluate `checkpoint` on `tasks` of `store`; tasks are spread over `workers` processes (0: all cores) or an
+    :class:`~bpp.executor.Executor` (e.g. a Ray cluster, whose nodes get the store's contents).
 
-    Each process runs a task's rollouts as one batch through one agent, with ``OMP_NUM_THREADS`` torch threads if
-    set, else the cores divided among the processes.
+    Each worker runs a task's rollouts as one batch through one agent (so results do not depend on where a task
+    runs), with ``OMP_NUM_THREADS`` torch threads if set, else the cores it has to itself. With a `journal`, the
+    tasks it holds are not run again, and every task that finishes is added to it.
     """
     assert protocol.max_steps > 0, "resolve the benchmark's max_steps first (evaluate does)"
-    cores = usable_cores()
-    workers = max(1, min(workers or cores, len(tasks)))
-    jobs = [(t, i < video_tasks) for i, t in enumerate(tasks)]
-    # torch threads per worker: OMP_NUM_THREADS if the user set it (e.g. to leave cores to a training run: more
-    # threads than free cores slows torch down many times over), else the cores shared among the workers.
-    threads = int(os.environ.get("OMP_NUM_THREADS") or 0) or max(1, cores // workers)
-    args = (checkpoint, benchmark, str(store.path), protocol, threads)
-    bar = tqdm(total=len(tasks) * protocol.rollouts, desc=desc, unit="rollout", disable=not progress)
-    out: dict[int, TaskResult] = {}
-    with bar, contextlib.ExitStack() as stack:
-        if workers == 1:
-            _init_worker(*args)
-            results = map(_run_task, jobs)
-        else:
-            # spawn: the parent may already hold torch threads, which fork does not copy safely.
-            pool = stack.enter_context(worker_pool(mp.get_context("spawn"), workers, _init_worker, args))
-            results = pool.imap_unordered(_run_task, jobs)
+    out: dict[int, TaskResult] = journal.load() if journal is not None else {}
+    executor = as_executor(workers)
+    jobs = [(t, i < video_tasks) for i, t in enumerate(tasks) if t not in out]
+    args = (checkpoint, benchmark, executor.share(store.path), protocol, executor.threads(len(jobs)))
+    bar = tqdm(total=len(tasks) * protocol.rollouts, initial=len(out) * protocol.rollouts, desc=desc, unit="rollout",
+               disable=not progress)  # fmt: skip
+    # spawned workers: this process may already hold torch threads, which fork does not copy safely.
+    results = executor.map(_run_task, jobs, initializer=_init_worker, initargs=args, start_method="spawn")
+    with bar, contextlib.closing(results):
         for result in results:
+            if journal is not None:
+                journal.add(result)
             out[result.task] = result
             bar.update(len(result.rollouts))
             bar.set_postfix(score=f"{np.mean([r.mean for r in out.values()]):.2f}")
     return [out[t] for t in tasks]
+
+
+class Journal:
+    """The finished tasks of an evaluation into `out`, kept beside it (``.<out>.journal/``) until its results are
+    written, so that the same command run again after an interruption (Ctrl-C, a killed process or machine) runs only
+    the tasks that are missing. It belongs to one evaluation (`key`: weights, tasks, protocol); another one's is
+    discarded. Each task is one ``.npz`` file (JSON and arrays, no pickles), written atomically."""
+
+    def __init__(self, out: Path, key: dict):
+        self.folder = out.with_name(f".{out.name}.journal")
+        self.key = json.dumps(key, sort_keys=True)
+        try:
+            same = (self.folder / "key.json").read_text() == self.key
+        except OSError:
+            same = False
+        if not same:
+            shutil.rmtree(self.folder, ignore_errors=True)
+        remove_stale_partials(self.folder)
+
+    def load(self) -> dict[int, TaskResult]:
+        found = {}
+        for path in sorted(self.folder.glob("task-*.npz")):
+            with np.load(path, allow_pickle=False) as data:
+                meta = json.loads(str(data["meta"]))
+                arrays = {k: data[k] for k in ("last_frame", "frames", "attention") if k in data.files}
+            frames = arrays.get("frames")
+            result = TaskResult(meta["task"], meta["task_id"], meta["rollouts"], arrays.get("last_frame"),
+                                None if frames is None else list(frames), arrays.get("attention"))  # fmt: skip
+            found[result.task] = result
+        if found:
+            print(f"[eval] resuming: {len(found)} tasks already evaluated ({self.folder})")
+        return found
+
+    def add(self, result: TaskResult) -> None:
+        if not self.folder.is_dir():
+            self.folder.mkdir(parents=True)
+            write_text_atomic(self.folder / "key.json", self.key)
+        arrays = {"last_frame": result.last_frame, "attention": result.attention}
+        if result.frames is not None:
+            arrays["frames"] = np.stack(result.frames)
+        meta = {"task": result.task, "task_id": result.task_id, "rollouts": result.rollouts}
+        with atomic_path(self.folder / f"task-{result.task:05d}.npz") as tmp:
+            np.savez(tmp, meta=json.dumps(meta), **{k: v for k, v in arrays.items() if v is not None})
+
+    def remove(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def combine(runs: list[dict]) -> dict:
@@ -246,7 +290,7 @@ def evaluate(
     tasks: list[int],
     out: Path,
     protocol: Protocol = Protocol(),
-    workers: int = 0,
+    workers: int | Executor = 0,
     videos: int = 2,
     progress: bool = True,
     reuse: bool = True,
@@ -287,7 +331,9 @@ def evaluate(
     check_output_folder(out)
     video_names = video_stems([str(store.tasks[t]["id"]) for t in tasks[:videos]])  # before any rollout runs
     t0 = time.perf_counter()
-    results = run_protocol(ckpt, benchmark, store, tasks, protocol, workers, videos, progress, f"eval {task_set.label}")
+    journal = Journal(out, {**fingerprint, "protocol": asdict(protocol), "tasks": tasks, "videos": videos})
+    label = f"eval {task_set.label}"
+    results = run_protocol(ckpt, benchmark, store, tasks, protocol, workers, videos, progress, label, journal)
     metric = benchmark.metric
     meta = {
         "checkpoint": str(ckpt.path),
@@ -350,4 +396,5 @@ def evaluate(
     for row in data["tasks"]:
         row["video"] = video_files.get(row["task_id"])
     write_json_atomic(out / "results.json", data)
+    journal.remove()
     return data

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import multiprocessing as mp
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -20,7 +18,8 @@ from bpp.benchmarks.draw.procedural import ProceduralConfig, describe_parts, gen
 from bpp.benchmarks.draw.render import render_frames
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
-from bpp.utils import check_fields, worker_pool
+from bpp.executor import Executor, as_executor
+from bpp.utils import check_fields
 
 BENCHMARK = "drawanything"
 
@@ -116,9 +115,10 @@ def episode_steps(demo: Demonstration) -> dict[str, np.ndarray]:
 
 
 def generate(
-    cfg: DrawDataConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
+    cfg: DrawDataConfig, out: str | Path, workers: int | Executor = 0, overwrite: bool = False, progress: bool = True
 ) -> EpisodeStore:
-    """Generate a dataset into the store at `out`, in parallel over `workers` processes (0: all cores)."""
+    """Generate a dataset into the store at `out`, in parallel over `workers` processes (0: all cores) or an
+    :class:`~bpp.executor.Executor`."""
     if cfg.source == "procedural":
         drawings: list[Drawing | None] = [None] * cfg.num_tasks
     elif cfg.source == "human":
@@ -131,17 +131,11 @@ def generate(
         drawings = list(load_drawings(cfg.drawings))  # validates every file before anything is written
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(drawings))
     jobs = [(i, d, s, cfg) for i, (d, s) in enumerate(zip(drawings, seeds, strict=True))]
-    workers = workers or os.cpu_count() or 1
     config = {**asdict(cfg), "drawings": [str(p) for p in cfg.drawings]}
+    # fork: cheap, and works from any entry point; generation never touches torch or threads.
+    results = as_executor(workers).map(_task_job, jobs, ordered=True, start_method="fork", chunksize=16)
     with EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer:
-        with contextlib.ExitStack() as stack:
-            if workers > 1 and len(jobs) > 1:
-                # fork: cheap, and works from any entry point; generation never touches torch or threads.
-                ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-                pool = stack.enter_context(worker_pool(ctx, workers))
-                results = pool.imap(_task_job, jobs, chunksize=max(1, min(16, len(jobs) // (8 * workers))))
-            else:
-                results = map(_task_job, jobs)
+        with contextlib.closing(results):
             bar = tqdm(results, total=len(jobs), desc=f"generating {Path(out).name}", unit="task", disable=not progress)
             for drawing, info, demos in bar:
                 info = {

@@ -14,7 +14,6 @@ Per step: ``tip_pose`` (9: the pen tip's pose in the robot's base frame, positio
 from __future__ import annotations
 
 import contextlib
-import multiprocessing as mp
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -24,7 +23,8 @@ from bpp.benchmarks.draw.procedural import ProceduralConfig
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
-from bpp.utils import check_fields, usable_cores, worker_pool
+from bpp.executor import Executor, as_executor
+from bpp.utils import check_fields
 
 BENCHMARK = "draw3d"
 CAMERAS = ("wrist",)
@@ -177,9 +177,10 @@ def _drawings(cfg: Draw3DConfig) -> list:
 
 
 def generate(
-    cfg: Draw3DConfig, out: str | Path, workers: int = 0, overwrite: bool = False, progress: bool = True
+    cfg: Draw3DConfig, out: str | Path, workers: int | Executor = 0, overwrite: bool = False, progress: bool = True
 ) -> EpisodeStore:
-    """Demonstrate every task of `cfg` into the store at `out` (atomically), over `workers` processes (0: all cores)."""
+    """Demonstrate every task of `cfg` into the store at `out` (atomically), over `workers` processes (0: all cores)
+    or an :class:`~bpp.executor.Executor`."""
     from tqdm import tqdm
 
     from bpp.benchmarks.draw.dataset import strokes_array
@@ -187,16 +188,11 @@ def generate(
     drawings = _drawings(cfg)  # drawing files are validated before anything is written
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(drawings))
     jobs = [(d, s, cfg) for d, s in zip(drawings, seeds, strict=True)]
-    workers = max(1, min(workers or usable_cores(), len(jobs)))
     config = {**asdict(cfg), "drawings": [str(p) for p in cfg.drawings]}
     totals = {"tries": 0, "no_canvas_pose": 0, "too_far": 0}
     with EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer:
-        with contextlib.ExitStack() as stack:  # workers stopped however it ends, Ctrl-C left to this process
-            if workers > 1:
-                pool = stack.enter_context(worker_pool(mp.get_context("spawn"), workers))  # MuJoCo's OpenGL: no fork
-                results = pool.imap(demonstrate_task, jobs)
-            else:
-                results = map(demonstrate_task, jobs)
+        # Workers stopped however it ends, Ctrl-C left to this process; spawned: MuJoCo's OpenGL does not survive fork.
+        with contextlib.closing(as_executor(workers).map(demonstrate_task, jobs, ordered=True)) as results:
             bar = tqdm(results, total=len(jobs), desc=f"generating {Path(out).name}", unit="task", disable=not progress)
             for (drawing, _, _), (episodes, counts) in zip(jobs, bar, strict=True):
                 for key in totals:

@@ -1,0 +1,104 @@
+"""LIBERO-Gen generation and evaluation with the local executor and with Ray on the same cores: throughput of each,
+the overhead ratio, the check that both give the same store and results, and a scaling model to N nodes.
+
+    python bench/ray_overhead.py                              # a Ray instance on this machine, all its cores
+    python bench/ray_overhead.py --ray-address HOST:PORT      # a running cluster (its nodes need the same bpp)
+
+Generation: `--tasks` Combination training tasks of the `cpu` preset (state only, 3 demonstrations each).
+Evaluation: a debug BPP trained `--train-steps` steps on that store, `--rollouts` rollouts of each of those tasks
+(`--max-steps` each). Each executor runs the same jobs from a fresh start (its workers import bpp and LIBERO first,
+as in a real run). The scaling model uses the per-job seconds measured on Ray: N nodes of C cores finish n jobs in
+about (sum of job seconds + n x overhead per job) / (N x C) + the longest job.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from bpp.benchmarks.libero.dataset import PRESETS, generate
+from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
+from bpp.executor import Local, Ray
+from bpp.train import TrainConfig, train
+from bpp.utils import usable_cores, write_json_atomic
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", type=int, default=6)
+    parser.add_argument("--rollouts", type=int, default=4)
+    parser.add_argument("--max-steps", type=int, default=200)
+    parser.add_argument("--train-steps", type=int, default=20)
+    parser.add_argument("--ray-address", default="")
+    parser.add_argument("--runs", type=Path, default=Path("runs/ray_overhead"))
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/ray_overhead.json"))
+    args = parser.parse_args()
+    import ray
+
+    cores = usable_cores()
+    ray.init(address=args.ray_address or None, log_to_driver=False, configure_logging=False)
+    cpus = int(ray.cluster_resources().get("CPU", 1))
+    nodes = len([n for n in ray.nodes() if n["Alive"]])
+    local, on_ray = Local(cores), Ray(args.ray_address, progress=False)
+    cfg = replace(PRESETS["cpu"], task_indices=tuple(range(args.tasks)))
+    report: dict = {"cores_here": cores, "ray_cpus": cpus, "ray_nodes": nodes, "tasks": args.tasks}
+
+    stores = {}
+    for name, executor in (("local", local), ("ray", on_ray)):
+        path = args.runs / f"{name}.zarr"
+        t0 = time.perf_counter()
+        stores[name] = generate(cfg, path, executor, overwrite=True, progress=False)
+        seconds = time.perf_counter() - t0
+        demos = stores[name].num_episodes
+        report[f"generate_{name}"] = {"seconds": round(seconds, 1), "demos": demos,
+                                      "demos_per_hour": round(3600 * demos / seconds, 1)}  # fmt: skip
+    generation_jobs = [seconds for _, seconds in on_ray.done]
+    report["generate_same_store"] = stores["local"].fingerprint() == stores["ray"].fingerprint()
+
+    run = args.runs / "bpp-debug"
+    train(TrainConfig(data=stores["local"].path, out=run, method="bpp", preset="debug", obs="state",
+                      steps=args.train_steps, overwrite=True))  # fmt: skip
+    results = {}
+    protocol = Protocol(rollouts=args.rollouts, max_steps=args.max_steps)
+    for name, executor in (("local", local), ("ray", on_ray)):
+        from bpp.checkpoint import Checkpoint
+
+        ckpt = Checkpoint.load(run, use_ema=True)
+        _, task_set, tasks = resolve_tasks(str(stores["local"].path), ckpt)
+        t0 = time.perf_counter()
+        results[name] = evaluate(ckpt, task_set, tasks, args.runs / f"eval-{name}", protocol, executor, videos=0,
+                                 progress=False, reuse=False)  # fmt: skip
+        seconds = time.perf_counter() - t0
+        rollouts = len(results[name]["rollouts"])
+        report[f"eval_{name}"] = {"seconds": round(seconds, 1), "rollouts": rollouts,
+                                  "rollouts_per_hour": round(3600 * rollouts / seconds, 1)}  # fmt: skip
+    eval_jobs = [seconds for _, seconds in on_ray.done]
+    report["eval_same_results"] = all(results["local"][k] == results["ray"][k] for k in ("summary", "rollouts"))
+    for what, jobs in (("generate", generation_jobs), ("eval", eval_jobs)):
+        wall = report[f"{what}_ray"]["seconds"]
+        per_job = (wall * cpus - sum(jobs)) / len(jobs)  # what the cluster spent beyond the jobs themselves
+        report[f"{what}_ray_over_local"] = round(wall / report[f"{what}_local"]["seconds"], 3)
+        report[f"{what}_jobs"] = {"count": len(jobs), "mean_s": round(float(np.mean(jobs)), 2),
+                                  "max_s": round(max(jobs), 2), "overhead_per_job_s": round(per_job, 2)}  # fmt: skip
+        report[f"{what}_model"] = {
+            f"{n}x16": round(model_hours(jobs, per_job, n * 16), 3) for n in (1, 4, 16, 64)
+        }  # hours for these jobs on n nodes of 16 cores
+    print(json.dumps(report, indent=1))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(args.out, report)
+
+
+def model_hours(jobs: list[float], overhead: float, cpus: int) -> float:
+    """Hours for `jobs` on `cpus` CPUs: their work and overhead spread evenly, plus the longest job's tail."""
+    return ((sum(jobs) + len(jobs) * max(overhead, 0.0)) / cpus + max(jobs)) / 3600
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    main()
