@@ -61,6 +61,19 @@ def test_a_generated_store_holds_demonstrations_that_match_their_drawings(store)
     assert goal.shape == (1, 64, 64, 3) and goal.min() < goal.max()
 
 
+def test_the_paper_mixture_is_two_generated_parts_merged(store, tmp_path):
+    """`paper-human` demonstrates the user's drawing files; merged with a procedural store it is the paper's mixture."""
+    drawing = tmp_path / "zigzag.json"
+    drawing.write_text(json.dumps({"drawings": [{"id": "zigzag", "strokes": [[[0.3, 0.3], [0.5, 0.6], [0.7, 0.3]]]}]}))
+    human = tmp_path / "human.zarr"
+    _bpp("draw3d", "generate", "--preset", "paper-human", "--drawings", str(drawing), "--demos-per-task", "1",
+         "--cameras", "--out", str(human), "--workers", "1")  # fmt: skip
+    _bpp("store", "merge", str(store.path), str(human), "--out", str(tmp_path / "mixture.zarr"))
+    mixture = EpisodeStore(tmp_path / "mixture.zarr")
+    sources = [task["info"]["source"] for task in mixture.tasks]
+    assert sources == ["procedural", "procedural", "files"] and mixture.num_episodes == store.num_episodes + 1
+
+
 def test_bpp_trains_on_it_and_bpp_eval_draws_on_new_canvas_placements(store, tmp_path):
     run = tmp_path / "run"
     _bpp("train", "--data", str(store.path), "--out", str(run), "--preset", "debug", "--steps", "2",

@@ -81,7 +81,11 @@ PRESETS = {
     "debug": Draw3DConfig(num_tasks=4, demos_per_task=2, procedural=ProceduralConfig(max_parts=2)),
     "cpu": Draw3DConfig(num_tasks=200, demos_per_task=5),
     "paper": Draw3DConfig(num_tasks=800, demos_per_task=6, cameras=("wrist",)),
+    "paper-human": Draw3DConfig(demos_per_task=5, source="files", cameras=("wrist",)),
 }
+"""``paper`` and ``paper-human`` are the two parts of the paper's training mixture, merged with ``bpp store merge``:
+800 procedural tasks x 6 demonstrations, and human-made drawings x 5 (the paper's 200; here your drawing files,
+``--drawings``, demonstrated by the scripted arm)."""
 """``debug`` for tests; ``cpu`` state-only, for a CPU; ``paper`` the paper's 800 scripted tasks x 6 with the wrist
 camera (its 200 human iPhUMI tasks x 5 come from recordings: ``bpp iphumi process``)."""
 
@@ -170,6 +174,8 @@ def _drawings(cfg: Draw3DConfig) -> list:
     if cfg.source == "files":
         from bpp.benchmarks.draw.files import load_drawings
 
+        if not cfg.drawings:  # a preset of this source leaves them to the command line
+            raise UserError("source files: give the drawing files (JSON or SVG) with --drawings")
         return list(load_drawings(cfg.drawings))
     seeds = np.random.SeedSequence([cfg.seed, 1]).spawn(cfg.num_tasks)
     return [generate_drawing(np.random.default_rng(s), cfg.procedural, f"procedural-{i:05d}")[0]
