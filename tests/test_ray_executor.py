@@ -174,3 +174,13 @@ def test_executor_flags_are_checked_before_anything_runs(tmp_path, capsys):
             main(["draw", "generate", "--out", out, *flags])
         assert message in " ".join(capsys.readouterr().err.split()), flags
     assert not list(tmp_path.iterdir())
+
+
+def test_the_local_executor_never_imports_ray(tmp_path):
+    script = (
+        "import sys\nfrom bpp.cli import main\n"
+        f"main(['draw', 'generate', '--preset', 'debug', '--num-tasks', '2', '--out', {str(tmp_path / 's.zarr')!r}])\n"
+        "assert 'ray' not in sys.modules, 'ray was imported'\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
