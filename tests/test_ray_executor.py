@@ -41,9 +41,13 @@ class Cluster:
         auth = {"RAY_AUTH_MODE": "token", "RAY_AUTH_TOKEN": os.urandom(16).hex()}
         self.env = {**os.environ, **auth, "RAY_USAGE_STATS_ENABLED": "0", "RAY_health_check_period_ms": "500",
                     "RAY_health_check_timeout_ms": "1000", "RAY_health_check_failure_threshold": "3",
-                    "OMP_NUM_THREADS": "1"}  # fmt: skip
+                    "OMP_NUM_THREADS": "1", "TMPDIR": str(self.temp)}  # fmt: skip
+
+    def start(self) -> None:
+        """The head node, then one worker node."""
         self._start("--head", f"--port={self.port}", "--include-dashboard=false", "--disable-usage-stats",
                     f"--temp-dir={self.temp}")  # fmt: skip
+        self.add_node()
 
     def _start(self, *flags: str) -> subprocess.Popen:
         ray_cli = Path(sys.executable).with_name("ray")
@@ -100,7 +104,7 @@ class Cluster:
 def cluster(tmp_path_factory):
     cluster = Cluster(tmp_path_factory.mktemp("ray"))
     try:
-        cluster.add_node()
+        cluster.start()
         yield cluster
     finally:
         cluster.stop()
