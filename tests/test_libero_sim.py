@@ -1,5 +1,6 @@
 """LIBERO-Gen against LIBERO itself (the `libero` extra, which `make test` installs): BDDL round trips on every
-problem LIBERO ships, and a generated Combination problem loads in the simulator with a goal its predicates check."""
+problem LIBERO ships, a generated Combination problem loads in the simulator with a goal its predicates check, and
+bpp's reset and step of LIBERO's envs give what LIBERO's and robosuite's own give, bit for bit."""
 
 import numpy as np
 import pytest
@@ -310,3 +311,113 @@ def test_written_initial_states_are_what_libero_sampler_gives_and_load_back(tmp_
         main(["libero", "tasks", "--init-states", "5"])
     err = " ".join(capsys.readouterr().err.replace("│", " ").split())  # tyro wraps its message in a box
     assert "init_states must be 0 unless --out is given" in err
+
+
+def _env_of_task(folder, task, name: str = "task"):
+    path = folder / f"{name}.bddl"
+    path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+    return make_env(path)
+
+
+def _assert_same_scene(a, b) -> None:
+    """The same simulator state, fixture poses, changeable parts of the model (bodies' poses, sites' colours) and
+    gripper command, bit for bit."""
+    from bpp.benchmarks.libero.sim import fixture_poses
+
+    np.testing.assert_array_equal(a.env.sim.get_state().flatten(), b.env.sim.get_state().flatten())
+    np.testing.assert_array_equal(fixture_poses(a)[1], fixture_poses(b)[1])
+    for name in ("body_pos", "body_quat", "site_rgba"):
+        np.testing.assert_array_equal(getattr(a.env.sim.model, name), getattr(b.env.sim.model, name), err_msg=name)
+    np.testing.assert_array_equal(a.env.robots[0].gripper.current_action, b.env.robots[0].gripper.current_action)
+
+
+def _assert_same_observation(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+
+
+def test_a_soft_reset_gives_what_libero_hard_reset_gives_after_the_same_episodes(tmp_path):
+    """reset_env resets the compiled model in place; LIBERO's own reset rebuilds and recompiles it. In the scene whose
+    bowl starts in the open top drawer (placed from the drawer's site; the drawer opened by a joint initializer, which
+    LIBERO adds once more at every rebuild), after episodes that closed the gripper and turned the stove on (its
+    burner's site shows), every seed gives the same scene and observation bit for bit, and so does every step."""
+    from bpp.benchmarks.libero.sim import reset_env
+
+    task = next(t for t in combination().train if t.pick == "TD")
+    hard, soft = _env_of_task(tmp_path, task), _env_of_task(tmp_path, task)
+    try:
+        for seed in (0, 1, 2):
+            hard.seed(seed)
+            _assert_same_observation(hard.reset(), reset_env(soft, seed))
+            _assert_same_scene(hard, soft)
+            for t in range(12):
+                if t == 6:
+                    for env in (hard, soft):
+                        env.env.sim.data.set_joint_qpos("flat_stove_1_button", 1.0)  # the stove on
+                action = np.r_[0.3, 0.0, -0.6, 0.0, 0.0, 0.2, 1.0]  # down and turning, closing the gripper
+                _assert_same_observation(hard.step(action)[0], soft.step(action)[0])
+            _assert_same_scene(hard, soft)
+            assert hard.env.sim.model.site_rgba[hard.env.sim.model.site_name2id("flat_stove_1_burner"), 3] > 0
+    finally:
+        hard.close()
+        soft.close()
+
+
+def test_a_soft_reset_after_an_episode_gives_the_scene_of_a_new_env(tmp_path):
+    """Where the problem sets no joint at the start (no initializer draws from the seed before the placements), a
+    seed's scene does not depend on the env's history: reset_env in an env whose episode left the gripper closed
+    gives LIBERO's reset of a new env, and the same steps after it."""
+    from bpp.benchmarks.libero.sim import reset_env
+
+    task = combination().train[0]
+    used, new = _env_of_task(tmp_path, task), _env_of_task(tmp_path, task)
+    try:
+        reset_env(used, 3)
+        for _ in range(10):
+            used.step(np.r_[0.0, 0.2, -0.5, 0.0, 0.0, 0.0, 1.0])
+        new.seed(5)
+        _assert_same_observation(new.reset(), reset_env(used, 5))
+        _assert_same_scene(new, used)
+        for _ in range(8):  # opening: from rest in a new gripper
+            action = np.r_[0.2, 0.0, -0.4, 0.0, 0.0, 0.0, -1.0]
+            _assert_same_observation(new.step(action)[0], used.step(action)[0])
+        _assert_same_scene(new, used)
+    finally:
+        used.close()
+        new.close()
+
+
+def test_the_fast_step_gives_robosuite_own_step_bit_for_bit(tmp_path):
+    """make_env's envs step with one forward dynamics per physics substep (mj_step1, the controller, mj_step2) where
+    robosuite's step runs it three times: a scripted demonstration (down to the bowl, grasp, carry, release: contacts
+    all along) made with it replays through robosuite's own step to its states and observations bit for bit, and to
+    the same force-torque record of the hand (read at each action's first substep)."""
+    import mujoco
+    from robosuite.environments.base import MujocoEnv
+
+    from bpp.benchmarks.libero import sim
+    from bpp.benchmarks.libero.demonstrator import demonstrate
+
+    task = combination().train[0]
+    env = _env_of_task(tmp_path, task)
+    try:
+        assert MujocoEnv.step is not sim._ROBOSUITE_STEP  # the fast step is installed, and LIBERO integrates by Euler:
+        assert env.env.sim.model.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER  # it is in use
+        demo = demonstrate(env, task, seed=0)
+        assert demo.success
+        robot, inner = env.env.robots[0], env.env
+        end, force = inner.sim.get_state().flatten(), robot.recent_ee_forcetorques.current.copy()
+        sim.reset_scene(env, 0)
+        sim.seat(env, demo.states[0])
+        for t, action in enumerate(demo.actions):
+            np.testing.assert_array_equal(inner.sim.get_state().flatten(), demo.states[t])
+            obs, *_ = sim._ROBOSUITE_STEP(inner, action)
+            if t + 1 < len(demo.actions):
+                seen = {k: np.asarray(obs[k], dtype=np.float32) for k in demo.observations}
+                _assert_same_observation(seen, {k: v[t + 1] for k, v in demo.observations.items()})
+        np.testing.assert_array_equal(inner.sim.get_state().flatten(), end)
+        np.testing.assert_array_equal(robot.recent_ee_forcetorques.current, force)
+        assert np.abs(force).max() > 0
+    finally:
+        env.close()

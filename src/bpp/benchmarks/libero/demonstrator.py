@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bpp.benchmarks.libero.chain import parse_step
-from bpp.benchmarks.libero.sim import GoalOrder, holds, seat
+from bpp.benchmarks.libero.sim import GoalOrder, holds, reset_env, seat
 from bpp.benchmarks.libero.suites import BOWL, BOWLS, LOCATION_TARGETS, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
@@ -112,8 +112,7 @@ class Arm:
     @classmethod
     def start(cls, env, seed: int, cfg: DemoConfig = DemoConfig(), upright: bool = False) -> Arm:
         arm = cls(env, cfg, upright, seed)
-        env.seed(seed)
-        arm.obs = env.reset()
+        arm.obs = reset_env(env, seed)
         for _ in range(SETTLE_STEPS):
             env.step(np.zeros(7))
         arm.obs = seat(env)  # as a replay starts

@@ -24,7 +24,7 @@ import numpy as np
 from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.benchmarks.libero.dataset import BENCHMARK
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
-from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now
+from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now, reset_env
 from bpp.data.store import EpisodeStore, with_derived
 from bpp.errors import UserError
 
@@ -118,8 +118,7 @@ def run_rollouts(
                     in_order[task] = len(store.tasks[task]["info"].get("steps", ())) > 1 and not named
                 env = make_env(problems[task], render=bool(cameras) or rec)
                 envs.append(env)
-                env.seed(int(row["init_seed"]))
-                raw = env.reset()
+                raw = reset_env(env, int(row["init_seed"]))
                 states = starts[task]
                 if states is not None:
                     raw = env.set_init_state(states[int(row["init_seed"]) % len(states)])
@@ -140,12 +139,12 @@ def run_rollouts(
             while not done.all():
                 actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
                 for i in np.flatnonzero(~done):
-                    raw, *_ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
+                    raw, _, goal, _ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
                     steps[i] += 1
                     heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)
                     if orders[i] is None:
-                        final[i] = bool(envs[i].env._check_success())
+                        final[i] = bool(goal)  # LIBERO's step returns whether its goal holds after it as `done`
                     else:  # it evaluates the goal's terms once for both
                         orders[i].update()
                         final[i] = orders[i].final

@@ -4,6 +4,11 @@ LIBERO is the ``libero`` extra (``pip install -e ".[libero]"``; ``make test`` in
 MuJoCo's headless OpenGL: ``MUJOCO_GL`` defaults to ``egl`` here (Debian's Mesa provides it; ``osmesa`` needs
 ``libosmesa6``). An env without cameras renders nothing and is what demonstration generation uses (physics is about
 10x faster than rendering two cameras on a CPU).
+
+Two shortcuts keep LIBERO's results bit for bit and save most of its overhead: :func:`reset_env` resets without
+rebuilding the model (LIBERO's own reset recompiles it and recreates the renderer's GL context every time), and
+:func:`make_env` installs a step that runs MuJoCo's forward dynamics once per physics substep instead of three times
+(:func:`_install_fast_step`).
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import atexit
 import contextlib
 import os
 import weakref
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -113,9 +119,12 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
     cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`
     and no cameras, steps render nothing but :func:`render_states` / :func:`render_now` can draw any camera on
-    demand. Takes seconds (it compiles the scene)."""
+    demand. Takes seconds (it compiles the scene). Reset it with :func:`reset_env`: its own ``env.reset()`` is
+    LIBERO's, which builds and compiles the model again."""
     _libero()
     from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
+
+    _install_fast_step()
 
     path = Path(problem)
     if not path.is_file():
@@ -145,9 +154,170 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
             ) from None
         raise
+    # robosuite computes a reward at every step, and LIBERO's is one more evaluation of the goal's predicates: bpp
+    # never reads it (success is the `done` a step returns, or the predicates themselves).
+    env.env.reward = _no_reward
+    _SOFT_RESETS[env.env] = _SoftReset.of(env.env)
     if render or cameras:
         _close_at_exit(env)
     return env
+
+
+def _no_reward(action=None) -> float:
+    return 0.0
+
+
+def reset_env(env, seed: int) -> dict:
+    """Reset `env` (made by :func:`make_env`) with placement seed `seed` and return the observation: the model,
+    simulator state, fixture poses and observation LIBERO's own (hard) reset gives after the same history, bit for bit,
+    without its cost. LIBERO's reset rebuilds the MJCF, compiles it, collects garbage and recreates the renderer's GL
+    context (about 0.8 s physics only, 1.8 s with a renderer); this one resets the compiled model in place (about
+    0.04 s), putting back what an episode changes in it and what a rebuilt model would start from (see
+    :class:`_SoftReset`). After something else rebuilt the simulator (LIBERO's ``env.reset()``, or
+    ``reset_from_xml_string``), it does LIBERO's reset once."""
+    env.seed(int(seed))
+    inner = env.env
+    soft = _SOFT_RESETS.get(inner)
+    if soft is None or soft.sim is not inner.sim:
+        obs = env.reset()
+        if soft is not None:
+            _SOFT_RESETS[inner] = _SoftReset.of(inner, soft.initializers)
+        return obs
+    return soft.reset(inner)
+
+
+@dataclass
+class _SoftReset:
+    """What a soft reset of one env puts back before resetting its compiled model in place (robosuite's
+    ``hard_reset=False``), so that it gives what LIBERO's hard reset gives:
+
+    - the fixtures' bodies at the pose the MJCF declares (none: the origin). LIBERO samples their placement at every
+      reset and writes it into the compiled model, after placing the objects that stand in a fixture's region (a bowl
+      in the cabinet's drawer) from where the region's site is in the model as it was before.
+    - the sites' colours as a new model has them: LIBERO shows a stove's burner when the stove is on, setting the
+      colour after each step, and a state rendered right after a reset would show the last episode's. (The stove's
+      flag that decides it needs nothing: LIBERO sets it from the knob's joint right before each use.)
+    - the gripper's last command: robosuite's grippers integrate their commands, and a rebuilt model brings a new
+      gripper at rest (kept, the next episode's first steps close or open it differently).
+    - one more copy of the problem's joint initializers (a drawer opened or a stove turned on at the start): LIBERO
+      appends them to a list at every model build and never clears it, and each draws from the seed's random stream
+      before the objects' placements. A seed's scene depends on how many resets the env had; kept so that the same
+      seed in the same history gives the same scene as before."""
+
+    sim: object
+    """The simulator this was taken of: another one (a rebuilt model) needs LIBERO's reset again."""
+    body_pos: np.ndarray
+    body_quat: np.ndarray
+    site_rgba: np.ndarray
+    initializers: list
+    """The joint initializers one model build appends."""
+
+    @classmethod
+    def of(cls, inner, initializers: list | None = None) -> _SoftReset | None:
+        """Taken of an env that has just been built or hard-reset (its model compiled from its own MJCF);
+        `initializers`: those one build appends (default: all there are, right after construction). None if a fixture's
+        MJCF declares a pose (its compiled pose is not known here; such an env always resets hard)."""
+        model = inner.sim.model
+        body_pos, body_quat = model.body_pos.copy(), model.body_quat.copy()
+        bodies = {body.get("name"): body for body in inner.model.worldbody.iter("body")}
+        for fixture in inner.fixtures_dict.values():
+            declared = bodies[fixture.root_body]
+            if declared.get("pos") is not None or declared.get("quat") is not None:
+                return None
+            index = model.body_name2id(fixture.root_body)
+            body_pos[index], body_quat[index] = 0.0, (1.0, 0.0, 0.0, 0.0)
+        initializers = list(inner.object_property_initializers if initializers is None else initializers)
+        return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), initializers)
+
+    def reset(self, inner) -> dict:
+        from robosuite.utils.errors import RandomizationError
+
+        hard = inner.hard_reset
+        while True:  # LIBERO's ControlEnv.reset retries a placement that failed, rebuilding the model each time
+            inner.object_property_initializers.extend(self.initializers)
+            model = inner.sim.model
+            model.body_pos[:], model.body_quat[:], model.site_rgba[:] = self.body_pos, self.body_quat, self.site_rgba
+            for robot in inner.robots:
+                robot.gripper.current_action = np.zeros(robot.gripper.dof)
+            inner.hard_reset = False
+            try:
+                return inner.reset()
+            except RandomizationError:
+                continue
+            finally:
+                inner.hard_reset = hard
+
+
+_SOFT_RESETS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""LIBERO env -> its :class:`_SoftReset` (None: it always resets hard)."""
+
+
+_ROBOSUITE_STEP = None
+"""robosuite's own ``MujocoEnv.step``, once :func:`_install_fast_step` replaced it."""
+
+
+def _install_fast_step() -> None:
+    """Make robosuite's env step (``MujocoEnv.step``, which LIBERO's envs run) compute MuJoCo's forward dynamics once
+    per physics substep instead of three times, with bit-identical results.
+
+    robosuite's loop runs, per substep, ``mj_forward``, the robot's controller (whose update, robosuite's
+    ``Controller.update`` or the ``libero_pro`` bridge's replacement, runs ``mj_forward`` again before reading the
+    hand's pose, velocities, Jacobians and mass matrix) and ``mj_step``, which runs the forward dynamics a third time
+    before integrating. Both extra calls compute what ``mj_step`` recomputes from the same state, so this step runs
+    ``mj_step1`` (positions and velocities: everything the controller reads), the controller with its update's
+    ``mj_forward`` skipped, then ``mj_step2`` (the controller's torques, accelerations, constraints, integration):
+    ``mj_step``'s own work, split where MuJoCo provides for a controller. The split is exact for LIBERO's integrator,
+    Euler; a model with another one steps as robosuite does. The first substep of a control step keeps one full
+    ``mj_forward`` before the controller: there the robot also records the hand's force-torque sensor, a value of the
+    acceleration stage. The observables are still updated at every substep: when they sample depends on a time
+    counter each of them adds up substep by substep.
+
+    A forced controller update (:func:`seat`) still runs its ``mj_forward``."""
+    global _ROBOSUITE_STEP
+    if _ROBOSUITE_STEP is not None:
+        return
+    import mujoco
+    from robosuite.environments.base import MujocoEnv
+
+    robosuite_step = MujocoEnv.step
+
+    def step(self, action):
+        sim = self.sim
+        model, data = sim.model._model, sim.data._data
+        if model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
+            return robosuite_step(self, action)
+        if self.done:
+            raise ValueError("executing action in terminated episode")
+        self.timestep += 1
+        for i in range(int(self.control_timestep / self.model_timestep)):
+            if i == 0:
+                sim.forward()
+            else:
+                mujoco.mj_step1(model, data)
+            sim.forward = _computed  # the controller's update reads what was just computed
+            try:
+                self._pre_action(action, i == 0)
+            finally:
+                del sim.forward
+            if i == 0:
+                sim.step()
+            else:
+                mujoco.mj_step2(model, data)
+            self._update_observables()
+        self.cur_time += self.control_timestep
+        reward, done, info = self._post_action(action)
+        if self.viewer is not None and self.renderer != "mujoco":
+            self.viewer.update()
+        observations = self.viewer._get_observations() if self.viewer_get_obs else self._get_observations()
+        return observations, reward, done, info
+
+    step.__doc__ = robosuite_step.__doc__
+    MujocoEnv.step = step
+    _ROBOSUITE_STEP = robosuite_step
+
+
+def _computed() -> None:
+    """Stands in for ``MjSim.forward`` while the controller runs inside the fast step (the state is forwarded)."""
 
 
 _RENDERING: weakref.WeakSet = weakref.WeakSet()
@@ -272,8 +442,7 @@ def seat(env, state=None) -> dict:
 def reset_scene(env, seed: int, fixtures: tuple[list[str], np.ndarray] | None = None) -> None:
     """Reset `env` with `seed` and put its fixtures where a demonstration had them (``fixtures``: names and poses;
     None: where this reset put them, which only approximates the demonstration's scene)."""
-    env.seed(int(seed))
-    env.reset()
+    reset_env(env, seed)
     if fixtures is not None:
         place_fixtures(env, *fixtures)
 
