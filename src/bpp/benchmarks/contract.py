@@ -122,8 +122,10 @@ class Benchmark(Protocol):
     default_data_dir: Path
     """Where named task sets and stores built from files go by default."""
 
-    def generate(self, cfg: Any, out: Path, *, workers: int = 0, overwrite: bool = False, progress: bool = True):
-        """Generate tasks and demonstrations into a new store at `out` (atomically); returns the EpisodeStore."""
+    def generate(self, cfg: Any, out: Path, *, workers: Any = 0, overwrite: bool = False, progress: bool = True):
+        """Generate tasks and demonstrations into a new store at `out` (atomically); returns the EpisodeStore.
+        `workers`: a number of local processes (0: one per core) or a :class:`bpp.executor.Executor` (``bpp ...
+        generate --executor ray`` passes a Ray cluster's); :func:`bpp.executor.as_executor` takes either."""
         ...
 
     def frames(
@@ -158,14 +160,13 @@ class Benchmark(Protocol):
     task_sets: Mapping[str, str]
     """Named task sets besides ``train`` and store paths: name -> description (e.g. ``human``)."""
 
-    def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
-        """A named task set's store (generated into `data_dir` on first use, over `workers` processes; 0: one per
-        core)."""
+    def task_set(self, name: str, data_dir: Path, workers: Any = 0) -> TaskSet:
+        """A named task set's store (generated into `data_dir` on first use, over `workers`, as in :meth:`generate`)."""
         ...
 
-    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
-        """Tasks from user files in the benchmark's own format, demonstrated by its demonstrator (over `workers`
-        processes); files are validated before anything is written. Raise ValueError if the benchmark takes no
+    def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: Any = 0) -> TaskSet:
+        """Tasks from user files in the benchmark's own format, demonstrated by its demonstrator (over `workers`, as in
+        :meth:`generate`); files are validated before anything is written. Raise ValueError if the benchmark takes no
         files."""
         ...
 
