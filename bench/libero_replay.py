@@ -22,7 +22,7 @@ import torch
 from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.rollouts import observe, task_problem
-from bpp.benchmarks.libero.sim import make_env
+from bpp.benchmarks.libero.sim import make_env, reset_env
 from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
 from bpp.data.contexts import task_context
@@ -48,8 +48,7 @@ def replay(model, store: EpisodeStore, episode: int, every: int, max_steps: int)
         path.write_text(task_problem(store, episode))
         env = make_env(path)
         try:
-            env.seed(int(store.column("seed")[episode]))
-            raw = env.reset()
+            raw = reset_env(env, int(store.column("seed")[episode]))
             for _ in range(SETTLE_STEPS):  # as generation and evaluation start
                 raw, *_ = env.step(np.zeros(7))
             obs = observe(env, raw, (), 0)

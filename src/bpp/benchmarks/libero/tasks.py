@@ -24,14 +24,13 @@ def sample_initial_states(problem: Path, count: int) -> np.ndarray:
     """(count, S) flattened simulator states of LIBERO's placement sampler for seeds 0 .. count-1 of the BDDL problem
     file `problem`: the states LIBERO's own evaluation loads with ``env.set_init_state`` (its ``.pruned_init``
     files hold the same kind of array). Takes an env creation (seconds) plus about 0.3 s per state."""
-    from bpp.benchmarks.libero.sim import make_env
+    from bpp.benchmarks.libero.sim import make_env, reset_env
 
     env = make_env(problem)
     try:
         states = []
         for seed in range(count):
-            env.seed(seed)
-            env.reset()
+            reset_env(env, seed)
             states.append(env.env.sim.get_state().flatten())
     finally:
         env.close()
