@@ -17,6 +17,7 @@ EXTRA_MODULES = {
     "serve": ["websockets", "msgpack"],
     "lerobot": ["ledataset", "lerobot", "av", "datasets", "torchvision"],
     "iphumi": ["cv2"],
+    "ray": ["ray"],
 }
 
 
