@@ -154,17 +154,19 @@ class Ray(Executor):
             self.done.clear()
             try:
                 while pending:
-                    ready, _ = ray.wait(list(pending), num_returns=1)
-                    index = pending.pop(ready[0])
-                    result, node, seconds = _result(ray, ready[0])
-                    self.done.append((node, seconds))
-                    if not ordered:
-                        yield result
-                        continue
-                    waiting[index] = result
-                    while next_index in waiting:
-                        yield waiting.pop(next_index)
-                        next_index += 1
+                    # All that finished within a moment: one scan of the pending jobs per batch, not per job.
+                    ready, _ = ray.wait(list(pending), num_returns=len(pending), timeout=0.2)
+                    for ref in ready:
+                        index = pending.pop(ref)
+                        result, node, seconds = _result(ray, ref)
+                        self.done.append((node, seconds))
+                        if not ordered:
+                            yield result
+                            continue
+                        waiting[index] = result
+                        while next_index in waiting:
+                            yield waiting.pop(next_index)
+                            next_index += 1
             finally:
                 for ref in pending:  # an error or an interrupt: the cluster's CPUs go back to their owners
                     with contextlib.suppress(Exception):
