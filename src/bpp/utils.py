@@ -301,6 +301,28 @@ def remove_stale_partials(folder: str | Path) -> list[Path]:
     return removed
 
 
+def journal_folder(out: str | Path, key: Any) -> Path:
+    """The journal folder of a long job writing `out` (``.<out's name>.journal`` beside it), where finished parts are
+    kept so that the same job run again after an interruption does only the rest: reused if it was started with the
+    same `key` (JSON-able: the job's configuration), else emptied (a note says so); what a writer killed outright left
+    half-written in it is removed."""
+    out = Path(out)
+    folder = out.with_name(f".{out.name}.journal")
+    key = json.dumps(key, sort_keys=True)
+    if folder.exists():
+        try:
+            same = (folder / "config.json").read_text() == key
+        except OSError:
+            same = False
+        if not same:
+            print(f"[journal] discarding {folder}: it was started with another configuration")
+            shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    remove_stale_partials(folder)
+    (folder / "config.json").write_text(key)
+    return folder
+
+
 def process_alive(pid: int) -> bool:
     """Whether process `pid` runs on this machine (someone else's counts)."""
     try:

@@ -39,6 +39,7 @@ from bpp.executor import Executor, as_executor, local_path
 from bpp.utils import (
     atomic_path,
     file_stem,
+    journal_folder,
     read_json,
     remove_stale_partials,
     write_json_atomic,
@@ -136,15 +137,7 @@ class Journal:
     discarded. Each task is one ``.npz`` file (JSON and arrays, no pickles), written atomically."""
 
     def __init__(self, out: Path, key: dict):
-        self.folder = out.with_name(f".{out.name}.journal")
-        self.key = json.dumps(key, sort_keys=True)
-        try:
-            same = (self.folder / "key.json").read_text() == self.key
-        except OSError:
-            same = False
-        if not same:
-            shutil.rmtree(self.folder, ignore_errors=True)
-        remove_stale_partials(self.folder)
+        self.folder = journal_folder(out, key)
 
     def load(self) -> dict[int, TaskResult]:
         found = {}
@@ -161,9 +154,6 @@ class Journal:
         return found
 
     def add(self, result: TaskResult) -> None:
-        if not self.folder.is_dir():
-            self.folder.mkdir(parents=True)
-            write_text_atomic(self.folder / "key.json", self.key)
         arrays = {"last_frame": result.last_frame, "attention": result.attention}
         if result.frames is not None:
             arrays["frames"] = np.stack(result.frames)

@@ -36,7 +36,7 @@ from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, StoreKeyError, destination_lock
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
-from bpp.utils import atomic_path, check_fields, remove_stale_partials, to_dict
+from bpp.utils import atomic_path, check_fields, journal_folder, to_dict
 
 BENCHMARK = "libero_gen"
 GOAL_KEY = "goal_agentview"
@@ -265,24 +265,6 @@ def _read_journal(path: Path) -> tuple[dict, list[dict]]:
     return summary, episodes
 
 
-def _journal(out: Path, cfg: LiberoDataConfig) -> Path:
-    """The journal folder of a generation into `out`: reused if it was started with the same configuration."""
-    journal = out.with_name(f".{out.name}.journal")
-    config = json.dumps(to_dict(cfg), sort_keys=True)
-    if journal.exists():
-        try:
-            same = (journal / "config.json").read_text() == config
-        except OSError:
-            same = False
-        if not same:
-            print(f"[generate] discarding {journal}: it was started with another configuration")
-            shutil.rmtree(journal)
-    journal.mkdir(parents=True, exist_ok=True)
-    remove_stale_partials(journal)  # what a worker killed outright was writing
-    (journal / "config.json").write_text(config)
-    return journal
-
-
 def generate(
     cfg: LiberoDataConfig,
     out: str | Path,
@@ -305,7 +287,7 @@ def generate(
 
 def _generate(cfg: LiberoDataConfig, out: Path, workers, overwrite: bool, progress: bool) -> EpisodeStore:
     tasks = cfg.tasks()
-    journal = _journal(out, cfg)
+    journal = journal_folder(out, to_dict(cfg))
     done = {int(p.stem.split("-")[1]) for p in journal.glob("task-*.npz")}
     jobs = [(i, t, cfg) for i, t in tasks if i not in done]
     t0 = time.perf_counter()
