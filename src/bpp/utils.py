@@ -301,11 +301,12 @@ def remove_stale_partials(folder: str | Path) -> list[Path]:
     return removed
 
 
-def journal_folder(out: str | Path, key: Any) -> Path:
+def journal_folder(out: str | Path, key: Any, create: bool = True) -> Path:
     """The journal folder of a long job writing `out` (``.<out's name>.journal`` beside it), where finished parts are
     kept so that the same job run again after an interruption does only the rest: reused if it was started with the
     same `key` (JSON-able: the job's configuration), else emptied (a note says so); what a writer killed outright left
-    half-written in it is removed."""
+    half-written in it is removed. With ``create=False`` a folder not there yet is left for the first part to make
+    (a job refused before it finishes anything leaves nothing behind)."""
     out = Path(out)
     folder = out.with_name(f".{out.name}.journal")
     key = json.dumps(key, sort_keys=True)
@@ -317,6 +318,8 @@ def journal_folder(out: str | Path, key: Any) -> Path:
         if not same:
             print(f"[journal] discarding {folder}: it was started with another configuration")
             shutil.rmtree(folder)
+    if not create and not folder.exists():
+        return folder
     folder.mkdir(parents=True, exist_ok=True)
     remove_stale_partials(folder)
     (folder / "config.json").write_text(key)

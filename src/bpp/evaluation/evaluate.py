@@ -137,7 +137,8 @@ class Journal:
     discarded. Each task is one ``.npz`` file (JSON and arrays, no pickles), written atomically."""
 
     def __init__(self, out: Path, key: dict):
-        self.folder = journal_folder(out, key)
+        self.out, self.key = out, key
+        self.folder = journal_folder(out, key, create=False)  # made when the first task is done
 
     def load(self) -> dict[int, TaskResult]:
         found = {}
@@ -154,6 +155,8 @@ class Journal:
         return found
 
     def add(self, result: TaskResult) -> None:
+        if not self.folder.is_dir():
+            journal_folder(self.out, self.key)
         arrays = {"last_frame": result.last_frame, "attention": result.attention}
         if result.frames is not None:
             arrays["frames"] = np.stack(result.frames)
