@@ -43,6 +43,8 @@ import json
 import os
 import platform
 import pstats
+import shutil
+import tempfile
 import time
 from collections import Counter, defaultdict
 from dataclasses import replace
@@ -79,6 +81,9 @@ CONTEXT = "policy: prompt from the store (task_context)"
 GENERATION = "generation bookkeeping (problem text, journal, store)"
 ROLLOUT = "rollout loop (run_rollouts, lift tracking)"
 GL_CONTEXT = "rendering: GL context (MjRenderContext)"
+TRY = "demonstrator: the same try again, unwrapped (reset, settle, episode)"
+ROLLOUT_WHOLE = "rollout, unwrapped (its env built, reset, settle, policy and env in lockstep)"
+ROLLOUT_REPLAY = "replay of the rollout: env.step (its actions, settle steps included, from its reset)"
 FRAMES = "rendering: frames (render_now, render_states)"
 PHASES = [
     PHYSICS,
@@ -467,12 +472,15 @@ def anchor(env, seed: int, steps: int, rounds: int) -> dict:
     }
 
 
-def replay_anchor(env, store: EpisodeStore, episode: int, rounds: int) -> dict:
+def replay_anchor(env, store: EpisodeStore, episode: int, rounds: int, task=None, demo_cfg=None) -> dict:
     """Part 3, the demonstration's own anchor: stored `episode`'s actions replayed in `env` (made from its problem)
     from its scene (:func:`~bpp.benchmarks.libero.sim.reset_scene` with its seed and fixtures) and first state (seated
     as a replay starts), `rounds` times per variant, the variants taking turns. Each variant's first round also
-    collects the states before every action: ``exact`` says whether they are the stored ones bit for bit."""
+    collects the states before every action: ``exact`` says whether they are the stored ones bit for bit. With
+    `task`, one more variant takes the same turns: the demonstrator's try that made the episode, made again
+    unwrapped (its reset and settle steps included), timed per stored step."""
     from bpp.benchmarks.libero.dataset import episode_fixtures
+    from bpp.benchmarks.libero.demonstrator import demonstrate_task
     from bpp.benchmarks.libero.sim import reset_scene, seat
 
     key = "executed_action" if "executed_action" in store.keys else "action"
@@ -520,12 +528,19 @@ def replay_anchor(env, store: EpisodeStore, episode: int, rounds: int) -> dict:
                 data.ctrl[:] = next(ctrl)
                 mujoco.mj_step(model, data)
 
+    def demonstrator_try(sim, seen):  # the try that made the demonstration, again: reset, settle, episode
+        demo = demonstrate_task(env, task, seed, demo_cfg)
+        if seen is not None:
+            seen.extend(demo.states)
+
     variants = {
         "replay: env.step": env_step,
         "replay: env.step, no predicates": no_predicates,
         "replay: control loop (mj_forward, controller, mj_step)": control_loop,
         "replay: mj_step alone (the control loop's torques)": physics,
     }
+    if task is not None:
+        variants[TRY] = demonstrator_try
     seconds: dict[str, list[float]] = {name: [] for name in variants}
     exact: dict[str, bool] = {}
     for r in range(rounds + 1):
@@ -558,6 +573,76 @@ def rollout_once(agent, store: EpisodeStore, plan, max_steps: int, record) -> in
 
     results, _ = run_prompted(agent, BENCHMARK, store, plan, max_steps, record)
     return results[0].steps
+
+
+def rollout_pair(agent, store: EpisodeStore, plan, max_steps: int, record, rounds: int) -> dict:
+    """The rollout against the simulator on the same trajectory: its env's actions (settle steps included) and states
+    captured, then `rounds` rounds, taking turns, of the rollout again unwrapped (everything an evaluation worker does
+    for it: its env built, reset, settled, policy and env in lockstep) and of its actions replayed through env.step in
+    a warm env from the same reset, which must reproduce its states bit for bit. Fastest rounds; the warm env's
+    construction is timed too (a rollout builds one)."""
+    from bpp.benchmarks.libero import rollouts, sim
+
+    made = rollouts.make_env
+    captured: dict = {"actions": [], "states": []}
+
+    def capturing(problem, **options):
+        env = made(problem, **options)
+        step = env.step
+        captured.update(problem=Path(problem).read_text(), options=options)
+
+        def recording(action):
+            captured["actions"].append(np.array(action, dtype=np.float64))
+            out = step(action)
+            captured["states"].append(env.env.sim.get_state().flatten())
+            return out
+
+        env.step = recording
+        return env
+
+    rollouts.make_env = capturing
+    try:
+        steps = rollout_once(agent, store, plan, max_steps, record)
+    finally:
+        rollouts.make_env = made
+    if store.tasks[int(store.column("task_index")[int(plan[0]["target_episode"])])]["info"].get("initial_states"):
+        raise SystemExit("rollout_pair replays generated tasks only (LIBERO's own start from its initial states)")
+    problem = Path(tempfile.mkdtemp(prefix="libero-profile-")) / "rollout.bddl"
+    problem.write_text(captured["problem"])
+    start = time.perf_counter()
+    env = sim.make_env(problem, **captured["options"])
+    construct_s = time.perf_counter() - start
+    actions, seed = captured["actions"], int(plan[0]["init_seed"])
+    seconds: dict[str, list[float]] = {ROLLOUT_WHOLE: [], ROLLOUT_REPLAY: []}
+    try:
+        sim.reset_env(env, seed)
+        seen = []
+        for action in actions:
+            env.step(action)
+            seen.append(env.env.sim.get_state().flatten())
+        exact = len(seen) == len(captured["states"]) and all(map(np.array_equal, seen, captured["states"]))
+        for _ in range(rounds):
+            start = time.perf_counter()
+            rollout_once(agent, store, plan, max_steps, record)
+            seconds[ROLLOUT_WHOLE].append(time.perf_counter() - start)
+            start = time.perf_counter()
+            sim.reset_env(env, seed)
+            for action in actions:
+                env.step(action)
+            seconds[ROLLOUT_REPLAY].append(time.perf_counter() - start)
+        start = time.perf_counter()
+        env.close()
+        construct_s += time.perf_counter() - start
+    finally:
+        shutil.rmtree(problem.parent, ignore_errors=True)
+    return {
+        "policy_steps": steps,
+        "env_steps": len(actions),
+        "replay_exact": exact,
+        "construction_s": round(construct_s, 3),
+        "rounds": {name: [round(x, 4) for x in s] for name, s in seconds.items()},
+        "seconds": {name: round(min(s), 4) for name, s in seconds.items()},
+    }
 
 
 def training_store(store: EpisodeStore, cfg: LiberoDataConfig, work: Path) -> EpisodeStore:
@@ -601,8 +686,10 @@ def rollout(args, store: EpisodeStore, cfg: LiberoDataConfig, work: Path, env_cl
         profiler = cProfile.Profile()
         profiler.runcall(rollout_once, agent, store, plan, args.max_steps, record)
         top = top_functions(profiler, args.cprofile_top)
+    pair = rollout_pair(agent, store, plan, args.max_steps, record, args.replay_rounds)
     n_action_steps = agent.n_action_steps
     result.update(
+        pair=pair,
         steps=steps,
         plan=plan[0],
         record=args.record,
@@ -659,7 +746,45 @@ def rates(demo: dict, roll: dict, bare: dict, warm_construct_s: float, demos_per
         "seconds_per_stored_demo": round(per_demo, 3),
         "seconds_per_stored_demo_cold_construction": round(per_demo_cold, 3),
     }
-    return {"rows": rows, "amortisation": amortisation}
+    like = paired(demo, roll, bare, warm_construct_s, demos_per_task)
+    return {"rows": rows, "amortisation": amortisation, "paired": like}
+
+
+def paired(demo: dict, roll: dict, bare: dict, warm_construct_s: float, demos_per_task: int) -> list[dict]:
+    """Like against like: the demonstrator's try and the rollout, unwrapped and the fastest of rounds taken in turns
+    with the simulator stepping the same actions from the same start (so a busy moment of the machine hits both),
+    then with what a task or a rollout costs once amortised: a generation worker's warm construction, goal frames
+    and bookkeeping over the demonstrations of a task, a rollout's env over its steps."""
+    rows = []
+    replay = bare["rates"].get("replay: env.step")
+    attempt = bare.get("demonstrator_try")
+    if replay and attempt:
+        sim_s = replay["ms_per_step"] / 1e3 * replay["steps"]
+        try_s = attempt["ms_per_step"] / 1e3 * attempt["steps"]
+        tries, kept = len(demo["tries"]), max(len(demo["stored_steps"]), 1)
+        render_per_demo = stage_seconds(demo, "render") / kept
+        per_task = warm_construct_s + sum(c["seconds"] for c in demo["cells"] if c["phase"] == GENERATION)
+        rows.append({"name": "a try of the demonstrator (reset, settle, episode)", "seconds": try_s, "sim_s": sim_s})
+        for n in sorted({demos_per_task, 50}):
+            total = try_s * tries / kept + render_per_demo + per_task / n
+            name = f"a stored demonstration, {n} per task (construction, goal frame, bookkeeping amortised)"
+            rows.append({"name": name, "seconds": total, "sim_s": sim_s})
+    pair = roll.get("pair")
+    if pair:
+        whole, sim_s = pair["seconds"][ROLLOUT_WHOLE], pair["seconds"][ROLLOUT_REPLAY]
+        name = f"a rollout of {pair['env_steps']} env steps, everything"
+        rows.append({"name": name, "seconds": whole, "sim_s": sim_s})
+        per_step = (whole - pair["construction_s"]) / pair["env_steps"]
+        steps = BENCHMARK.max_steps
+        rows.append({
+            "name": f"a rollout of {steps} env steps (LIBERO-Gen's limit), from the per-step and construction times",
+            "seconds": pair["construction_s"] + per_step * steps,
+            "sim_s": sim_s / pair["env_steps"] * steps,
+        })  # fmt: skip
+    for row in rows:
+        row["ratio"] = round(row["sim_s"] / row["seconds"], 4)
+        row["seconds"], row["sim_s"] = round(row["seconds"], 3), round(row["sim_s"], 3)
+    return rows
 
 
 def machine() -> dict:
@@ -694,7 +819,9 @@ def anchor_part(args, demo: dict, task, cfg, store: EpisodeStore) -> tuple[dict,
     try:
         bare = anchor(env, last["seed"], args.anchor_steps, args.anchor_rounds)
         if store.num_episodes:
-            bare["rates"].update(replay_anchor(env, store, 0, args.replay_rounds))
+            replays = replay_anchor(env, store, 0, args.replay_rounds, task, cfg.demo)
+            bare["demonstrator_try"] = replays.pop(TRY)
+            bare["rates"].update(replays)
         start = time.perf_counter()
         again = demonstrator.demonstrate_task(env, task, last["seed"], cfg.demo)
         demo["overhead_check"] = {
@@ -785,6 +912,22 @@ def report(args, info: dict, imports_s: float, bare: dict, demo: dict, roll: dic
         (r["name"], f"{r['steps_per_s']:.1f}", *(f"{v:.3f}" for v in r["ratio_to"].values())) for r in summary["rows"]
     ]
     print(markdown_table(header, rows))
+    if summary.get("paired"):
+        attempt, pair = bare.get("demonstrator_try"), roll.get("pair")
+        notes = []
+        if attempt:
+            notes.append(f"the try reproduces the stored states bit for bit: {'yes' if attempt['exact'] else 'NO'}")
+        if pair:
+            notes.append(
+                f"the rollout's replay reproduces its states bit for bit: {'yes' if pair['replay_exact'] else 'NO'}; "
+                f"its env's construction (warm) {pair['construction_s']:.2f} s"
+            )
+        print(
+            "\n## Like against like: the simulator stepping the same actions from the same start\n\n"
+            "Fastest of rounds taken in turns, unwrapped; " + "; ".join(notes) + ".\n"
+        )
+        rows = [(r["name"], f"{r['seconds']:.2f}", f"{r['sim_s']:.2f}", f"{r['ratio']:.2f}") for r in summary["paired"]]
+        print(markdown_table(["", "s", "simulator s (env.step)", "simulator rate / ours"], rows))
     print_top("one demonstration", demo["cprofile_top"])
     print_top("one rollout", roll["cprofile_top"])
 
