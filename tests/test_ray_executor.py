@@ -188,3 +188,31 @@ def test_the_local_executor_never_imports_ray(tmp_path):
     )
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_a_shared_folder_is_unpacked_once_per_machine_and_removed_when_long_unused(tmp_path, monkeypatch):
+    """What evaluation ships to nodes: unpacked whole on first use, reused, and unpacked ones nobody used for a day
+    removed when another is unpacked (a node's temporary folder does not fill up); one in use stays."""
+    from bpp.executor import SHARED_KEEP_S, SharedFolder
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "node-tmp"))
+    (tmp_path / "node-tmp").mkdir()
+    source = tmp_path / "tasks.zarr"
+    (source / "data").mkdir(parents=True)
+    (source / "data" / "chunk").write_bytes(b"\x00\x01" * 1000)
+    first = SharedFolder.pack(source)
+    path = Path(first.unpack())
+    assert path.name == "tasks.zarr" and (path / "data" / "chunk").read_bytes() == b"\x00\x01" * 1000
+    (path / "data" / "chunk").write_bytes(b"changed")  # a second job finds it unpacked: not unpacked again
+    assert Path(first.unpack()) == path and (path / "data" / "chunk").read_bytes() == b"changed"
+    long_ago = time.time() - SHARED_KEEP_S - 60
+    os.utime(path.parent, (long_ago, long_ago))
+    (source / "data" / "chunk").write_bytes(b"another store")
+    second = SharedFolder.pack(source)
+    assert second.digest != first.digest
+    in_use = Path(second.unpack())
+    assert not path.parent.exists()  # unused for more than a day: removed
+    os.utime(in_use.parent, (long_ago, long_ago))
+    assert Path(second.unpack()) == in_use  # used again: marked
+    SharedFolder.pack(source / "data").unpack()
+    assert in_use.exists()

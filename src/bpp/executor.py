@@ -253,10 +253,16 @@ class SharedFolder:
 
     def unpack(self) -> str:
         """The folder's path on this machine: ``<tmp>/bpp-shared/<digest>/<name>``, unpacked by the first job that
-        needs it (into a temporary sibling, then renamed: a job running beside it never sees half a folder)."""
+        needs it (into a temporary sibling, then renamed: a job running beside it never sees half a folder). Every
+        job marks it used; unpacking a new one removes those no job has used for :data:`SHARED_KEEP_S` seconds, so
+        a machine's temporary folder does not fill up with the stores of evaluations long finished."""
         root = Path(tempfile.gettempdir()) / "bpp-shared" / self.digest
         path = root / self.name
-        if not path.exists():
+        if path.exists():
+            with contextlib.suppress(OSError):
+                os.utime(root)
+        else:
+            _remove_unused_shared(root.parent)
             root.mkdir(parents=True, exist_ok=True)
             tmp = Path(tempfile.mkdtemp(dir=root))
             with tarfile.open(fileobj=io.BytesIO(self.archive)) as tar:
@@ -268,6 +274,18 @@ class SharedFolder:
                     raise
             shutil.rmtree(tmp, ignore_errors=True)
         return str(path)
+
+
+SHARED_KEEP_S = 24 * 3600
+"""How long a shared folder nobody uses stays unpacked on a machine."""
+
+
+def _remove_unused_shared(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        for entry in folder.iterdir():
+            with contextlib.suppress(OSError):
+                if time.time() - entry.stat().st_mtime > SHARED_KEEP_S:
+                    shutil.rmtree(entry, ignore_errors=True)
 
 
 def as_executor(workers: int | Executor) -> Executor:
