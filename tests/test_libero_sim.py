@@ -235,6 +235,29 @@ def test_stored_states_render_the_same_frames_every_time(tmp_path):
         env.close()
 
 
+def test_a_closed_env_frees_its_model_and_renderer_without_a_garbage_collection(tmp_path):
+    """Closing an env (per task in generation, per rollout in evaluation) runs no full collection of the process's
+    heap: its model, data and renderer go by reference counting alone."""
+    import gc
+    import weakref
+
+    task = combination().train[0]
+    path = tmp_path / "task.bddl"
+    path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+    env = make_env(path, render=True)
+    sim = env.env.sim
+    gone = [weakref.ref(sim.model), weakref.ref(sim.data), weakref.ref(sim._render_context_offscreen)]
+    collections = gc.get_stats()[2]["collections"]
+    gc.disable()
+    try:
+        env.close()
+        del sim
+        assert [ref() for ref in gone] == [None, None, None]
+        assert gc.get_stats()[2]["collections"] == collections  # no full collection ran
+    finally:
+        gc.enable()
+
+
 def test_torch_can_load_its_compiler_after_a_camera_env(tmp_path):
     """Mesa's renderer and triton each bring an LLVM; in the wrong order the process used to crash (SIGSEGV)."""
     import subprocess
