@@ -78,7 +78,8 @@ RECORDING = "demonstrator: recording (Arm.step, Arm.result)"
 INFERENCE = "policy: inference (act_batch)"
 PROMPT = "policy: prompt encoding (reset_batch)"
 CONTEXT = "policy: prompt from the store (task_context)"
-GENERATION = "generation bookkeeping (problem text, journal, store)"
+GENERATION = "generation bookkeeping (problem text, journal)"
+STORE = "writing the store (once per store, not per task)"
 ROLLOUT = "rollout loop (run_rollouts, lift tracking)"
 GL_CONTEXT = "rendering: GL context (MjRenderContext)"
 TRY = "demonstrator: the same try again, unwrapped (reset, settle, episode)"
@@ -101,6 +102,7 @@ PHASES = [
     PROMPT,
     CONTEXT,
     GENERATION,
+    STORE,
     ROLLOUT,
     GL_CONTEXT,
     FRAMES,
@@ -222,7 +224,7 @@ def instrument(timer: PhaseTimer, env_class: type, rollout: bool) -> None:
     from robosuite.utils.binding_utils import MjRenderContext, MjSim
 
     from bpp.benchmarks import prompting
-    from bpp.benchmarks.libero import demonstrator, rollouts, sim
+    from bpp.benchmarks.libero import dataset, demonstrator, rollouts, sim
     from bpp.policies.agent import PolicyAgent
 
     for cls in env_class.__mro__:
@@ -254,6 +256,7 @@ def instrument(timer: PhaseTimer, env_class: type, rollout: bool) -> None:
         timer.wrap(module, "render_now", FRAMES, stage="render")
     timer.wrap(sim, "render_states", FRAMES, stage="render")
     timer.wrap(demonstrator, "demonstrate_task", PLANNING)
+    timer.wrap(dataset, "_write_store", STORE)
     timer.wrap(demonstrator.Arm, "start", "reset: settle steps and Arm.start (other)", stage="reset")
     timer.wrap(demonstrator.Arm, "step", RECORDING)
     timer.wrap(demonstrator.Arm, "result", RECORDING)
