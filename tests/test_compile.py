@@ -199,12 +199,17 @@ def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer):
 
 
 @pytest.mark.slow
-def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path):
+def test_a_compiled_run_logs_the_eager_runs_losses(debug_store, tmp_path, monkeypatch):
     """`bpp train --compile default` on this CPU (inductor's C++ kernels), and `--compile cudagraphs` (no GPU here to
     record on: the captured graph runs eagerly): the same losses as eager, to float
     rounding (the debug preset has no dropout, whose random numbers inductor draws its own way). One prompt shape
     (padded to the model's limit), so it is compiled once."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from torch._inductor import config as inductor
+
+    # Kernels built in this process: inductor's pool of compiling subprocesses, each importing torch, costs this
+    # test 40 s on 2 cores (its kernels are few, and cached after the first run).
+    monkeypatch.setattr(inductor, "compile_threads", 1)
 
     cfg = config("bpp", obs="board")
     cfg = replace(cfg, diffusion=replace(cfg.diffusion, down_dims=(32,)))  # one U-Net level: fewer kernels to build
