@@ -81,7 +81,7 @@ CONTEXT = "policy: prompt from the store (task_context)"
 GENERATION = "generation bookkeeping (problem text, journal)"
 STORE = "writing the store (once per store, not per task)"
 ROLLOUT = "rollout loop (run_rollouts, lift tracking)"
-GL_CONTEXT = "rendering: GL context (MjRenderContext)"
+GL_CONTEXT = "rendering: GL context (MjRenderContext, SharedRenderer)"
 TRY = "demonstrator: the same try again, unwrapped (reset, settle, episode)"
 ROLLOUT_WHOLE = "rollout, unwrapped (its env built, reset, settle, policy and env in lockstep)"
 ROLLOUT_REPLAY = "replay of the rollout: env.step (its actions, settle steps included, from its reset)"
@@ -237,6 +237,9 @@ def instrument(timer: PhaseTimer, env_class: type, rollout: bool) -> None:
     timer.wrap(MjSim, "forward", lambda parent: FORWARD_CONTROLLER if parent == CONTROLLER else FORWARD_LOOP)
     timer.wrap(SingleArm, "control", CONTROLLER)
     timer.wrap(MjRenderContext, "__init__", GL_CONTEXT)
+    if hasattr(sim, "SharedRenderer"):  # absent before it existed (--compare's earlier runs)
+        timer.wrap(sim.SharedRenderer, "__init__", GL_CONTEXT)
+        timer.wrap(sim, "render_assets_digest", "rendering: which shared renderer (the scene's asset digest)")
     timer.wrap(ControlEnv, "__init__", "construction: LIBERO's env (other)")
     timer.wrap(ControlEnv, "step", GLUE)
     timer.wrap(ControlEnv, "reset", "reset: LIBERO's reset (other)")

@@ -235,6 +235,37 @@ def test_stored_states_render_the_same_frames_every_time(tmp_path):
         env.close()
 
 
+def test_envs_of_one_scene_share_a_renderer_that_draws_what_robosuite_draws(tmp_path):
+    """Two tasks of one scene (their models differ in where the fixtures stand) render through one shared renderer,
+    and every frame is bit for bit what robosuite's own renderer (an env made with the camera) draws."""
+    from bpp.benchmarks.libero.sim import SharedRenderer, render_now, reset_env
+
+    tasks = combination().train
+    first, second = tasks[0], next(t for t in tasks[1:] if t.scene.base == tasks[0].scene.base)
+    renderers = []
+    for i, task in enumerate((first, second)):
+        path = tmp_path / f"task{i}.bddl"
+        path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+        shared, own = make_env(path, render=True), make_env(path, cameras=("agentview", "robot0_eye_in_hand"))
+        try:
+            assert shared.env.sim._render_context_offscreen is None  # no renderer of its own
+            renderers.append(SharedRenderer.of(shared.env.sim))
+            for env in (shared, own):
+                reset_env(env, seed=i)
+            for step in range(3):
+                for camera in ("agentview", "robot0_eye_in_hand"):
+                    for size in (32, 128):
+                        a, b = render_now(shared, camera, size), render_now(own, camera, size)
+                        assert a.shape == (size, size, 3) and np.array_equal(a, b), (i, step, camera, size)
+                for env in (shared, own):
+                    env.step(np.r_[0.3, 0.1, -0.2, 0.0, 0.0, 0.0, -1.0])
+                np.testing.assert_array_equal(shared.env.sim.get_state().flatten(), own.env.sim.get_state().flatten())
+        finally:
+            shared.close()
+            own.close()
+    assert renderers[0] is renderers[1]
+
+
 def test_a_closed_env_frees_its_model_and_renderer_without_a_garbage_collection(tmp_path):
     """Closing an env (per task in generation, per rollout in evaluation) runs no full collection of the process's
     heap: its model, data and renderer go by reference counting alone."""
@@ -244,7 +275,7 @@ def test_a_closed_env_frees_its_model_and_renderer_without_a_garbage_collection(
     task = combination().train[0]
     path = tmp_path / "task.bddl"
     path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
-    env = make_env(path, render=True)
+    env = make_env(path, cameras=("agentview",), image_size=32)
     sim = env.env.sim
     gone = [weakref.ref(sim.model), weakref.ref(sim.data), weakref.ref(sim._render_context_offscreen)]
     collections = gc.get_stats()[2]["collections"]

@@ -119,8 +119,9 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
     cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`
     and no cameras, steps render nothing but :func:`render_states` / :func:`render_now` can draw any camera on
-    demand. Takes seconds (it compiles the scene). Reset it with :func:`reset_env`: its own ``env.reset()`` is
-    LIBERO's, which builds and compiles the model again."""
+    demand, through a renderer shared by every env of the same scene (:class:`SharedRenderer`). Takes seconds (it
+    compiles the scene). Reset it with :func:`reset_env`: its own ``env.reset()`` is LIBERO's, which builds and
+    compiles the model again."""
     _libero()
     from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
 
@@ -135,7 +136,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 bddl_file_name=str(path),
                 horizon=HORIZON,
                 has_renderer=False,
-                has_offscreen_renderer=render,
+                has_offscreen_renderer=False,  # rendering goes through a SharedRenderer
                 use_camera_obs=False,
                 camera_names=list(CAMERAS.values()),
             )
@@ -148,19 +149,30 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
                 camera_widths=image_size,
             )
     except Exception as err:
-        if "gl" in str(err).lower() or "egl" in type(err).__name__.lower():
-            raise LiberoUnavailable(
-                f"MuJoCo cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} ({err}); install Debian's "
-                "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
-            ) from None
+        _raise_if_gl(err)
         raise
     # robosuite computes a reward at every step, and LIBERO's is one more evaluation of the goal's predicates: bpp
     # never reads it (success is the `done` a step returns, or the predicates themselves).
     env.env.reward = _no_reward
     _SOFT_RESETS[env.env] = _SoftReset.of(env.env)
-    if render or cameras:
+    if render and not cameras:
+        try:
+            SharedRenderer.of(env.env.sim)
+        except Exception as err:
+            env.close()
+            _raise_if_gl(err)
+            raise
+    if cameras:
         _close_at_exit(env)
     return env
+
+
+def _raise_if_gl(err: Exception) -> None:
+    if "gl" in str(err).lower() or "egl" in type(err).__name__.lower():
+        raise LiberoUnavailable(
+            f"MuJoCo cannot render with MUJOCO_GL={os.environ.get('MUJOCO_GL')!r} ({err}); install Debian's "
+            "libegl1 and libgl1-mesa-dri for egl, or libosmesa6 and set MUJOCO_GL=osmesa"
+        ) from None
 
 
 def _no_reward(action=None) -> float:
@@ -370,8 +382,145 @@ def render_now(env, camera: str = "agentview", size: int = 128):
     """(size, size, 3) uint8: the env's current state seen from LIBERO camera `camera`, upright. MuJoCo's
     offscreen images come out rotated by 180 degrees (LIBERO's own observations too); every frame bpp stores,
     trains on or shows is turned upright here."""
-    frame = env.env.sim.render(camera_name=camera, height=size, width=size)
+    sim = env.env.sim
+    if sim._render_context_offscreen is not None:  # an env made with cameras: its own renderer
+        sim._render_context_offscreen.gl_ctx.make_current()  # robosuite draws into whichever context is current
+        frame = sim.render(camera_name=camera, height=size, width=size)
+    else:
+        groups = {0: env.env.render_collision_mesh, 1: env.env.render_visual_mesh}  # as robosuite sets its renderer's
+        frame = SharedRenderer.of(sim).render(sim, camera, size, groups)
     return np.ascontiguousarray(np.asarray(frame, dtype=np.uint8)[::-1, ::-1])
+
+
+class SharedRenderer:
+    """An OpenGL context with MuJoCo's render context (the scene's textures and meshes uploaded) for every env whose
+    model has the same rendering assets: the tasks of one LIBERO scene differ in where things are, not in what they
+    look like. Making one costs about a second on a CPU (0.8 s of it uploads the scene's 188 MB of textures to a
+    software renderer), which robosuite paid for every env: per task in generation (for its goal frames), per
+    rollout in an evaluation with cameras. Frames are drawn exactly as robosuite's own renderer draws them (its GL
+    context class, the same MuJoCo calls and options): bit for bit the same, which a test checks.
+
+    The last :data:`SHARED_RENDERERS` are kept (a worker visits the tasks of a scene together); they are freed at exit
+    while their OpenGL display still exists."""
+
+    _kept: dict[str, SharedRenderer] = {}
+
+    def __init__(self, model):
+        import mujoco
+        from robosuite.utils.binding_utils import GLContext  # the class robosuite picks for MUJOCO_GL
+
+        self.gl = GLContext(max_width=640, max_height=480, device_id=-1)
+        self.gl.make_current()
+        self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
+        _free_at_exit()
+
+    @classmethod
+    def of(cls, sim) -> SharedRenderer:
+        """The renderer for `sim`'s model (robosuite's ``MjSim``), made on first need."""
+        key = _SIM_RENDER_KEYS.get(sim)
+        if key is None:
+            key = _SIM_RENDER_KEYS[sim] = render_assets_digest(sim.model._model)
+        renderer = cls._kept.pop(key, None) or cls(sim.model._model)
+        cls._kept[key] = renderer  # the most recently used last
+        while len(cls._kept) > SHARED_RENDERERS:
+            cls._kept.pop(next(iter(cls._kept))).free()
+        return renderer
+
+    def render(self, sim, camera: str, size: int, groups: dict[int, bool]) -> np.ndarray:
+        """(size, size, 3) uint8, as MuJoCo's offscreen buffer holds it (upside down): `sim`'s state from `camera`,
+        with the geom groups `groups` (group -> shown) shown or hidden."""
+        import mujoco
+
+        model, data = sim.model._model, sim.data._data
+        view = _SIM_VIEWS.get(sim)
+        if view is None:
+            view = _SIM_VIEWS[sim] = _View(model)
+        view.camera.fixedcamid = model.camera(camera).id
+        for group, shown in groups.items():
+            view.option.geomgroup[group] = int(shown)
+        self.gl.make_current()
+        if size > self.con.offWidth or size > self.con.offHeight:  # as robosuite's renderer grows its buffer
+            model.vis.global_.offwidth = max(size, model.vis.global_.offwidth)
+            model.vis.global_.offheight = max(size, model.vis.global_.offheight)
+            self.con.free()
+            self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
+            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
+        viewport = mujoco.MjrRect(0, 0, size, size)
+        mujoco.mjv_updateScene(
+            model, data, view.option, view.perturb, view.camera, mujoco.mjtCatBit.mjCAT_ALL, view.scene
+        )
+        mujoco.mjr_render(viewport, view.scene, self.con)
+        frame = np.empty((size, size, 3), dtype=np.uint8)
+        mujoco.mjr_readPixels(frame, None, viewport, self.con)
+        return frame
+
+    def free(self) -> None:
+        with contextlib.suppress(Exception):
+            self.gl.make_current()
+            self.con.free()
+        with contextlib.suppress(Exception):
+            self.gl.free()
+
+
+SHARED_RENDERERS = 2
+"""Renderers of different scenes one process keeps."""
+
+
+class _View:
+    """An env's scene, camera and options, as robosuite's renderer sets them up (default options, a fixed camera)."""
+
+    def __init__(self, model):
+        import mujoco
+
+        self.scene = mujoco.MjvScene(model, maxgeom=1000)
+        self.camera = mujoco.MjvCamera()
+        self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
+        self.option = mujoco.MjvOption()
+        self.perturb = mujoco.MjvPerturb()
+        self.perturb.active = 0
+        self.perturb.select = 0
+        self.perturb.skinselect = -1
+
+
+_SIM_RENDER_KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_SIM_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+_RENDER_ASSETS = ("tex_", "mesh_", "hfield_", "skin_", "flex_")
+"""What MuJoCo's render context uploads from a model (with the model's visual settings)."""
+
+
+def render_assets_digest(model) -> str:
+    """A digest of what MuJoCo's render context takes from `model` (textures, meshes, height fields, skins, flexes and
+    the visual settings): two models with the same one render the same with the same render context."""
+    import hashlib
+
+    digest = hashlib.sha1(usedforsecurity=False)
+    for name in sorted(n for n in dir(model) if n.startswith(_RENDER_ASSETS)):
+        value = getattr(model, name)
+        if isinstance(value, np.ndarray):
+            digest.update(f"{name}{value.dtype}{value.shape}".encode())
+            digest.update(np.ascontiguousarray(value).data)
+    for group in ("global_", "quality", "headlight", "map", "scale", "rgba"):
+        digest.update(repr(getattr(model.vis, group)).encode())
+    return digest.hexdigest()
+
+
+_FREEING_REGISTERED = False
+
+
+def _free_at_exit() -> None:
+    # Registered after robosuite's GL context class registers the end of its EGL display (with its first context), so
+    # it runs before: freed after that, every context's release fails with an EGL error printed as a traceback.
+    global _FREEING_REGISTERED
+    if not _FREEING_REGISTERED:
+        atexit.register(_free_shared_renderers)
+        _FREEING_REGISTERED = True
+
+
+def _free_shared_renderers() -> None:
+    while SharedRenderer._kept:
+        SharedRenderer._kept.popitem()[1].free()
 
 
 def render_states(env, states, camera: str = "agentview", size: int = 128):
