@@ -1000,7 +1000,7 @@ def main() -> None:
     parser.add_argument("--train-steps", type=int, default=10, help="training steps of the debug policy")
     parser.add_argument("--anchor-steps", type=int, default=20, help="steps per round of each anchor rate")
     parser.add_argument("--anchor-rounds", type=int, default=12, help="rounds of each anchor rate (the fastest counts)")
-    parser.add_argument("--replay-rounds", type=int, default=3, help="rounds of each demonstration replay anchor")
+    parser.add_argument("--replay-rounds", type=int, default=8, help="rounds of each replay anchor, taken in turns")
     parser.add_argument("--compare", type=Path, help="an earlier run's JSON output: print both runs side by side")
     parser.add_argument("--cprofile-top", type=int, default=25, help="functions listed per cProfile pass (0: none)")
     parser.add_argument("--seed", type=int, default=0)
