@@ -43,7 +43,6 @@ import json
 import os
 import platform
 import pstats
-import shutil
 import tempfile
 import time
 from collections import Counter, defaultdict
@@ -589,6 +588,8 @@ def rollout_pair(agent, store: EpisodeStore, plan, max_steps: int, record, round
     construction is timed too (a rollout builds one)."""
     from bpp.benchmarks.libero import rollouts, sim
 
+    if store.tasks[int(store.column("task_index")[int(plan[0]["target_episode"])])]["info"].get("initial_states"):
+        raise SystemExit("rollout_pair replays generated tasks only (LIBERO's own start from its initial states)")
     made = rollouts.make_env
     captured: dict = {"actions": [], "states": []}
 
@@ -611,16 +612,14 @@ def rollout_pair(agent, store: EpisodeStore, plan, max_steps: int, record, round
         steps = rollout_once(agent, store, plan, max_steps, record)
     finally:
         rollouts.make_env = made
-    if store.tasks[int(store.column("task_index")[int(plan[0]["target_episode"])])]["info"].get("initial_states"):
-        raise SystemExit("rollout_pair replays generated tasks only (LIBERO's own start from its initial states)")
-    problem = Path(tempfile.mkdtemp(prefix="libero-profile-")) / "rollout.bddl"
-    problem.write_text(captured["problem"])
-    start = time.perf_counter()
-    env = sim.make_env(problem, **captured["options"])
-    construct_s = time.perf_counter() - start
     actions, seed = captured["actions"], int(plan[0]["init_seed"])
     seconds: dict[str, list[float]] = {ROLLOUT_WHOLE: [], ROLLOUT_REPLAY: []}
-    try:
+    with tempfile.TemporaryDirectory(prefix="libero-profile-") as folder:
+        problem = Path(folder) / "rollout.bddl"
+        problem.write_text(captured["problem"])
+        start = time.perf_counter()
+        env = sim.make_env(problem, **captured["options"])
+        construct_s = time.perf_counter() - start
         sim.reset_env(env, seed)
         seen = []
         for action in actions:
@@ -639,8 +638,6 @@ def rollout_pair(agent, store: EpisodeStore, plan, max_steps: int, record, round
         start = time.perf_counter()
         env.close()
         construct_s += time.perf_counter() - start
-    finally:
-        shutil.rmtree(problem.parent, ignore_errors=True)
     return {
         "policy_steps": steps,
         "env_steps": len(actions),

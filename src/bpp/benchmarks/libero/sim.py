@@ -350,25 +350,32 @@ def _computed() -> None:
 
 
 _RENDERING: weakref.WeakSet = weakref.WeakSet()
-"""The rendering envs not yet garbage: closed at exit, while their OpenGL display still exists."""
-_CLOSING_REGISTERED = False
+"""The envs with a renderer of their own (made with cameras) not yet garbage: closed at exit."""
+_RELEASE_REGISTERED = False
 
 
 def _close_at_exit(env) -> None:
-    # The renderer terminates its EGL display at exit, from an exit handler it registers with its first context; ours,
-    # registered after it (with the first rendering env made), runs first. Left to the garbage collector after that,
-    # every context's release fails with an EGL error printed as a traceback.
-    global _CLOSING_REGISTERED
-    if not _CLOSING_REGISTERED:
-        atexit.register(_close_rendering_envs)
-        _CLOSING_REGISTERED = True
     _RENDERING.add(env)
+    _release_gl_at_exit()
 
 
-def _close_rendering_envs() -> None:
+def _release_gl_at_exit() -> None:
+    # robosuite's GL context class terminates its EGL display at exit, from an exit handler it registers with its
+    # first context; ours, registered after it (with the first context bpp makes or asks for), runs first. Left to
+    # the garbage collector after that, every context's release fails with an EGL error printed as a traceback.
+    global _RELEASE_REGISTERED
+    if not _RELEASE_REGISTERED:
+        atexit.register(_release_gl)
+        _RELEASE_REGISTERED = True
+
+
+def _release_gl() -> None:
+    """Close the envs with renderers of their own and free the shared renderers, while the display still exists."""
     for env in list(_RENDERING):
         with contextlib.suppress(Exception):
             env.close()
+    while SharedRenderer._kept:
+        SharedRenderer._kept.popitem()[1].free()
 
 
 def holds(env, predicate: str) -> bool:
@@ -406,21 +413,24 @@ class SharedRenderer:
     _kept: dict[str, SharedRenderer] = {}
 
     def __init__(self, model):
-        import mujoco
         from robosuite.utils.binding_utils import GLContext  # the class robosuite picks for MUJOCO_GL
 
         self.gl = GLContext(max_width=640, max_height=480, device_id=-1)
         self.gl.make_current()
+        self._upload(model)
+        _release_gl_at_exit()
+
+    def _upload(self, model) -> None:
+        """MuJoCo's render context for `model` (its assets and offscreen buffer), as robosuite's renderer makes it."""
+        import mujoco
+
         self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
-        _free_at_exit()
 
     @classmethod
     def of(cls, sim) -> SharedRenderer:
         """The renderer for `sim`'s model (robosuite's ``MjSim``), made on first need."""
-        key = _SIM_RENDER_KEYS.get(sim)
-        if key is None:
-            key = _SIM_RENDER_KEYS[sim] = render_assets_digest(sim.model._model)
+        key = _view(sim).assets
         renderer = cls._kept.pop(key, None) or cls(sim.model._model)
         cls._kept[key] = renderer  # the most recently used last
         while len(cls._kept) > SHARED_RENDERERS:
@@ -433,9 +443,7 @@ class SharedRenderer:
         import mujoco
 
         model, data = sim.model._model, sim.data._data
-        view = _SIM_VIEWS.get(sim)
-        if view is None:
-            view = _SIM_VIEWS[sim] = _View(model)
+        view = _view(sim)
         view.camera.fixedcamid = model.camera(camera).id
         for group, shown in groups.items():
             view.option.geomgroup[group] = int(shown)
@@ -444,8 +452,7 @@ class SharedRenderer:
             model.vis.global_.offwidth = max(size, model.vis.global_.offwidth)
             model.vis.global_.offheight = max(size, model.vis.global_.offheight)
             self.con.free()
-            self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, self.con)
+            self._upload(model)
         viewport = mujoco.MjrRect(0, 0, size, size)
         mujoco.mjv_updateScene(
             model, data, view.option, view.perturb, view.camera, mujoco.mjtCatBit.mjCAT_ALL, view.scene
@@ -468,11 +475,13 @@ SHARED_RENDERERS = 2
 
 
 class _View:
-    """An env's scene, camera and options, as robosuite's renderer sets them up (default options, a fixed camera)."""
+    """An env's scene, camera and options, as robosuite's renderer sets them up (default options, a fixed camera),
+    and the digest of its model's rendering assets (which shared renderer draws it)."""
 
     def __init__(self, model):
         import mujoco
 
+        self.assets = render_assets_digest(model)
         self.scene = mujoco.MjvScene(model, maxgeom=1000)
         self.camera = mujoco.MjvCamera()
         self.camera.type = mujoco.mjtCamera.mjCAMERA_FIXED
@@ -483,8 +492,16 @@ class _View:
         self.perturb.skinselect = -1
 
 
-_SIM_RENDER_KEYS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-_SIM_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+"""robosuite's ``MjSim`` -> its :class:`_View`."""
+
+
+def _view(sim) -> _View:
+    view = _VIEWS.get(sim)
+    if view is None:
+        view = _VIEWS[sim] = _View(sim.model._model)
+    return view
+
 
 _RENDER_ASSETS = ("tex_", "mesh_", "hfield_", "skin_", "flex_")
 """What MuJoCo's render context uploads from a model (with the model's visual settings)."""
@@ -504,23 +521,6 @@ def render_assets_digest(model) -> str:
     for group in ("global_", "quality", "headlight", "map", "scale", "rgba"):
         digest.update(repr(getattr(model.vis, group)).encode())
     return digest.hexdigest()
-
-
-_FREEING_REGISTERED = False
-
-
-def _free_at_exit() -> None:
-    # Registered after robosuite's GL context class registers the end of its EGL display (with its first context), so
-    # it runs before: freed after that, every context's release fails with an EGL error printed as a traceback.
-    global _FREEING_REGISTERED
-    if not _FREEING_REGISTERED:
-        atexit.register(_free_shared_renderers)
-        _FREEING_REGISTERED = True
-
-
-def _free_shared_renderers() -> None:
-    while SharedRenderer._kept:
-        SharedRenderer._kept.popitem()[1].free()
 
 
 def render_states(env, states, camera: str = "agentview", size: int = 128):
