@@ -237,7 +237,10 @@ def test_stored_states_render_the_same_frames_every_time(tmp_path):
 
 def test_envs_of_one_scene_share_a_renderer_that_draws_what_robosuite_draws(tmp_path):
     """Two tasks of one scene (their models differ in where the fixtures stand) render through one shared renderer,
-    and every frame is bit for bit what robosuite's own renderer (an env made with the camera) draws."""
+    and every frame is bit for bit what robosuite's own renderer (an env made with the camera) draws of the same state.
+    robosuite's renderer draws the simulator's data as it is: after a step, poses computed 2 ms before the state
+    (MuJoCo integrates after computing them), so that env's data is computed for its state first. The shared renderer
+    draws the state itself without changing the env: both envs step on to the same states."""
     from bpp.benchmarks.libero.sim import SharedRenderer, render_now, reset_env
 
     tasks = combination().train
@@ -253,6 +256,7 @@ def test_envs_of_one_scene_share_a_renderer_that_draws_what_robosuite_draws(tmp_
             for env in (shared, own):
                 reset_env(env, seed=i)
             for step in range(3):
+                own.env.sim.forward()
                 for camera in ("agentview", "robot0_eye_in_hand"):
                     for size in (32, 128):
                         a, b = render_now(shared, camera, size), render_now(own, camera, size)

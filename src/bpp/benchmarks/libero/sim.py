@@ -388,7 +388,14 @@ def holds(env, predicate: str) -> bool:
 def render_now(env, camera: str = "agentview", size: int = 128):
     """(size, size, 3) uint8: the env's current state seen from LIBERO camera `camera`, upright. MuJoCo's
     offscreen images come out rotated by 180 degrees (LIBERO's own observations too); every frame bpp stores,
-    trains on or shows is turned upright here."""
+    trains on or shows is turned upright here.
+
+    The state is drawn as it is, whatever MuJoCo computed last: after a step, the simulator's body and geom poses
+    are those of the start of its last substep (MuJoCo integrates after computing them), so drawing them would show
+    the scene 2 ms earlier than the state a rollout observes, and than the state a training frame is rendered from
+    (:func:`render_states`). The poses are computed in a copy of the simulator's data (:meth:`_View.drawn`), so
+    rendering never changes what the env computes next. (An env made with cameras draws through robosuite's own
+    renderer, from the simulator's data as it is: tests compare the two.)"""
     sim = env.env.sim
     if sim._render_context_offscreen is not None:  # an env made with cameras: its own renderer
         sim._render_context_offscreen.gl_ctx.make_current()  # robosuite draws into whichever context is current
@@ -442,8 +449,9 @@ class SharedRenderer:
         with the geom groups `groups` (group -> shown) shown or hidden."""
         import mujoco
 
-        model, data = sim.model._model, sim.data._data
+        model = sim.model._model
         view = _view(sim)
+        data = view.drawn(sim)
         view.camera.fixedcamid = model.camera(camera).id
         for group, shown in groups.items():
             view.option.geomgroup[group] = int(shown)
@@ -476,7 +484,7 @@ SHARED_RENDERERS = 2
 
 class _View:
     """An env's scene, camera and options, as robosuite's renderer sets them up (default options, a fixed camera),
-    and the digest of its model's rendering assets (which shared renderer draws it)."""
+    the digest of its model's rendering assets (which shared renderer draws it), and the data it is drawn from."""
 
     def __init__(self, model):
         import mujoco
@@ -490,6 +498,18 @@ class _View:
         self.perturb.active = 0
         self.perturb.select = 0
         self.perturb.skinselect = -1
+        self._drawn = None
+
+    def drawn(self, sim):
+        """A copy of `sim`'s data with everything computed for its current state (what is drawn): its own, kept."""
+        import mujoco
+
+        model = sim.model._model
+        if self._drawn is None:
+            self._drawn = mujoco.MjData(model)
+        mujoco.mj_copyData(self._drawn, model, sim.data._data)
+        mujoco.mj_forward(model, self._drawn)
+        return self._drawn
 
 
 _VIEWS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
