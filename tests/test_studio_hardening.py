@@ -23,7 +23,7 @@ httpx = import_optional("httpx", "studio")
 import_optional("fastapi", "studio")
 
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
-from bpp.benchmarks.draw.studio.engine import Limits, Studio, StudioError  # noqa: E402
+from bpp.benchmarks.draw.studio.engine import CheckpointInfo, Limits, Rollout, Studio, StudioError  # noqa: E402
 from test_studio import TOKEN, TRIANGLE, Server, runs  # noqa: E402, F401 - `runs` is the shared fixture
 
 pytestmark = pytest.mark.studio
@@ -389,6 +389,20 @@ def test_open_streams_are_bounded_per_session(server):
         ):
             time.sleep(0.1)
         assert server.studio.sessions[c.session].streams == 0 and c.status(rollout["id"])["status"] == "stopped"
+
+
+def test_a_rollout_stopped_before_it_begins_loads_no_model(server):
+    """Its reader gone before the thread pool started it: it ends stopped at once, without loading its checkpoint
+    (here one that does not exist, which would end it in an error)."""
+    with StudioClient(server.url, TOKEN) as c:
+        prompt = server.studio.prompt(c.session, c.prompt_strokes(TRIANGLE)["id"])
+        known = server.studio.checkpoints[bpp_checkpoint(c)]
+        nowhere = CheckpointInfo("nowhere", known.label, known.method, known.step, Path("/nonexistent/checkpoint"))
+        rollout = Rollout("early", prompt, nowhere, board_angle=0.0, seed=0, max_steps=10)
+        rollout.stop.set()
+        server.studio._run(rollout)
+        assert rollout.status == "stopped" and not rollout.error and "nowhere" not in server.studio.models
+        assert json.loads(rollout.events[-1]) == {"type": "end", "status": "stopped", "best_chamfer": None, "steps": 0}
 
 
 # ------------------------------------------------------------------------------------- web page protection

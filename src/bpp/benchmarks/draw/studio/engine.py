@@ -683,6 +683,9 @@ class Studio:
         from bpp.data.contexts import task_context
         from bpp.policies.agent import PolicyAgent
 
+        if rollout.stop.is_set():  # stopped, or its reader left, before it began: no model to load for nobody
+            self._end(rollout, "stopped")
+            return
         agent = PolicyAgent(self._model(rollout.checkpoint), record_attention=True)
         spec = agent.data_spec
         store = rollout.prompt.store
@@ -742,6 +745,10 @@ class Studio:
                     break
                 rollout.pending_frames[len(rollout.events)] = _png_base64(env.render())
             rollout.events.append(json.dumps(event))
+        self._end(rollout, status)
+
+    @staticmethod
+    def _end(rollout: Rollout, status: str) -> None:
         best = rollout.public()["best_chamfer"]
         end = {"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)}
         rollout.events.append(json.dumps(end))
