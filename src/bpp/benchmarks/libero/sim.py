@@ -451,7 +451,7 @@ class SharedRenderer:
 
         model = sim.model._model
         view = _view(sim)
-        data = view.drawn(sim)
+        data = view.drawn(model, sim.data._data)
         view.camera.fixedcamid = model.camera(camera).id
         for group, shown in groups.items():
             view.option.geomgroup[group] = int(shown)
@@ -500,14 +500,13 @@ class _View:
         self.perturb.skinselect = -1
         self._drawn = None
 
-    def drawn(self, sim):
-        """A copy of `sim`'s data with everything computed for its current state (what is drawn): its own, kept."""
+    def drawn(self, model, data):
+        """A copy of `data` with everything computed for its current state (what is drawn): the view's own, kept."""
         import mujoco
 
-        model = sim.model._model
         if self._drawn is None:
             self._drawn = mujoco.MjData(model)
-        mujoco.mj_copyData(self._drawn, model, sim.data._data)
+        mujoco.mj_copyData(self._drawn, model, data)
         mujoco.mj_forward(model, self._drawn)
         return self._drawn
 

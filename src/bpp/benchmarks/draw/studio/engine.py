@@ -172,6 +172,17 @@ class Rollout:
         the thread pool bounds the CPU meanwhile), so that pressing Run again is not refused."""
         return self.running and not self.stop.is_set()
 
+    def end(self, status: str) -> None:
+        """Append the end event (its score and steps) and take `status`."""
+        end = {
+            "type": "end",
+            "status": status,
+            "best_chamfer": self.public()["best_chamfer"],
+            "steps": len(self.actions),
+        }
+        self.events.append(json.dumps(end))
+        self.status = status  # after the end event: a stream that sees the rollout finished has it to send
+
     def drop_frames(self) -> None:
         """Forget the frames nobody has read (they are only for the live stream)."""
         self.pending_frames.clear()
@@ -684,7 +695,7 @@ class Studio:
         from bpp.policies.agent import PolicyAgent
 
         if rollout.stop.is_set():  # stopped, or its reader left, before it began: no model to load for nobody
-            self._end(rollout, "stopped")
+            rollout.end("stopped")
             return
         agent = PolicyAgent(self._model(rollout.checkpoint), record_attention=True)
         spec = agent.data_spec
@@ -745,14 +756,7 @@ class Studio:
                     break
                 rollout.pending_frames[len(rollout.events)] = _png_base64(env.render())
             rollout.events.append(json.dumps(event))
-        self._end(rollout, status)
-
-    @staticmethod
-    def _end(rollout: Rollout, status: str) -> None:
-        best = rollout.public()["best_chamfer"]
-        end = {"type": "end", "status": status, "best_chamfer": best, "steps": len(rollout.actions)}
-        rollout.events.append(json.dumps(end))
-        rollout.status = status  # after the end event: a stream that sees the rollout finished has it to send
+        rollout.end(status)
 
     def stop_rollout(self, sid: str, rid: str) -> Rollout:
         rollout = self.rollout(sid, rid)
