@@ -22,10 +22,11 @@ from torch.utils.flop_counter import FlopCounterMode
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.checkpoint import read_state, resolve_checkpoint
+from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
-from bpp.utils import to_dict, write_json_atomic
+from bpp.utils import to_dict, to_torch, write_json_atomic
 
 NAMES = {"bpp": "BPP", "goal_image": "Goal-Image", "icrt": "ICRT", "language": "Language"}
 """Each method's name in reports and figures."""
@@ -167,6 +168,41 @@ def train_rate(store: Path, args, extra: list[str], env: dict | None = None) -> 
         "samples_per_s": round(float(np.median(steady)), 1),
         "losses": {int(k): round(v, 5) for k, v in losses.items()},
     }
+
+
+def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: float = 1.0) -> float:
+    """This machine's matrix-product rate in GFLOP/s for `dtype` on `threads` torch threads: the best of square
+    products of `sizes`, each repeated for about `seconds` after a warm-up (the yardstick a training rate is set
+    against: what the cores do on the operation that dominates a step)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        best = 0.0
+        for n in sizes:
+            a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+            a @ b
+            count, t0 = 0, time.perf_counter()
+            while (elapsed := time.perf_counter() - t0) < seconds:
+                a @ b
+                count += 1
+            best = max(best, 2 * n**3 * count / elapsed / 1e9)
+        return best
+    finally:
+        torch.set_num_threads(before)
+
+
+def main_job_flops_per_sample(store: Path, args) -> float:
+    """GFLOP of one training window sample (forward and backward, :func:`step_flops`) in the setting of
+    :func:`add_main_job_arguments` on `store`, with this checkout's code, averaged over 4 batches (prompts differ
+    in length)."""
+    opened = EpisodeStore(store)
+    model_cfg = get_method("bpp").config(args.preset, args.obs, BENCHMARK)
+    model = get_method("bpp").model_cls(model_cfg, opened.stats)
+    dataset = PromptBatchDataset(
+        opened, model.data_spec(), batch_size=args.batch_size, num_batches=4, tasks_per_batch=args.tasks_per_batch
+    )
+    flops = [step_flops(model, to_torch(dataset[i], torch.device("cpu")), amp=False) for i in range(4)]
+    return float(np.mean(flops)) / args.batch_size / 1e9
 
 
 def step_flops(model, batch: dict, amp: bool) -> int:

@@ -9,6 +9,10 @@ runs are sequential and alternated (A B A B ...), so a machine that slows down o
 Every run trains on the same store, generated once by the current code (the demo's data preset unless ``--tasks``
 says otherwise). Reported per run: the median logged samples/s after the first two intervals, the wall time and
 the logged losses; at the end, each commit's median rate over its runs and its ratio to the first commit's.
+
+The yardstick is measured in the same call: before each round of runs, the cores' matrix-product rate in fp32 and
+bf16 on the runs' thread count (``matmul_peak``), and once the FLOPs of a training sample (this checkout's code; the
+commits compared compute the same products), so that each commit's rate is also a fraction of the fp32 peak.
 """
 
 from __future__ import annotations
@@ -21,10 +25,12 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from common import add_main_job_arguments, train_rate
+from common import add_main_job_arguments, main_job_flops_per_sample, matmul_peak, train_rate
 
 REPO = Path(__file__).resolve().parents[1]
+PEAK_DTYPES = {"fp32": torch.float32, "bf16": torch.bfloat16}
 
 
 def git(*arguments: str) -> str:
@@ -72,7 +78,13 @@ def main() -> None:
         for sha, tree in trees.items():
             remove_worktree(tree)  # one a killed run left
             git("worktree", "add", "--detach", "-f", str(tree), sha)
+        results["gflop_per_sample"] = main_job_flops_per_sample(store, args)
+        results["peaks"] = []
         for repeat in range(args.repeats):
+            peak = {name: matmul_peak(dtype, args.threads) for name, dtype in PEAK_DTYPES.items()}
+            results["peaks"].append(peak)
+            rounded = {k: round(v, 1) for k, v in peak.items()}
+            print(json.dumps({"repeat": repeat, "matmul GFLOP/s": rounded}), flush=True)
             for commit, sha in zip(args.commits, shas, strict=True):
                 environment = {**os.environ, "PYTHONPATH": str(trees[sha] / "src")}  # the worktree's code
                 measured = train_rate(store, args, ["--workers", "0"], env=environment)
@@ -87,13 +99,29 @@ def main() -> None:
             args.work.rmdir()
 
     summary = {}
+    fp32_peak = float(np.median([p["fp32"] for p in results["peaks"]]))
+    print(
+        f"matmul peak on {args.threads} thread(s), median over rounds: "
+        + ", ".join(f"{k} {np.median([p[k] for p in results['peaks']]):.1f}" for k in PEAK_DTYPES)
+        + f" GFLOP/s; a training sample: {results['gflop_per_sample']:.3f} GFLOP"
+    )
     reference = float(np.median([r["samples_per_s"] for r in results["runs"] if r["sha"] == shas[0]]))
     for commit, sha in zip(args.commits, shas, strict=True):
         runs = [r for r in results["runs"] if r["sha"] == sha]
         rate = float(np.median([r["samples_per_s"] for r in runs]))
         same = all(r["losses"] == results["runs"][0]["losses"] for r in runs)
-        summary[commit] = {"sha": sha, "samples_per_s": rate, "ratio": round(rate / reference, 3), "same_losses": same}
-        print(f"{commit:>12} ({sha}): {rate:7.1f} samples/s, {rate / reference:.3f}x, losses as the first: {same}")
+        of_peak = rate * results["gflop_per_sample"] / fp32_peak
+        summary[commit] = {
+            "sha": sha,
+            "samples_per_s": rate,
+            "ratio": round(rate / reference, 3),
+            "of_fp32_peak": round(of_peak, 3),
+            "same_losses": same,
+        }
+        print(
+            f"{commit:>12} ({sha}): {rate:7.1f} samples/s, {rate / reference:.3f}x, {of_peak:.1%} of the fp32 matmul "
+            f"peak, losses as the first: {same}"
+        )
     results["summary"] = summary
     args.out.write_text(json.dumps(results, indent=1))
     print(f"wrote {args.out}")
