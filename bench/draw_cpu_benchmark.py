@@ -109,7 +109,15 @@ def main() -> None:
         action="store_true",
         help="train nothing: evaluate and tabulate the runs that have finished training, skip the others",
     )
+    parser.add_argument(
+        "--train-only",
+        action="store_true",
+        help="train (or finish) the runs and evaluate nothing: a later --report-only call evaluates them, e.g. once "
+        "several training processes that shared the machine are done",
+    )
     args = parser.parse_args()
+    if args.train_only and args.report_only:
+        parser.error("--train-only and --report-only exclude each other")
     steps, batch = budgets(args)
     label = f"{args.preset}-{args.obs}"
 
@@ -140,6 +148,9 @@ def main() -> None:
                 compile=args.compile,
                 frames_on=args.frames_on,
             )
+            if args.train_only:
+                print(f"trained {run} ({seconds / 60:.1f} min of training)")
+                continue
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
             entry["n_action_steps"] = protocol.n_action_steps
@@ -178,6 +189,8 @@ def main() -> None:
                 f"{minutes:.1f}",
             )
         )
+    if args.train_only:
+        return
     if not rows:  # e.g. --report-only before anything finished training: the data is there, nothing to tabulate
         print("no run has finished training yet: nothing to tabulate")
         return

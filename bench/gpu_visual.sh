@@ -7,9 +7,12 @@
 #   bash bench/gpu_visual.sh                                   # on the GPU machine: at most 9 minutes
 #   OUT=outputs/gpu-visual-small SMALL=1 bash bench/gpu_visual.sh    # here, on a CPU: the same steps at toy sizes
 #
-# Each method is one bench/draw_cpu_benchmark.py process (train, then evaluate with CPU workers), all three at once,
-# so they share the GPU and the cores; a last --report-only call gathers the three into one table (it reuses the
-# evaluations). Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
+# The three methods train at once, one bench/draw_cpu_benchmark.py --train-only process each, sharing the GPU (each
+# with TRAIN_THREADS torch threads and LOADERS loader processes, so that together they fit the cores); then one
+# --report-only call evaluates them one after the other, each on EVAL_WORKERS processes of one torch thread, and
+# gathers the table. Evaluating while the others still trained, every process with torch's default of a thread per
+# core, oversubscribed the 16 cores: no evaluation had finished after 5 minutes (BENCHMARKS.md).
+# Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
 # The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md,
 # "DrawAnything observation presets"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
 # about 5 minutes; at 3,000 samples/s each, about 3,500 steps). A run the time limit cuts off is not evaluated.
@@ -26,11 +29,13 @@ mkdir -p "$OUT" /tmp/gpu-visual
 if [ -n "$SMALL" ]; then
   STEPS=${STEPS:-4}; ICRT_STEPS=${ICRT_STEPS:-4}; PRESET=debug; BATCH=(bpp=8 goal_image=8 icrt=4)
   TASKS_PER_BATCH=${TASKS_PER_BATCH:-2}
-  EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12 --workers 1); LOADERS=0; LIMIT=600
+  EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12); EVAL_WORKERS=1; LOADERS=0; LIMIT=600
+  TRAIN_THREADS=1; EVAL_LIMIT=600
 else
   STEPS=${STEPS:-1000}; ICRT_STEPS=${ICRT_STEPS:-1000}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
   TASKS_PER_BATCH=${TASKS_PER_BATCH:-8}
-  EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500 --workers 4); LOADERS=${LOADERS:-4}; LIMIT=${LIMIT:-420}
+  EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500); EVAL_WORKERS=${EVAL_WORKERS:-15}; LOADERS=${LOADERS:-4}
+  LIMIT=${LIMIT:-240}; TRAIN_THREADS=${TRAIN_THREADS:-1}; EVAL_LIMIT=${EVAL_LIMIT:-230}
 fi
 common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch "$TASKS_PER_BATCH" --batch "${BATCH[@]}"
   --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
@@ -40,12 +45,13 @@ common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch "$TASKS_PER
 # The data first, once (the three processes would otherwise each generate it); nothing is trained yet.
 timeout 60 $PY bench/draw_cpu_benchmark.py --methods bpp --report-only "${common[@]}" >/tmp/gpu-visual/data.log 2>&1
 for method in bpp goal_image icrt; do
-  timeout "$LIMIT" $PY bench/draw_cpu_benchmark.py --methods $method "${common[@]}" >"$OUT/$method.log" 2>&1 &
+  timeout "$LIMIT" $PY bench/draw_cpu_benchmark.py --methods $method --train-only --threads "$TRAIN_THREADS" \
+    "${common[@]}" >"$OUT/$method.log" 2>&1 &
 done
 wait
-# Evaluations that were cut off would run again here: the limit keeps the call within its 10 minutes.
-timeout 60 $PY bench/draw_cpu_benchmark.py --methods bpp goal_image icrt --report-only "${common[@]}" \
-  >"$OUT/report.log" 2>&1
+# A run the limit cut off is skipped here; the limits keep the call within its 10 minutes.
+OMP_NUM_THREADS=1 timeout "$EVAL_LIMIT" $PY bench/draw_cpu_benchmark.py --methods bpp goal_image icrt --report-only \
+  --workers "$EVAL_WORKERS" "${common[@]}" >"$OUT/report.log" 2>&1
 echo "report: exit $?"
 cp /tmp/gpu-visual/out/table.md /tmp/gpu-visual/out/chart.png /tmp/gpu-visual/out/results.json "$OUT"/ 2>/dev/null
 tail -n 20 "$OUT/report.log"

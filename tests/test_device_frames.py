@@ -14,6 +14,7 @@ from bpp.benchmarks.draw.dataset import render_episode_steps
 from bpp.benchmarks.draw.device_render import DrawFrameTable
 from bpp.data.frame_refs import DeviceFrames, render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.errors import UserError
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, batch_loader, train
 from helpers import assert_same_batches, config, obs_config
@@ -84,6 +85,18 @@ def test_batches_of_references_render_to_the_batches_of_frames(debug_store, tabl
         small = referenced["context"][key] if key else referenced["obs"]["image"]
         assert small.dtype == np.int64 and small.shape[-1] == 2  # references, not frames
         assert_same_batches(plain, render_batch(referenced, spec, table), f"{method} batch {i}")
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image"])
+def test_a_camera_the_table_does_not_draw_is_refused_not_drawn_wrong(debug_store, table, method):
+    fields = {"obs": replace(IMAGE_OBS, image_keys=("board_image",))}
+    if method == "goal_image":
+        fields.update(goal_camera="board_image", goal_image_size=IMAGE_OBS.image_size)
+    cfg = replace(config(method), **fields)
+    spec = get_method(method).model_cls(cfg, debug_store.stats).data_spec()
+    batch = PromptBatchDataset(debug_store, spec, batch_size=4, seed=3, frame_refs=True)[0]
+    with pytest.raises(UserError, match="board_image.*--frames-on loader"):
+        render_batch(batch, spec, table)
 
 
 def test_references_built_in_loader_processes_render_to_the_same_batches(debug_store, table):

@@ -54,23 +54,23 @@ def test_image_rendered_directly_at_each_resolution():
 def test_pen_inks_and_ink_is_split_invariant():
     env = DrawEnv(image_size=96)
     env.reset(seed=0, options={"board_angle": 0.2, "cursor": (150.0, 150.0)})
-    blank = env.renderer.canvas.copy()
+    blank = env.renderers["image"].canvas.copy()
     for target in [(300, 150), (300, 300), (150, 300)]:
         env.step(np.array([*target, 1.0]))
-    assert (env.renderer.canvas != blank).any()
+    assert (env.renderers["image"].canvas != blank).any()
     # Adding the same ink path all at once gives a bit-identical image (ink coverage is a max over segments).
     whole = SceneRenderer(96, 0.2)
     whole.add_ink(np.concatenate([env.paths[0], *[p[1:] for p in env.paths[1:]]]))
-    np.testing.assert_array_equal(whole.canvas, env.renderer.canvas)
+    np.testing.assert_array_equal(whole.canvas, env.renderers["image"].canvas)
 
 
 def test_pen_up_leaves_no_ink():
     env = DrawEnv(image_size=64)
     env.reset(seed=0)
-    blank = env.renderer.canvas.copy()
+    blank = env.renderers["image"].canvas.copy()
     for target in [(300, 150), (100, 400)]:
         env.step(np.array([*target, 0.0]))
-    np.testing.assert_array_equal(env.renderer.canvas, blank)
+    np.testing.assert_array_equal(env.renderers["image"].canvas, blank)
 
 
 def test_early_stop_and_time_limit():

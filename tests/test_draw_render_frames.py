@@ -134,3 +134,27 @@ def test_the_board_measured_near_its_lines_is_the_whole_image_one(size, rng):
     if size > render.WHOLE_BOARD_PIXELS:  # the tiles are in use, and they leave most pixels unmeasured
         pixels, _ = render.line_coverage(size, np.array([[100.0, 100.0, 400.0, 120.0]]), 4.0)
         assert 0 < len(pixels) < size * size / 4
+
+
+@pytest.mark.parametrize("size", [32, 64])
+def test_the_board_view_is_the_envs_step_by_step_and_stands_upright(debug_store, size):
+    from bpp.benchmarks.draw.env import DrawEnv
+
+    for episode in (0, 31):
+        states, actions, angle = stored(debug_store, episode)
+        env = DrawEnv(image_size=size, cameras=("image", "board_image"), early_stop=False)
+        obs, _ = env.reset(options={"board_angle": angle, "cursor": states[0, :2]})
+        np.testing.assert_array_equal(env.state, states[0])
+        seen = {"image": [obs["image"]], "board_image": [obs["board_image"]]}
+        for action in actions[:-1]:
+            obs, *_ = env.step(action)
+            for camera in seen:
+                seen[camera].append(obs[camera])
+        steps = np.arange(len(states))
+        np.testing.assert_array_equal(np.stack(seen["image"]), render_frames(states, actions, angle, size, steps))
+        board_view = render_frames(states, actions, angle, size, steps, upright=True)
+        np.testing.assert_array_equal(np.stack(seen["board_image"]), board_view)
+        # Upright: the first frame (no ink yet) is an unturned board's with the cursor turned with the board.
+        turned = np.c_[render.upright_points(states[:1, :2], angle), states[:1, 2:]]
+        np.testing.assert_array_equal(board_view[0], render_frames(turned, actions[:1], 0.0, size, [0])[0])
+        assert angle != 0.0 and not np.array_equal(board_view[0], seen["image"][0])

@@ -18,11 +18,13 @@ import torch
 
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore
+from bpp.errors import UserError
 
 
 @runtime_checkable
 class DeviceFrames(Protocol):
-    """A benchmark's renderer of a store's frames on a device (what its ``device_frames(store, device)`` returns)."""
+    """A benchmark's renderer of a store's frames on a device (what its ``device_frames(store, device)`` returns).
+    It may name the cameras it draws in a ``cameras`` attribute; a model that needs another is then refused."""
 
     def render(self, refs: torch.Tensor, size: int) -> torch.Tensor:
         """(N, 2) int64 references -> (N, size, size, 3) uint8 frames, exactly the benchmark's ``frames(...)``."""
@@ -53,6 +55,13 @@ def render_batch(batch: Mapping, spec: DataSpec, renderer: DeviceFrames) -> dict
     """A batch of :class:`~bpp.data.prompt_dataset.PromptBatchDataset` built with ``frame_refs=True``, on the host
     (numpy arrays or tensors, as a loader gives it), with its frames rendered on the renderer's device in place of the
     references: the batch one built with frames would be, its frames already on the device."""
+    drawn = getattr(renderer, "cameras", None)  # the cameras the renderer draws, if it says
+    wanted = [*spec.image_keys, *([spec.context_image_key] if spec.context == "goal_image" else [])]
+    if drawn is not None and set(wanted) - set(drawn):
+        raise UserError(
+            f"frames rendered on the device (--frames-on device) are drawn for the cameras {', '.join(drawn)} only; "
+            f"this model needs {', '.join(sorted(set(wanted) - set(drawn)))}: train with --frames-on loader"
+        )
     batch = dict(batch)
     places = []  # (the dict holding it, its key, the frame size) of every reference array
     obs = batch["obs"] = dict(batch["obs"])

@@ -11,6 +11,7 @@ import numpy as np
 
 from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
 from bpp.benchmarks.draw import dataset
+from bpp.benchmarks.draw.env import CAMERAS
 from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, StoreError
@@ -39,6 +40,17 @@ BOARD = ObservationPreset(
         "progress an image would show; without it BPP keeps drawing after it has finished: 40.4 against 15.9 px on "
         "the unseen drawings in BENCHMARKS.md); board-frame action targets, so a prompt's actions carry over to a "
         "new board angle unchanged. A simplification of the paper's setting, named as such wherever it is used"
+    ),
+)
+BOARD_IMAGE = ObservationPreset(
+    image_keys=("board_image",),
+    proprio_keys=BOARD.proprio_keys,
+    image_size=32,
+    action_key="action_on_board",
+    description=(
+        "board, plus a 32x32 view of the board in its own frame (the ink drawn so far and the cursor, upright): "
+        "what the paper's camera shows of the drawing, at a cost 2 CPU cores train; a CPU stand-in for the paper's "
+        "visual setting, not that setting (no board rotation to see, board-frame actions)"
     ),
 )
 IMAGE64 = ObservationPreset(
@@ -70,6 +82,7 @@ class DrawAnything:
         "canvas": CANVAS,
         "canvas-ink": CANVAS_INK,
         "board": BOARD,
+        "board-image": BOARD_IMAGE,
         "image64": IMAGE64,
         "paper": PAPER,
     }
@@ -94,13 +107,13 @@ class DrawAnything:
     def frames(
         self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
     ) -> np.ndarray:
-        if key != "image":
-            raise UserError(f"DrawAnything has one camera, 'image'; got {key!r}")
+        if key not in CAMERAS:
+            raise UserError(f"DrawAnything's cameras are {', '.join(CAMERAS)}; got {key!r}")
         if last_only:
-            return dataset.render_last_observation(store, episode, size)[None]
+            return dataset.render_last_observation(store, episode, size, key)[None]
         if steps is not None:
-            return dataset.render_episode_steps(store, episode, size, steps)
-        return dataset.render_episode(store, episode, size)
+            return dataset.render_episode_steps(store, episode, size, steps, key)
+        return dataset.render_episode(store, episode, size, key)
 
     def device_frames(self, store: EpisodeStore, device):
         """What :meth:`frames` draws, held on `device`, which renders frame references there (``bpp train

@@ -171,22 +171,25 @@ def episode_paths(store: EpisodeStore, episode: int) -> list[np.ndarray]:
     return replay_paths(*episode_physics(store, episode))
 
 
-def render_episode_steps(store: EpisodeStore, episode: int, image_size: int, steps: np.ndarray) -> np.ndarray:
-    """(k, R, R, 3) uint8 image observations of a stored episode at `steps` (any order, repeats allowed), identical
-    to ``render_episode(...)[steps]`` but rendering only those frames (step T: the frame after the last step)."""
+def render_episode_steps(
+    store: EpisodeStore, episode: int, image_size: int, steps: np.ndarray, camera: str = "image"
+) -> np.ndarray:
+    """(k, R, R, 3) uint8 observations of `camera` (the env's ``image`` or ``board_image``) of a stored episode at
+    `steps` (any order, repeats allowed), identical to ``render_episode(...)[steps]`` but rendering only those
+    frames (step T: the frame after the last step)."""
     states, actions = episode_physics(store, episode)
     angle = float(store.column("board_angle")[episode])
-    return render_frames(states, actions, angle, image_size, steps)
+    return render_frames(states, actions, angle, image_size, steps, upright=camera == "board_image")
 
 
-def render_last_observation(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
-    """(R, R, 3) uint8: the episode's final observation, identical to ``render_episode(...)[-1]`` but rendering
-    one frame instead of one per step (a goal image)."""
+def render_last_observation(store: EpisodeStore, episode: int, image_size: int, camera: str = "image") -> np.ndarray:
+    """(R, R, 3) uint8: the episode's final observation by `camera`, identical to ``render_episode(...)[-1]`` but
+    rendering one frame instead of one per step (a goal image)."""
     sl = store.episode_slice(episode)
-    return render_episode_steps(store, episode, image_size, [sl.stop - sl.start - 1])[0]
+    return render_episode_steps(store, episode, image_size, [sl.stop - sl.start - 1], camera)[0]
 
 
-def render_episode(store: EpisodeStore, episode: int, image_size: int) -> np.ndarray:
-    """(T, R, R, 3) uint8 image observations of a stored episode, identical to what the env showed."""
+def render_episode(store: EpisodeStore, episode: int, image_size: int, camera: str = "image") -> np.ndarray:
+    """(T, R, R, 3) uint8 observations by `camera` of a stored episode, identical to what the env showed."""
     sl = store.episode_slice(episode)
-    return render_episode_steps(store, episode, image_size, np.arange(sl.stop - sl.start))
+    return render_episode_steps(store, episode, image_size, np.arange(sl.stop - sl.start), camera)

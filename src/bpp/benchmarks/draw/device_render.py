@@ -94,6 +94,9 @@ class DrawFrameTable:
         self.device_segments = torch.as_tensor(self.segments).to(self.device)
         self._colours: dict[tuple, torch.Tensor] = {}
 
+    cameras = ("image",)
+    """The cameras it draws: the canvas as seen (the board's own view, ``board_image``, is drawn by the loader)."""
+
     # ------------------------------------------------------------------ public
     def render(self, refs, size: int) -> torch.Tensor:
         """(N, 2) int64 references, on the host -> (N, size, size, 3) uint8 frames on the table's device."""

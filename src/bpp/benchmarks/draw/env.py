@@ -20,7 +20,7 @@ from bpp.benchmarks.draw.geometry import (
     unit_to_canvas,
 )
 from bpp.benchmarks.draw.metric import ChamferTracker, InkMask, ink_mask
-from bpp.benchmarks.draw.render import SceneRenderer
+from bpp.benchmarks.draw.render import SceneRenderer, upright_points
 
 ENV_ID = "bpp/DrawAnything-v0"
 """Its Gymnasium id (registered by ``import bpp.benchmarks``; see bpp.benchmarks.registry.GYM_ENVS)."""
@@ -31,6 +31,8 @@ STILL_WINDOW = 20
 STILL_RADIUS = 20.0
 
 
+CAMERAS = ("image", "board_image")
+"""The image observations the env can render: the canvas as a camera sees it, and the board's upright view."""
 ACTION_FRAMES = {"action": "canvas", "action_on_board": "board"}
 """Stored action keys and the frame the environment must interpret them in (its ``action_frame``)."""
 
@@ -66,7 +68,12 @@ class DrawEnv(gym.Env):
     """Draw on a rotated board with a PD-controlled cursor.
 
     Observation (a dict):
-        ``image``      (R, R, 3) uint8, rendered directly at ``image_size`` (absent if ``image_size`` is None);
+        ``image``      (R, R, 3) uint8, the camera's view of the canvas, rendered directly at ``image_size`` (absent
+        if ``image_size`` is None or ``cameras`` leaves it out);
+        ``board_image`` (R, R, 3) uint8, only if ``cameras`` names it: the same scene in the board's own frame,
+        turned about the board's centre so that the board stands upright (its ink so far and the cursor where they
+        are on the board): what a camera shows of the drawing, without the board's rotation, for policies that act
+        in the board's frame;
         ``agent_pos``  (2,) float32 cursor position in canvas px;
         ``pen_down``   (1,) float32, 1 if the pen is down (the last action's pen);
         ``board_pose`` (2,) float32, (cos, sin) of the board angle;
@@ -101,9 +108,14 @@ class DrawEnv(gym.Env):
         render_mode: str | None = None,
         render_size: int = CANVAS_SIZE,
         action_frame: str = "canvas",
+        cameras: tuple[str, ...] = ("image",),
     ):
         if action_frame not in ("canvas", "board"):
             raise ValueError(f"action_frame must be 'canvas' or 'board', got {action_frame!r}")
+        unknown = set(cameras) - set(CAMERAS)
+        if unknown:
+            raise ValueError(f"unknown cameras {sorted(unknown)}; DrawAnything's are {CAMERAS}")
+        self.cameras = tuple(cameras) if image_size is not None else ()
         self.action_frame = action_frame
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
@@ -121,8 +133,8 @@ class DrawEnv(gym.Env):
             "cursor_on_board": spaces.Box(-2.0, 3.0, (2,), np.float32),
             "ink_length": spaces.Box(0.0, 1000.0, (1,), np.float32),  # far above any episode's ink
         }
-        if image_size is not None:
-            obs["image"] = spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
+        for camera in self.cameras:
+            obs[camera] = spaces.Box(0, 255, (image_size, image_size, 3), np.uint8)
         self.observation_space = spaces.Dict(obs)
         if action_frame == "canvas":
             low, high = np.zeros(3, np.float32), np.array([CANVAS_SIZE, CANVAS_SIZE, 1.0], np.float32)
@@ -151,7 +163,11 @@ class DrawEnv(gym.Env):
         self.positions = [self.state[:2].copy()]
         self.ink_px = 0.0
         self.paths: list[np.ndarray] = []  # canvas polylines inked so far, one per pen-down step
-        self.renderer = None if self.image_size is None else SceneRenderer(self.image_size, self.board_angle)
+        # One renderer per camera: the canvas as seen, and the board's upright view (angle 0, points turned upright).
+        self.renderers = {
+            camera: SceneRenderer(self.image_size, self.board_angle if camera == "image" else 0.0)
+            for camera in self.cameras
+        }
         self._video = None if self.render_mode is None else SceneRenderer(self.render_size, self.board_angle)
         self._set_target(options.get("target"))
         return self._observation(), self._info()
@@ -190,8 +206,8 @@ class DrawEnv(gym.Env):
         if self.state[4] > 0.5:
             self.ink_px += float(np.linalg.norm(self.positions[-1] - self.positions[-2]))
             self.paths.append(path)
-            if self.renderer is not None:
-                self.renderer.add_ink(path)
+            for camera, renderer in self.renderers.items():
+                renderer.add_ink(path if camera == "image" else upright_points(path, self.board_angle))
             if self._video is not None:
                 self._video.add_ink(path)
             if self.tracker is not None:
@@ -218,8 +234,9 @@ class DrawEnv(gym.Env):
             "cursor_on_board": canvas_to_unit(self.state[:2], self.board_angle).astype(np.float32),
             "ink_length": np.array([self.ink_px / BOARD_SIZE], dtype=np.float32),
         }
-        if self.renderer is not None:
-            obs["image"] = self.renderer.frame(self.state[:2])
+        for camera, renderer in self.renderers.items():
+            cursor = self.state[:2] if camera == "image" else upright_points(self.state[:2], self.board_angle)
+            obs[camera] = renderer.frame(cursor)
         return obs
 
     def _info(self) -> dict[str, Any]:

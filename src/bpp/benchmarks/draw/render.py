@@ -120,6 +120,17 @@ def line_coverage(resolution: int, segments: np.ndarray, half_width: float) -> t
     return flat, coverage(distance, half_width, pixel)
 
 
+def upright_points(points: np.ndarray, angle: float) -> np.ndarray:
+    """(..., 2) canvas points turned about the board's centre so that a board at `angle` stands upright
+    (:func:`~bpp.benchmarks.draw.geometry.canvas_to_upright`'s map), written out per coordinate: a point maps to
+    the same bits whatever array it comes in, so the env's board view and :func:`render_frames`' agree bit for bit
+    (a matrix product may round differently for arrays of different lengths)."""
+    p = np.asarray(points, dtype=np.float64)
+    c, s = np.cos(angle), np.sin(angle)
+    dx, dy = p[..., 0] - BOARD_CENTER[0], p[..., 1] - BOARD_CENTER[1]
+    return np.stack([dx * c - dy * s + BOARD_CENTER[0], dx * s + dy * c + BOARD_CENTER[1]], axis=-1)
+
+
 def render_board(resolution: int, angle: float, center=BOARD_CENTER) -> np.ndarray:
     """The static scene (background, helper lines, board edges) as a float64 (H, W, 3) image in [0, 255]."""
     image = np.empty((resolution * resolution, 3))
@@ -281,12 +292,16 @@ def render_frames(
     steps: np.ndarray,
     segments: tuple[np.ndarray, np.ndarray] | None = None,
     board: np.ndarray | None = None,
+    upright: bool = False,
 ) -> np.ndarray:
     """(k, R, R, 3) uint8 observations at `steps` (any order, repeats allowed) of a recorded episode, identical to
     replaying it with :class:`SceneRenderer` (``viz.episode_frames(...)[steps]``) but rendering only those frames.
 
     Frame t shows the ink of steps < t and the cursor at ``states[t, :2]`` (t = T: after the last step).
-    `segments` is :func:`ink_segments`'s output and `board` :func:`render_board`'s, if cached.
+    `segments` is :func:`ink_segments`'s output and `board` :func:`render_board`'s, if cached (both as the canvas
+    camera sees them, with `upright` too). With `upright`, the frames are the board's own view (the env's
+    ``board_image``): the scene turned about the board's centre so that the board stands upright, as a
+    :class:`SceneRenderer` at angle 0 draws it from :func:`upright_points`.
     """
     if resolution < 8:
         raise ValueError(f"image resolution must be at least 8 px, got {resolution}")
@@ -297,9 +312,11 @@ def render_frames(
     wanted, inverse = np.unique(steps, return_inverse=True)
     k, size = len(wanted), resolution * resolution
     if board is None:
-        board = render_board(resolution, angle)
+        board = render_board(resolution, 0.0 if upright else angle)
     # Ink: a step's segments appear from the first wanted frame after it on; frames are built in order.
     seg, seg_step = ink_segments(states, actions) if segments is None else segments
+    if upright:
+        seg = upright_points(np.asarray(seg, dtype=np.float64).reshape(-1, 2), angle).reshape(-1, 4)
     layer = np.searchsorted(wanted, seg_step, side="right")
     used = layer < k
     if used.any():
@@ -324,6 +341,8 @@ def render_frames(
     cursor = states[np.minimum(wanted, len(states) - 1), :2]
     if k and wanted[-1] == len(states):
         cursor[-1] = physics.control_step(states[-1], np.asarray(actions[-1], dtype=np.float64))[0][:2]
+    if upright:
+        cursor = upright_points(cursor, angle)
     pixel = CANVAS_SIZE / resolution
     outer = CURSOR_RADIUS + CURSOR_OUTLINE_WIDTH
     lo, width = _window_starts(cursor, cursor, outer + pixel, resolution)

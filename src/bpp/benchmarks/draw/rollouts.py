@@ -46,6 +46,7 @@ def run_rollouts(
     for row, rec in zip(rollouts, record, strict=True):
         env = DrawEnv(
             image_size=spec.image_size if spec.image_keys else None,
+            cameras=tuple(spec.image_keys),
             max_episode_steps=max_steps,
             render_mode="rgb_array" if rec else None,
             render_size=render_size,

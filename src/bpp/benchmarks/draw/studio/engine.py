@@ -703,6 +703,7 @@ class Studio:
         agent.reset(task_context(store, 0, spec, get_benchmark(BENCHMARK).frames), rollout.seed)
         env = DrawEnv(
             image_size=spec.image_size if spec.image_keys else None,
+            cameras=tuple(spec.image_keys),
             max_episode_steps=rollout.max_steps,
             action_frame=ACTION_FRAMES[spec.action_key],
             render_mode="rgb_array" if rollout.frames else None,
