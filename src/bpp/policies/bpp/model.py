@@ -32,15 +32,19 @@ class PromptContext:
     valid: torch.Tensor  # (Bp, M) bool
     token_chunk: torch.Tensor  # (M,) long: the prompt chunk each token belongs to, -1 for attention sinks
     num_chunks: int
+    index: torch.Tensor | None = None
+    """(B,) long, if set: sample i reads prompt ``index[i]`` of the Bp (see :meth:`select`); else one per sample."""
 
     def select(self, index: torch.Tensor) -> PromptContext:
-        """One prompt per sample: sample i takes prompt ``index[i]`` (index (B,) into the Bp prompts)."""
-        return PromptContext(self.tokens[index], self.valid[index], self.token_chunk, self.num_chunks)
+        """One prompt per sample: sample i takes prompt ``index[i]`` (index (B,) into the Bp prompts). The prompts
+        are not copied per sample: the prompt encoder projects each once and hands it to its samples."""
+        return PromptContext(self.tokens, self.valid, self.token_chunk, self.num_chunks, index)
 
     @staticmethod
     def merge(contexts: list[PromptContext]) -> PromptContext:
         """Encoded prompts of different lengths -> one batch: tokens past a prompt's end are padded and invalid, so
         attention ignores them (the longest prompt's chunk map covers every shorter one's)."""
+        assert all(c.index is None for c in contexts), "merge whole prompts, not selections of them"
         longest = max(contexts, key=lambda c: c.tokens.shape[1])
         m = longest.tokens.shape[1]
 
@@ -56,6 +60,9 @@ class PromptContext:
         )
 
     def expand(self, batch: int) -> PromptContext:
+        if self.index is not None:
+            assert len(self.index) == batch, f"{len(self.index)} selected prompts vs observation batch {batch}"
+            return self
         if self.tokens.shape[0] == batch:
             return self
         assert self.tokens.shape[0] == 1, f"prompt batch {self.tokens.shape[0]} vs observation batch {batch}"
@@ -164,7 +171,7 @@ class BPPModel(ContextDiffusionPolicy):
         tokens = torch.stack([proj(f) for proj, f in zip(self.entry_proj, features, strict=True)], dim=2)
         tokens = rearrange(tokens, "b t e d -> b (t e) d") + self.obs_pos
         ctx = ctx.expand(tokens.shape[0])
-        out, attentions = self.prompt_encoder(tokens, ctx.tokens, ctx.valid, return_attention)
+        out, attentions = self.prompt_encoder(tokens, ctx.tokens, ctx.valid, return_attention, ctx.index)
         return torch.cat([out.flatten(1), self.flatten_obs(features)], dim=-1), attentions
 
     # -------------------------------------------------------------- inference

@@ -1,5 +1,6 @@
-"""The action decoder's U-Net: its joined FiLM projection reads checkpoints written with one per block, and the
-CPU's Mish equals torch's."""
+"""Building blocks: the action decoder's U-Net (its joined FiLM projection reads checkpoints written with one per
+block; the CPU's Mish equals torch's) and the prompt encoder's cross-attention (torch's multi-head attention, with
+prompts shared by samples through an index)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file
 
+from bpp.nn.attention import DecoderLayer
 from bpp.nn.unet1d import ConditionalUnet1D, Mish, mish
 
 PER_BLOCK = Path(__file__).parent / "data" / "unet_film_per_block.safetensors"
@@ -61,3 +63,30 @@ def test_mish_in_double_precision_is_torchs_own():
     x = torch.randn(5, dtype=torch.float64, requires_grad=True)
     assert mish(x).grad_fn.name() == F.mish(x).grad_fn.name()
     assert torch.equal(Mish()(x), F.mish(x))
+
+
+@pytest.mark.parametrize("want_attn", [False, True])
+def test_cross_attention_is_torchs_multi_head_attention_and_an_index_shares_a_memory(want_attn):
+    torch.manual_seed(0)
+    layer = DecoderLayer(dim=16, heads=4, mlp_dim=32).eval()
+    prompts, queries, length = 3, 5, 7
+    memory = torch.randn(prompts, length, 16)
+    pad = torch.zeros(prompts, length, dtype=torch.bool)
+    pad[1, 4:] = True  # a shorter prompt
+    index = torch.tensor([2, 0, 1, 0, 2, 1])  # each prompt serves two samples, in any order
+    h = torch.randn(len(index), queries, 16)
+    with torch.no_grad():
+        theirs, their_weights = layer.cross_attn(
+            h, memory[index], memory[index], key_padding_mask=pad[index], need_weights=want_attn
+        )
+        copied, copied_weights = layer._cross_attend(h, memory[index], pad[index], None, want_attn)
+        shared, shared_weights = layer._cross_attend(h, memory, pad, index, want_attn)
+    torch.testing.assert_close(copied, theirs, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(shared, theirs, rtol=1e-5, atol=1e-6)
+    if want_attn:
+        torch.testing.assert_close(shared_weights, their_weights, rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(copied_weights, their_weights, rtol=1e-5, atol=1e-6)
+        assert (shared_weights[index == 1][..., 4:] == 0).all()  # prompt 1's padding is never attended
+        assert (shared_weights[index != 1][..., 4:] > 0).all()
+    else:
+        assert shared_weights is None and copied_weights is None

@@ -1,0 +1,102 @@
+"""Does reduced precision pay on this CPU? The main job's training step in fp32 and under bf16 autocast, side by side.
+
+    python bench/cpu_precision.py                      # BPP, cpu size, board observations, batch 64, 8 tasks
+    python bench/cpu_precision.py --obs board-image --rounds 5
+
+In one process on `--threads` torch threads (default 1): the cores' matrix-product rate in fp32 and bf16 (the
+yardstick), a 1D convolution at the action decoder's largest size with its backward in both precisions, then the
+whole training step (``bpp.train.train_step``: loss, backward, clipping, fused AdamW, EMA) on the same batches in
+fp32 and under bf16 autocast with fp32 weights, alternated for `--rounds` rounds. Prints each round and the medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
+from bpp.benchmarks.draw.dataset import generate
+from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.data.store import EpisodeStore, stored_with
+from bpp.policies.registry import get_method
+from bpp.train import TrainConfig, build_training, train_step
+from bpp.utils import to_torch
+from common import matmul_peak
+
+
+def conv_rate(dtype: torch.dtype, seconds: float = 1.0) -> float:
+    """GFLOP/s of a 256 -> 256 channel, kernel-5 convolution over 4 steps at batch 64 (the decoder's innermost
+    level, its largest product), forward and both gradients."""
+    x = torch.randn(64, 256, 4, dtype=dtype, requires_grad=True)
+    w = torch.randn(256, 256, 5, dtype=dtype, requires_grad=True)
+    flops = 3 * 2 * 64 * 4 * 256 * 256 * 5
+    F.conv1d(x, w, padding=2).sum().backward()
+    count, t0 = 0, time.perf_counter()
+    while (elapsed := time.perf_counter() - t0) < seconds:
+        F.conv1d(x, w, padding=2).sum().backward()
+        count += 1
+    return flops * count / elapsed / 1e9
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--method", default="bpp")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--obs", default="board")
+    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--tasks-per-batch", type=int, default=8)
+    parser.add_argument("--steps", type=int, default=20, help="timed steps per precision and round")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
+    parser.add_argument("--data-dir", type=Path, default=Path("data/bench-speed-history"))
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+
+    data_cfg = replace(DATA_PRESETS["cpu"], num_tasks=args.tasks)
+    path = args.data_dir / f"train-{args.tasks}.zarr"
+    if stored_with(path, data_cfg) is None:
+        generate(data_cfg, path, overwrite=True)
+    store = EpisodeStore(path)
+    model_cfg = get_method(args.method).config(args.preset, args.obs, BENCHMARK)
+    cfg = TrainConfig(data=path, method=args.method, batch_size=args.batch_size, tasks_per_batch=args.tasks_per_batch)
+    cpu = torch.device("cpu")
+    torch.manual_seed(0)
+    model, ema, optimizer = build_training(cfg, get_method(args.method).model_cls(model_cfg, store.stats), cpu)
+    dataset = PromptBatchDataset(
+        store, model.data_spec(), batch_size=args.batch_size, num_batches=args.steps + 3,
+        tasks_per_batch=args.tasks_per_batch, frame_cache_bytes=2**31,
+    )  # fmt: skip
+    batches = [to_torch(dataset[i], cpu) for i in range(args.steps + 3)]
+
+    print(
+        f"matmul GFLOP/s on {args.threads} thread(s): fp32 {matmul_peak(torch.float32, args.threads):.1f}, "
+        f"bf16 {matmul_peak(torch.bfloat16, args.threads):.1f}; decoder convolution with its gradients: "
+        f"fp32 {conv_rate(torch.float32):.1f}, bf16 {conv_rate(torch.bfloat16):.1f}"
+    )
+    rates: dict[str, list[float]] = {"fp32": [], "bf16 autocast": []}
+    for round_ in range(args.rounds):
+        for name, amp in (("fp32", False), ("bf16 autocast", True)):
+            for step in range(3):  # warm-up: the allocator, oneDNN's kernel choices
+                train_step(cfg, model, model, ema, optimizer, batches[step], step, amp)
+            t0 = time.perf_counter()
+            for step in range(3, args.steps + 3):
+                loss, _ = train_step(cfg, model, model, ema, optimizer, batches[step], step, amp)
+            float(loss.detach())
+            rate = args.steps * args.batch_size / (time.perf_counter() - t0)
+            rates[name].append(rate)
+            print(f"round {round_}: {name:>13}: {rate:6.1f} samples/s")
+    fp32 = float(np.median(rates["fp32"]))
+    for name, values in rates.items():
+        print(f"{name:>13}: median {np.median(values):6.1f} samples/s, {np.median(values) / fp32:.3f}x fp32")
+
+
+if __name__ == "__main__":
+    main()
