@@ -1,4 +1,5 @@
-"""The evaluation protocol and its other-task prompt control."""
+"""The evaluation protocol and its prompt controls (another task's prompt, the prompt's chunks shuffled, its first
+half)."""
 
 import json
 
@@ -10,9 +11,11 @@ import bpp.benchmarks.draw.rollouts as draw_rollouts
 import bpp.benchmarks.prompting as prompting
 from bpp.benchmarks.contract import TaskSet
 from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.data.contexts import CONTROL_CHUNK, prompt_steps, task_context
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp import BPPModel
+from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from helpers import config, rollout_batch
 
@@ -36,7 +39,7 @@ def test_protocol_cycles_prompts_and_the_control_changes_only_the_prompt(debug_s
     again = Protocol(rollouts=7, prompts="other-task")
     assert control.plan(debug_store, 3, BENCHMARK) == again.plan(debug_store, 3, BENCHMARK)
     with pytest.raises(ValueError, match="prompts must be"):
-        Protocol(prompts="shuffled")
+        Protocol(prompts="backwards")
 
 
 def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(debug_store, monkeypatch):
@@ -48,13 +51,74 @@ def test_rollouts_are_prompted_with_the_prompt_episodes_and_scored_on_their_own(
     assert [r.best_chamfer for r in plain] == [r.best_chamfer for r in same]
     prompted, scored = [], []
     task_context, prompt_target = prompting.task_context, draw_rollouts.prompt_target
-    monkeypatch.setattr(prompting, "task_context", lambda st, ep, *a: prompted.append(ep) or task_context(st, ep, *a))
+    monkeypatch.setattr(
+        prompting, "task_context", lambda st, ep, *a, **kw: prompted.append(ep) or task_context(st, ep, *a, **kw)
+    )
     monkeypatch.setattr(draw_rollouts, "prompt_target", lambda st, ep: scored.append(ep) or prompt_target(st, ep))
     swapped = rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=15, prompt_episodes=[9, 30])
     assert prompted == [9, 30] and scored == targets  # contexts from the prompt episodes, scores on the targets
     assert [r.best_chamfer for r in swapped] != [r.best_chamfer for r in plain]
     with pytest.raises(ValueError, match="1 prompt episodes for 2 rollouts"):
         rollout_batch(agent, debug_store, targets, angles, seeds, max_steps=5, prompt_episodes=[3])
+
+
+def test_the_edit_controls_keep_whole_chunks_or_the_first_half():
+    assert prompt_steps(37, None, 0) is None
+    np.testing.assert_array_equal(prompt_steps(37, "first-half", 5), np.arange(19))
+    shuffled = prompt_steps(37, "shuffled", 5)
+    assert sorted(shuffled.tolist()) == list(range(37))  # every step once
+    chunks = shuffled[:30].reshape(3, CONTROL_CHUNK)
+    assert (np.diff(chunks, axis=1) == 1).all() and (chunks[:, 0] % CONTROL_CHUNK == 0).all()  # whole chunks
+    np.testing.assert_array_equal(shuffled[30:], np.arange(30, 37))  # the shorter last chunk stays last
+    orders = {tuple(prompt_steps(200, "shuffled", seed)[::CONTROL_CHUNK]) for seed in range(6)}
+    assert len(orders) == 6 and tuple(range(0, 200, CONTROL_CHUNK)) not in orders
+    np.testing.assert_array_equal(prompt_steps(200, "shuffled", 3), prompt_steps(200, "shuffled", 3))
+    with pytest.raises(ValueError, match="unknown prompt edit"):
+        prompt_steps(10, "reversed", 0)
+
+
+@pytest.mark.parametrize("method", ["bpp", "goal_image", "language"])
+def test_an_edited_prompt_is_made_of_the_demonstration_steps_it_names(debug_store, method):
+    spec = get_method(method).model_cls(config(method), debug_store.stats).data_spec()
+    episode = 8
+    sl = debug_store.episode_slice(episode)
+    steps = prompt_steps(sl.stop - sl.start, "shuffled", 11)
+    edited = task_context(debug_store, episode, spec, BENCHMARK.frames, steps=steps)
+    whole = task_context(debug_store, episode, spec, BENCHMARK.frames)
+    if spec.context == "demo":
+        np.testing.assert_array_equal(edited["action"], whole["action"][steps])
+        for key in spec.lowdim_keys:
+            np.testing.assert_array_equal(edited["obs"][key], whole["obs"][key][steps])
+    elif spec.context == "goal_image":  # the frame of the edited prompt's latest step: shuffling keeps the goal
+        np.testing.assert_array_equal(edited["image"], whole["image"])
+        half = prompt_steps(sl.stop - sl.start, "first-half", 11)
+        frame = BENCHMARK.frames(debug_store, episode, spec.context_image_key, spec.context_image_size, steps=half)
+        first_half = task_context(debug_store, episode, spec, BENCHMARK.frames, steps=half)
+        np.testing.assert_array_equal(first_half["image"], frame[-1])
+        assert not np.array_equal(first_half["image"], whole["image"])
+    else:
+        assert edited == whole  # an instruction is not a demonstration: nothing to edit
+
+
+@pytest.mark.parametrize("control", ["shuffled", "first-half"])
+def test_evaluate_with_an_edit_control_prompts_with_the_edited_demonstration(
+    debug_store, tmp_path, control, monkeypatch
+):
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    seen = []
+    real = prompting.task_context
+    monkeypatch.setattr(prompting, "task_context", lambda *a, **kw: seen.append(kw["steps"]) or real(*a, **kw))
+    protocol = Protocol(rollouts=2, max_steps=10, prompts=control)
+    evaluate(run, TaskSet(debug_store, "debug"), [1], tmp_path / "eval", protocol, workers=0, videos=0, progress=False)
+    data = json.loads((tmp_path / "eval" / "results.json").read_text())
+    assert data["protocol"]["prompts"] == control
+    rows = data["rollouts"]
+    assert all(r["prompt_edit"] == control and r["prompt_episode"] == r["target_episode"] for r in rows)
+    for row, steps in zip(rows, seen, strict=True):
+        sl = debug_store.episode_slice(row["prompt_episode"])
+        np.testing.assert_array_equal(steps, prompt_steps(sl.stop - sl.start, control, row["seed"]))
 
 
 def test_evaluate_with_the_control_records_both_episodes(debug_store, tmp_path):

@@ -26,6 +26,7 @@ from bpp.benchmarks.registry import (
     get_benchmark,
 )
 from bpp.errors import UserError, raise_interrupted
+from bpp.evaluation.protocol import PromptChoice
 from bpp.executor import make_executor
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
@@ -226,7 +227,8 @@ class Eval:
       bpp eval runs/bpp-cpu --tasks data/draw/val.zarr        (any store of the same benchmark)
       bpp eval runs/bpp-cpu --files mine.json logo.svg        (your own tasks, in the benchmark's file format)
       bpp eval runs/seed0 runs/seed1 runs/seed2               (mean ± std over checkpoints)
-      bpp eval runs/bpp-cpu --prompts other-task              (control: prompted with another task's demo)
+      bpp eval runs/bpp-cpu --prompts other-task              (control: prompted with another task's demo;
+                                                               also shuffled, first-half)
     """
 
     checkpoints: tyro.conf.Positional[tuple[Path, ...]]
@@ -244,9 +246,10 @@ class Eval:
     seed: int = 0
     max_steps: int = 0
     """Rollout length limit (0: the benchmark's, e.g. 400)."""
-    prompts: Literal["own", "other-task"] = "own"
-    """own: the paper's protocol. other-task: a control, each rollout prompted with another task's demonstration
-    and scored against its own task (a policy that follows its prompt must score far worse)."""
+    prompts: PromptChoice = "own"
+    """own: the paper's protocol. Controls, each scored against the rollout's own task (a policy that follows its
+    prompt must score worse): other-task, prompted with another task's demonstration; shuffled, with its own
+    demonstration's 10-step chunks in a random order; first-half, with the first half of its own demonstration."""
     n_action_steps: int = 0
     """Actions executed per inference (0: the checkpoint's Ta; fewer replans more often)."""
     inference_steps: int = 0

@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from bpp.benchmarks.contract import Benchmark, RolloutResult
-from bpp.data.contexts import task_context
+from bpp.data.contexts import prompt_steps, task_context
 from bpp.data.store import EpisodeStore
 
 
@@ -19,7 +19,12 @@ def run_prompted(
     :func:`~bpp.data.contexts.task_context`, as in training) and seeded by its ``seed``; the benchmark scores each
     against its ``target_episode``. Returns the results and, if the agent records attention, each rollout's
     attention over its inference calls ((calls, C) arrays; else None)."""
-    contexts = [task_context(store, int(p["prompt_episode"]), agent.data_spec, benchmark.frames) for p in plan]
+    contexts = []
+    for p in plan:
+        episode = int(p["prompt_episode"])
+        sl = store.episode_slice(episode)
+        steps = prompt_steps(sl.stop - sl.start, p.get("prompt_edit"), int(p["seed"]))
+        contexts.append(task_context(store, episode, agent.data_spec, benchmark.frames, steps=steps))
     agent.reset_batch(contexts, [int(p["seed"]) for p in plan])
     results = benchmark.run_rollouts(agent, store, plan, max_steps, record_frames)
     if not agent.attention_log:

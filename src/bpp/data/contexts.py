@@ -25,6 +25,28 @@ episode's observations from camera `key`; with ``last_only``, just the final obs
 :class:`bpp.benchmarks.contract.Benchmark`)."""
 
 
+PROMPT_EDITS = ("shuffled", "first-half")
+"""Evaluation's prompt controls that edit a rollout's own demonstration (see :func:`prompt_steps`)."""
+CONTROL_CHUNK = 10
+"""Steps per chunk that the shuffled control keeps together: the paper's prompt chunk (one second at 10 Hz)."""
+
+
+def prompt_steps(length: int, edit: str | None, seed: int) -> np.ndarray | None:
+    """The steps of a `length`-step demonstration that an `edit` control prompts with, in order (None: all of them,
+    unedited). shuffled: its whole chunks of :data:`CONTROL_CHUNK` steps in an order drawn from `seed`, a shorter
+    last chunk last; first-half: steps 0 .. ceil(length / 2) - 1."""
+    if edit is None:
+        return None
+    if edit == "first-half":
+        return np.arange(-(-length // 2))
+    if edit == "shuffled":
+        whole = length // CONTROL_CHUNK
+        order = np.random.default_rng([seed, length]).permutation(whole)
+        steps = (order[:, None] * CONTROL_CHUNK + np.arange(CONTROL_CHUNK)).reshape(-1)
+        return np.concatenate([steps, np.arange(whole * CONTROL_CHUNK, length)])
+    raise ValueError(f"unknown prompt edit {edit!r}; known: {', '.join(PROMPT_EDITS)}")
+
+
 def task_context(
     store: EpisodeStore,
     episode: int,
@@ -32,6 +54,7 @@ def task_context(
     frames: FrameSource | None = None,
     max_steps: int | None = None,
     obs_stride: int = 1,
+    steps: np.ndarray | None = None,
 ) -> dict:
     """The raw task context of kind ``spec.context`` from demonstration `episode` of `store`.
 
@@ -39,6 +62,9 @@ def task_context(
     demonstration prompt (training does, to the model's limit; evaluation passes whole prompts to validation);
     with `obs_stride` k > 1 a demonstration's observations are those of steps 0, k, 2k, ... only, and the context
     says so (``"obs_stride": k``; training's batches, for a method whose ``spec.context_obs_stride`` is k).
+    `steps` (episode-relative indices, in the order wanted) edits the demonstration first, as evaluation's prompt
+    controls do (:func:`prompt_steps`): a demonstration context is made of those steps, a goal image is the frame
+    of the latest of them; an instruction is unaffected.
     """
     kind = spec.context
     if kind == "instruction":
@@ -47,6 +73,8 @@ def task_context(
     needs = spec.image_keys if kind == "demo" else (spec.context_image_key,)
     if needs and frames is None:
         raise UserError(f"{store.path}: benchmark {store.benchmark!r} provides no image observations")
+    if steps is not None:
+        return _edited_context(store, episode, spec, frames, np.asarray(steps, dtype=np.int64))
     if kind == "goal_image":
         return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, last_only=True)[0]}
     sl = store.episode_slice(episode)
@@ -63,6 +91,20 @@ def task_context(
     if obs_stride > 1:
         context["obs_stride"] = obs_stride
     return context
+
+
+def _edited_context(store: EpisodeStore, episode: int, spec: DataSpec, frames, steps: np.ndarray) -> dict:
+    """:func:`task_context` of demonstration `episode` made of its steps `steps` (a goal image: the latest one's)."""
+    sl = store.episode_slice(episode)
+    if not len(steps) or steps.min() < 0 or steps.max() >= sl.stop - sl.start:
+        raise ValueError(f"prompt steps must be a non-empty selection of the episode's {sl.stop - sl.start} steps")
+    if spec.context == "goal_image":
+        latest = [int(steps.max())]  # a goal has no order: shuffled chunks keep the demonstration's goal
+        return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, steps=latest)[0]}
+    obs = {key: store.array(key)[sl.start + steps] for key in spec.lowdim_keys}
+    for key in spec.image_keys:
+        obs[key] = frames(store, episode, key, spec.image_size, steps=steps)
+    return {"obs": obs, "action": store.array(spec.action_key)[sl.start + steps]}
 
 
 def batch_context(kind: str, context: Mapping) -> dict:

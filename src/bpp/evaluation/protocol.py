@@ -6,14 +6,18 @@ a robot-side client (:mod:`bpp.serve.robot`) runs the same protocol against a po
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
 from bpp.benchmarks.contract import Benchmark, Metric, RolloutResult
+from bpp.data.contexts import PROMPT_EDITS
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.utils import check_fields
+
+PromptChoice = Literal["own", "other-task", "shuffled", "first-half"]
+PROMPT_CHOICES: tuple[str, ...] = get_args(PromptChoice)
 
 
 @dataclass(frozen=True)
@@ -25,9 +29,14 @@ class Protocol:
     seed: int = 0
     max_steps: int = 0
     """Rollout length limit (0: the benchmark's own)."""
-    prompts: Literal["own", "other-task"] = "own"
-    """own: the paper's protocol. other-task: a control; rollout r of task t (of n) is prompted with demonstration
-    r mod (its demos) of task (t + 1 + r mod (n - 1)) mod n, never t itself, and scored against t's own."""
+    prompts: PromptChoice = "own"
+    """own: the paper's protocol. The controls, each scored against the task's own drawing or goal as usual:
+    other-task: rollout r of task t (of n) is prompted with demonstration r mod (its demos) of task
+    (t + 1 + r mod (n - 1)) mod n, never t itself; shuffled: with its own demonstration whose whole chunks of
+    :data:`~bpp.data.contexts.CONTROL_CHUNK` steps are put in a random order (a shorter last chunk stays last);
+    first-half: with the first half of its own demonstration's steps. A method whose context is not a
+    demonstration (an instruction) gets its usual context under shuffled and first-half; a goal image is the frame
+    of the edited demonstration's latest step (under shuffled, its usual goal)."""
     n_action_steps: int = 0
     """Actions executed per inference (0: the checkpoint's Ta)."""
     inference_steps: int = 0
@@ -39,7 +48,7 @@ class Protocol:
             ("rollouts", self.rollouts >= 1, ">= 1"),
             ("seed", self.seed >= 0, ">= 0"),
             ("max_steps", self.max_steps >= 0, ">= 0 (0: the benchmark's)"),
-            ("prompts", self.prompts in ("own", "other-task"), "'own' or 'other-task'"),
+            ("prompts", self.prompts in PROMPT_CHOICES, f"one of {', '.join(PROMPT_CHOICES)}"),
             ("n_action_steps", self.n_action_steps >= 0, ">= 0 (0: the checkpoint's)"),
             ("inference_steps", self.inference_steps >= 0, ">= 0 (0: the checkpoint's)"),
         )
@@ -66,15 +75,11 @@ class Protocol:
             conditions = benchmark.rollout_conditions(rng)
             clash = set(conditions) & {"rollout", "target_episode", "prompt_episode", "seed"}
             assert not clash, f"{benchmark.name}: rollout conditions {sorted(clash)} shadow the protocol's own fields"
-            plan.append(
-                {
-                    "rollout": r,
-                    "target_episode": target,
-                    "prompt_episode": prompt,
-                    **conditions,
-                    "seed": int(rng.integers(2**31)),
-                }
-            )
+            row = {"rollout": r, "target_episode": target, "prompt_episode": prompt, **conditions}
+            row["seed"] = int(rng.integers(2**31))
+            if self.prompts in PROMPT_EDITS:
+                row["prompt_edit"] = self.prompts
+            plan.append(row)
         return plan
 
 
