@@ -39,9 +39,9 @@ class SinusoidalEmbedding(nn.Module):
 
 class _CpuMish(torch.autograd.Function):
     """Mish with its derivative, each from a handful of vectorised operations: ``tanh(softplus(x))`` written as
-    ``n / (n + 2)`` with ``n = e^x (e^x + 2)``. On a CPU, torch's own ``mish`` and its backward are slower at the
-    decoder's sizes (BENCHMARKS.md, "CPU training speed"); the values agree to within float32 rounding. On a GPU,
-    and inside ``torch.compile``, which fuses it, torch's own is used."""
+    ``n / (n + 2)`` with ``n = e^x (e^x + 2)``. On a CPU, torch's own ``mish`` and its backward run slower than these
+    few vectorised passes at the decoder's sizes; the values agree to within float32 rounding. On a GPU, and inside
+    ``torch.compile``, which fuses it, torch's own is used."""
 
     @staticmethod
     def forward(ctx, x: torch.Tensor) -> torch.Tensor:
