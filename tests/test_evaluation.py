@@ -291,3 +291,20 @@ def test_a_task_set_made_for_an_evaluation_uses_its_workers(debug_store, tmp_pat
     monkeypatch.setattr(draw_dataset, "generate", lambda *a, **k: asked.append(a[2]) or generate(*a, **k))
     resolve_tasks("human", Checkpoint.load(run), data_dir=tmp_path / "data", workers=workers)
     assert asked == [workers]
+
+
+@pytest.mark.parametrize("rows", [1, 17])
+def test_a_grid_s_title_clears_its_first_row_of_captions(rows, tmp_path, monkeypatch):
+    import bpp.media as media
+
+    kept = {}
+    monkeypatch.setattr(media, "save_figure", lambda fig, path, dpi: kept.setdefault("fig", fig) and path)
+    image = np.full((32, 32, 3), 200, np.uint8)
+    captions = [f"drawing {i}\nboard +12°: 18.84 px" for i in range(6 * rows)]
+    media.contact_sheet([image] * len(captions), captions, tmp_path / "grid.png", columns=6, title="a report's title")
+    fig = kept["fig"]
+    renderer = fig.canvas.get_renderer()
+    title = fig._suptitle.get_window_extent(renderer)
+    first_row = [ax.title.get_window_extent(renderer) for ax in fig.axes[:6]]
+    assert all(title.y0 > caption.y1 for caption in first_row)  # display coordinates: y grows upwards
+    assert title.y1 <= fig.bbox.y1  # and it is on the page

@@ -88,7 +88,8 @@ def contact_sheet(
     for ax, image, name in zip(axes.flat, images, titles, strict=False):
         ax.imshow(image)
         ax.set_title(name, fontsize=7)
-    if title:
-        fig.suptitle(title, fontsize=11)
-    fig.tight_layout(rect=(0, 0, 1, 1 - 0.35 / fig.get_figheight()) if title else None)
+    height = fig.get_figheight()
+    if title:  # placed and given room in inches: a figure fraction would grow with the rows and cover the first
+        fig.suptitle(title, fontsize=11, y=1 - 0.08 / height, va="top")
+    fig.tight_layout(rect=(0, 0, 1, 1 - 0.42 / height) if title else None)
     return save_figure(fig, path, dpi=110)
