@@ -355,3 +355,33 @@ def test_damaged_store_tables_and_missing_episodes_name_the_store(tmp_path, debu
         EpisodeStore(store)
     with pytest.raises(IndexError, match=f"{debug_store.path}: episode 99999 out of range"):
         debug_store.episode(99999)
+
+
+@pytest.mark.parametrize(
+    ("device", "said"),
+    [
+        ("potato", "not a device; expected auto, cpu, cuda or cuda:N"),
+        ("mps", "bpp runs on cpu or cuda"),
+        ("cuda:99", "CUDA GPU"),
+    ],
+)
+def test_a_device_this_machine_lacks_is_refused_before_any_work(debug_store, tmp_path, device, said):
+    import torch
+
+    from bpp.errors import UserError
+
+    if device.startswith("cuda") and torch.cuda.device_count() > 99:
+        pytest.skip("a machine with 100 GPUs")
+    cfg = TrainConfig(data=debug_store.path, out=tmp_path / "run", method="bpp", steps=1, batch_size=4, device=device)
+    with pytest.raises(UserError, match=f"--device {device}.*{said}"):
+        train(cfg, config("bpp"), progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_device_auto_and_cpu_resolve_to_a_device_torch_has():
+    import torch
+
+    from bpp.utils import resolve_device
+
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")

@@ -29,7 +29,7 @@ from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
-from bpp.utils import check_fields, read_json, to_dict, to_torch, usable_cores, write_json_atomic
+from bpp.utils import check_fields, read_json, resolve_device, to_dict, to_torch, usable_cores, write_json_atomic
 
 CompileMode = Literal["off", "default", "reduce-overhead", "max-autotune-no-cudagraphs", "cudagraphs"]
 """``torch.compile``'s modes that suit training; ``cudagraphs``, its backend that records the captured graphs as CUDA
@@ -155,9 +155,7 @@ def _setup_distributed(requested: str) -> tuple[int, int, torch.device]:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local = int(os.environ.get("LOCAL_RANK", "0"))
-    if requested == "auto":
-        requested = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(requested)
+    device = resolve_device(requested)
     if device.type == "cuda" and world > 1:
         device = torch.device("cuda", local)
         torch.cuda.set_device(device)

@@ -371,3 +371,25 @@ def to_torch(batch: Any, device: torch.device | str) -> Any:
             batch = batch.float()
         return batch.to(device, non_blocking=True)
     return batch
+
+
+def resolve_device(requested: str) -> torch.device:
+    """The torch device a ``--device`` value names: auto (CUDA if this machine has it, else the CPU), cpu, cuda or
+    cuda:N. A name torch does not know, or a GPU this machine does not have, is a UserError naming the choices."""
+    import torch  # heavy: only the commands that build a model get here
+
+    if requested == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        device = torch.device(requested)
+    except (RuntimeError, ValueError, TypeError):
+        raise UserError(f"--device {requested}: not a device; expected auto, cpu, cuda or cuda:N") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if not count:
+            raise UserError(f"--device {requested}: this machine has no CUDA GPU that torch can use; use cpu or auto")
+        if device.index is not None and device.index >= count:
+            raise UserError(f"--device {requested}: this machine has {count} CUDA GPU(s), cuda:0 to cuda:{count - 1}")
+    elif device.type != "cpu":
+        raise UserError(f"--device {requested}: bpp runs on cpu or cuda; expected auto, cpu, cuda or cuda:N")
+    return device

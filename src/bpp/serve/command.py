@@ -12,7 +12,7 @@ from pathlib import Path
 import tyro
 
 from bpp.errors import UserError, require_extra
-from bpp.utils import check_fields
+from bpp.utils import check_fields, resolve_device
 
 TOKEN_ENV = "BPP_SERVE_TOKEN"
 
@@ -85,6 +85,7 @@ def build_server(
     from bpp.serve.prompts import PromptLibrary
     from bpp.serve.server import PolicyServer, ServerLimits
 
+    device = resolve_device(device)  # before the checkpoint: a bad --device is the first thing said
     ckpt = Checkpoint.load(run, use_ema=True)
     model = ckpt.build_model(device)
     if inference_steps:
