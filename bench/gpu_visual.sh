@@ -4,6 +4,7 @@
 # call on a GPU machine; the table, the chart, the results and each process's log are written under $OUT (7 files);
 # the evaluations' pictures and videos stay under /tmp/gpu-visual.
 #
+#   bash bench/gpu_wheels.sh                                   # first, here: the packages a bare GPU image lacks
 #   bash bench/gpu_visual.sh                                   # on the GPU machine: at most 9 minutes
 #   OUT=outputs/gpu-visual-small SMALL=1 bash bench/gpu_visual.sh    # here, on a CPU: the same steps at toy sizes
 #
