@@ -1,4 +1,4 @@
-"""The paper's six DrawAnything ablations at CPU scale, as one figure and one table (issue 19).
+"""The paper's six DrawAnything ablations at CPU scale, as one figure and one table.
 
     OMP_NUM_THREADS=1 python bench/draw_ablations.py --prepare-only          # generate every store once
     OMP_NUM_THREADS=1 python bench/draw_ablations.py --lane 0 --lanes 2 &    # two one-thread lanes on 2 cores

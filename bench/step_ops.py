@@ -41,7 +41,7 @@ from bpp.utils import to_torch
 from common import step_flops
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64"), "cpu-state": ("cpu", "board")}
-TARGETS = {"paper": 2000, "cpu-image": 10000}  # issue 17's end-to-end goals on one GPU, samples/s
+TARGETS = {"paper": 2000, "cpu-image": 10000}  # the end-to-end targets on one GPU, samples/s
 
 
 class OpCounter(TorchDispatchMode):

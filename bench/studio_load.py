@@ -1,4 +1,4 @@
-"""A bounded load test of the studio on loopback: N concurrent clients for D seconds (issue 18).
+"""A bounded load test of the studio on loopback: N concurrent clients for D seconds.
 
     python bench/studio_load.py --clients 20 --seconds 60 [--run runs/demo-bpp]
 

@@ -88,7 +88,7 @@ def test_batches_of_references_render_to_the_batches_of_frames(debug_store, tabl
 
 
 @pytest.mark.parametrize("method", ["bpp", "goal_image"])
-def test_a_camera_the_table_does_not_draw_is_refused_not_drawn_wrong(debug_store, table, method):
+def test_a_camera_the_table_cannot_render_is_refused(debug_store, table, method):
     fields = {"obs": replace(IMAGE_OBS, image_keys=("board_image",))}
     if method == "goal_image":
         fields.update(goal_camera="board_image", goal_image_size=IMAGE_OBS.image_size)

@@ -1,1 +1,2 @@
-"""LIBERO-Gen (in progress, issue 16): procedural task suites on LIBERO. So far: the task layer (suites.py)."""
+"""LIBERO-Gen: the Combination and Chain task suites on LIBERO, their scripted demonstrations, stores, rollouts and
+LIBERO's own suites."""
