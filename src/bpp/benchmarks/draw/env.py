@@ -207,7 +207,7 @@ class DrawEnv(gym.Env):
             self.ink_px += float(np.linalg.norm(self.positions[-1] - self.positions[-2]))
             self.paths.append(path)
             for camera, renderer in self.renderers.items():
-                renderer.add_ink(path if camera == "image" else upright_points(path, self.board_angle))
+                renderer.add_ink(self._seen_by(camera, path))
             if self._video is not None:
                 self._video.add_ink(path)
             if self.tracker is not None:
@@ -235,9 +235,12 @@ class DrawEnv(gym.Env):
             "ink_length": np.array([self.ink_px / BOARD_SIZE], dtype=np.float32),
         }
         for camera, renderer in self.renderers.items():
-            cursor = self.state[:2] if camera == "image" else upright_points(self.state[:2], self.board_angle)
-            obs[camera] = renderer.frame(cursor)
+            obs[camera] = renderer.frame(self._seen_by(camera, self.state[:2]))
         return obs
+
+    def _seen_by(self, camera: str, points: np.ndarray) -> np.ndarray:
+        """Canvas points as `camera` draws them: as they are for the canvas camera, turned upright for the board's."""
+        return points if camera == "image" else upright_points(points, self.board_angle)
 
     def _info(self) -> dict[str, Any]:
         info: dict[str, Any] = {"state": self.state.copy(), "board_angle": self.board_angle, "steps": self.steps}
