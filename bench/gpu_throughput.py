@@ -60,7 +60,8 @@ from bpp.data.store import EpisodeStore
 from bpp.nn.norm import GroupNorm
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
-from bpp.train import COMPILE_MODES, TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
+from bpp.train import TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
+from bpp.train_config import COMPILE_MODES
 from bpp.utils import to_torch, usable_cores
 from common import step_flops, train_subprocess
 

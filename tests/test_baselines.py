@@ -11,8 +11,8 @@ from bpp.benchmarks.draw.procedural import describe_parts
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.goal_image import GoalImageModel
-from bpp.policies.language import LanguageModel
+from bpp.policies.goal_image.model import GoalImageModel
+from bpp.policies.language.model import LanguageModel
 from bpp.policies.registry import get_method
 from bpp.policies.validation import ContextError
 from bpp.train import TrainConfig, train

@@ -31,6 +31,25 @@ def test_help_lists_commands():
     assert _refused("frobnicate") == "2"
 
 
+@pytest.mark.parametrize("group", ["iphumi", "lerobot", "libero", "draw", "store"])
+def test_a_group_alone_lists_its_commands(group, capsys):
+    """`bpp iphumi` (or `bpp iphumi --help`) lists the group's commands and succeeds; an unknown command of the group
+    is refused with the same list."""
+    for argv in ([group], [group, "--help"]):
+        main(argv)
+        out = capsys.readouterr().out
+        listed = [line.split()[1] for line in out.splitlines() if line.startswith("  bpp ")]
+        assert out.startswith(f"usage: bpp {group} <command>") and listed and set(listed) == {group}, out
+    assert _refused(group, "frobnicate") == "2"
+    assert f"bpp {group} " in capsys.readouterr().err
+
+
+def test_a_group_alone_succeeds_in_a_process():
+    out = _bpp("iphumi")
+    assert out.returncode == 0, out.stderr
+    assert "bpp iphumi process" in out.stdout and "bpp draw" not in out.stdout
+
+
 @pytest.mark.slow
 def test_generate_sheet_video_info(tmp_path, capsys):
     store = tmp_path / "d.zarr"

@@ -14,7 +14,7 @@ from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.data.contexts import CONTROL_CHUNK, prompt_steps, task_context
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.bpp import BPPModel
+from bpp.policies.bpp.model import BPPModel
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from helpers import config, rollout_batch
@@ -191,7 +191,7 @@ def test_an_interrupted_evaluation_resumes_with_the_tasks_it_had_finished(debug_
 
 @pytest.mark.slow
 def test_agent_overrides_set_denoising_steps_and_replanning(debug_store, tmp_path, capsys):
-    from bpp.policies.icrt import ICRTModel
+    from bpp.policies.icrt.model import ICRTModel
 
     model = BPPModel(config("bpp"), debug_store.stats).eval()
     calls = []

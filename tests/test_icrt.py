@@ -6,8 +6,7 @@ import torch
 
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.icrt import ICRTModel
-from bpp.policies.icrt.model import PROMPT, ROLLOUT
+from bpp.policies.icrt.model import PROMPT, ROLLOUT, ICRTModel
 from bpp.policies.model import count_parameters
 from bpp.policies.validation import PromptError
 from bpp.train import TrainConfig, train

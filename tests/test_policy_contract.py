@@ -8,10 +8,10 @@ import torch
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.policies.agent import PolicyAgent
-from bpp.policies.bpp import BPPModel
 from bpp.policies.bpp.config import BPPConfig, PromptConfig
+from bpp.policies.bpp.model import BPPModel
 from bpp.policies.config import DEBUG_DIFFUSION, ObsConfig
-from bpp.policies.icrt import ICRTModel
+from bpp.policies.icrt.model import ICRTModel
 from bpp.policies.normalizer import Normalizer
 from bpp.policies.registry import METHODS, PolicyModelContract, get_method
 from helpers import KEYS, config, prompt_from_store

@@ -27,11 +27,11 @@ from bpp.benchmarks.registry import (
 )
 from bpp.errors import UserError, raise_interrupted
 from bpp.evaluation.protocol import PromptChoice
-from bpp.executor import make_executor
+from bpp.executor import check_executor_flags, make_executor
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
-from bpp.train import TrainConfig
+from bpp.train_config import TrainConfig
 from bpp.utils import check_fields
 
 # ----------------------------------------------------------------------------- bpp <benchmark> generate
@@ -57,7 +57,7 @@ class Generate:
     data: Any = None
 
     def __post_init__(self):
-        make_executor(self.executor, self.workers, self.ray_address)  # checks the three flags together
+        check_executor_flags(self.executor, self.workers, self.ray_address)  # a cluster is reached when it runs
 
 
 def _generate_class(benchmark) -> type:
@@ -274,7 +274,7 @@ class Eval:
             ("workers", self.workers >= 0, ">= 0 (0: one per core)"),
             ("videos", self.videos >= 0, ">= 0"),
         )
-        make_executor(self.executor, self.workers, self.ray_address)
+        check_executor_flags(self.executor, self.workers, self.ray_address)  # a cluster is reached when it runs
 
 
 def eval_cmd(args: Eval) -> None:
@@ -378,23 +378,30 @@ def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | N
     return None
 
 
-def _usage() -> str:
-    lines = ["usage: bpp <command> [--help]", "", "commands:"]
-
-    def line(words, cls):
-        summary = (cls.__doc__ or "").strip().splitlines()[0]
-        lines.append(f"  bpp {' '.join(words):16s} {summary}")
-
-    for words, (cls, _) in COMMANDS.items():
-        line(words, cls)
+def _command_classes() -> list[tuple[tuple[str, ...], type]]:
+    """Every command's words and class, in the order ``bpp --help`` lists them."""
+    found = [(words, cls) for words, (cls, _) in COMMANDS.items()]
     main_job = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))
-    line(("demo",), main_job["demo"][0])
-    line(("studio",), main_job["studio"][0])
+    found += [(("demo",), main_job["demo"][0]), (("studio",), main_job["studio"][0])]
     for name in benchmark_names():
         benchmark = get_benchmark(name)
-        line((benchmark.command, "generate"), _generate_class(benchmark))
-        for command, (cls, _) in benchmark_commands(benchmark).items():
-            line((benchmark.command, command), cls)
+        found.append(((benchmark.command, "generate"), _generate_class(benchmark)))
+        found += [((benchmark.command, command), cls) for command, (cls, _) in benchmark_commands(benchmark).items()]
+    return found
+
+
+def _groups() -> set[str]:
+    """The first words of the commands that take a second (``store``, each benchmark's group)."""
+    return {words[0] for words, _ in _command_classes() if len(words) > 1}
+
+
+def _usage(group: str = "") -> str:
+    """The list of commands: all of them, or those of `group` (``bpp store``, a benchmark's group)."""
+    lines = [f"usage: bpp {group + ' ' if group else ''}<command> [--help]", "", "commands:"]
+    for words, cls in _command_classes():
+        if not group or words[0] == group:
+            summary = (cls.__doc__ or "").strip().splitlines()[0]
+            lines.append(f"  bpp {' '.join(words):16s} {summary}")
     return "\n".join(lines)
 
 
@@ -410,8 +417,12 @@ def main(argv: list[str] | None = None) -> None:
     try:
         found = _resolve(argv)
         if found is None:
-            print(_usage(), file=sys.stderr if argv and argv[0] not in ("-h", "--help") else sys.stdout)
-            if argv and argv[0] not in ("-h", "--help"):
+            # A group alone or asked for help (`bpp`, `bpp --help`, `bpp store`, `bpp store --help`) lists its
+            # commands; anything else is unknown: the list, to stderr, and the status 2.
+            group = argv[0] if argv and argv[0] in _groups() else ""
+            asked = (argv[1:] if group else argv) in ([], ["-h"], ["--help"])
+            print(_usage(group), file=sys.stdout if asked else sys.stderr)
+            if not asked:
                 sys.exit(2)
             return
         words, cls, run, default = found

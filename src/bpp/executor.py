@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import importlib.util
 import io
 import multiprocessing as mp
 import os
@@ -35,7 +36,7 @@ from typing import Any
 from bpp.errors import UserError
 from bpp.utils import usable_cores, worker_pool
 
-__all__ = ["Executor", "Local", "Ray", "SharedFolder", "as_executor", "make_executor"]
+__all__ = ["Executor", "Local", "Ray", "SharedFolder", "as_executor", "check_executor_flags", "make_executor"]
 
 
 class Executor:
@@ -197,11 +198,14 @@ def _check_reachable(address: str, timeout: float = 10.0) -> None:
         raise UserError(f"--ray-address {address}: cannot reach a Ray cluster there ({err})") from None
 
 
+RAY_MISSING = "--executor ray needs Ray: pip install 'bpp[ray]'"
+
+
 def _import_ray():
     try:
         import ray
     except ImportError:
-        raise UserError("--executor ray needs Ray: pip install 'bpp[ray]'") from None
+        raise UserError(RAY_MISSING) from None
     return ray
 
 
@@ -293,16 +297,27 @@ def as_executor(workers: int | Executor) -> Executor:
     return workers if isinstance(workers, Executor) else Local(int(workers))
 
 
-def make_executor(kind: str, workers: int = 0, ray_address: str = "") -> Executor:
-    """The executor of the command-line flags ``--executor``, ``--workers`` and ``--ray-address``."""
+def check_executor_flags(kind: str, workers: int = 0, ray_address: str = "") -> None:
+    """Check the command-line flags ``--executor``, ``--workers`` and ``--ray-address`` together, as parsing them
+    does: without importing Ray or contacting a cluster (:func:`make_executor` does both, when the command runs)."""
     if kind == "local":
         if ray_address:
             raise UserError("--ray-address needs --executor ray")
-        return Local(workers)
-    if kind == "ray":
+    elif kind == "ray":
         if workers:
             raise UserError("--workers is for --executor local; a Ray cluster runs a job per CPU it has")
-        _import_ray()
-        _check_reachable(ray_address)
-        return Ray(ray_address)
-    raise UserError(f"--executor {kind!r}: expected local or ray")
+        if importlib.util.find_spec("ray") is None:
+            raise UserError(RAY_MISSING)
+    else:
+        raise UserError(f"--executor {kind!r}: expected local or ray")
+
+
+def make_executor(kind: str, workers: int = 0, ray_address: str = "") -> Executor:
+    """The executor of the command-line flags ``--executor``, ``--workers`` and ``--ray-address``; a Ray cluster's
+    address is checked to answer (a UserError otherwise)."""
+    check_executor_flags(kind, workers, ray_address)
+    if kind == "local":
+        return Local(workers)
+    _import_ray()
+    _check_reachable(ray_address)
+    return Ray(ray_address)

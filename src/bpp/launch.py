@@ -1,8 +1,8 @@
 """The ``bpp`` program's entry point, light enough to take Ctrl-C and SIGTERM from its first moment.
 
-The command line imports torch and every benchmark, which takes seconds; a signal during those seconds would
-otherwise end the program with an import's traceback (Ctrl-C) or without a word (SIGTERM). Here both end it as they
-do later: one line and the status 128 + the signal's number.
+The command line imports every benchmark (and a command that builds a model, torch, when it runs), which takes up to
+seconds; a signal during those seconds would otherwise end the program with an import's traceback (Ctrl-C) or without
+a word (SIGTERM). Here both end it as they do later: one line and the status 128 + the signal's number.
 """
 
 from __future__ import annotations

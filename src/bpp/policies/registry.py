@@ -3,10 +3,12 @@
 Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`. A method's package exports
 ``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; a subclass of
 :class:`~bpp.policies.config.PolicyConfig`, or of :class:`~bpp.policies.config.ContextDiffusionConfig` for a method
-with the diffusion decoder, and with ``horizons``), ``Model`` (tensor-only;
-``Model(config, stats)``, satisfying :class:`PolicyModelContract`) and ``PRESETS`` (size name -> Config, at least
-``debug``, ``cpu`` and ``paper``). A size preset observes nothing yet: :meth:`Method.config` combines it with a
-benchmark's observation preset (keys, image size, action key).
+with the diffusion decoder, and with ``horizons``), ``PRESETS`` (size name -> Config, at least ``debug``, ``cpu`` and
+``paper``) and ``MODEL``, the ``module:class`` of its model (tensor-only; ``Model(config, stats)``, satisfying
+:class:`PolicyModelContract`). The package itself imports no torch, so that choosing a method and its configuration
+(``bpp train --help``) is quick; the model's module is imported when a model is built (:attr:`Method.model_cls`). A
+size preset observes nothing yet: :meth:`Method.config` combines it with a benchmark's observation preset (keys,
+image size, action key).
 """
 
 from __future__ import annotations
@@ -14,13 +16,14 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
-
-import torch
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from bpp.data.spec import ContextKind, DataSpec
 from bpp.errors import UserError
 from bpp.policies.config import with_observation
+
+if TYPE_CHECKING:  # annotations only: the model's module imports torch
+    import torch
 
 METHODS: dict[str, str] = {
     "bpp": "bpp.policies.bpp",
@@ -99,8 +102,15 @@ class PolicyModelContract(Protocol):
 class Method:
     name: str
     config_cls: type
-    model_cls: type
+    model: str
+    """``module:class`` of the model, imported by :attr:`model_cls`."""
     presets: dict[str, Any]
+
+    @property
+    def model_cls(self) -> type:
+        """The model class (importing it imports torch)."""
+        module, attr = self.model.split(":", 1)
+        return getattr(importlib.import_module(module), attr)
 
     def preset(self, name: str):
         """A size preset (observing nothing yet: see :meth:`config`)."""
@@ -124,4 +134,4 @@ def get_method(name: str) -> Method:
     if name not in METHODS:
         raise UserError(f"unknown method {name!r}; available: {', '.join(METHODS)}")
     module = importlib.import_module(METHODS[name])
-    return Method(name, module.Config, module.Model, module.PRESETS)
+    return Method(name, module.Config, module.MODEL, module.PRESETS)

@@ -1,8 +1,9 @@
 """ICRT (In-Context Robot Transformer): the prompt demonstration and the rollout in one causal transformer."""
 
 from bpp.policies.icrt.config import PRESETS, ICRTConfig
-from bpp.policies.icrt.model import ICRTModel
 
-Config, Model = ICRTConfig, ICRTModel
+Config = ICRTConfig
+MODEL = "bpp.policies.icrt.model:ICRTModel"
+"""The model's ``module:class``, imported only where a model is built (it imports torch)."""
 
-__all__ = ["PRESETS", "Config", "ICRTConfig", "ICRTModel", "Model"]
+__all__ = ["MODEL", "PRESETS", "Config", "ICRTConfig"]

@@ -1,8 +1,9 @@
 """Language baseline: the BPP action decoder conditioned on the observations and the task's instruction."""
 
 from bpp.policies.language.config import PRESETS, LanguageConfig
-from bpp.policies.language.model import LanguageModel
 
-Config, Model = LanguageConfig, LanguageModel
+Config = LanguageConfig
+MODEL = "bpp.policies.language.model:LanguageModel"
+"""The model's ``module:class``, imported only where a model is built (it imports torch)."""
 
-__all__ = ["PRESETS", "LanguageConfig", "LanguageModel", "Config", "Model"]
+__all__ = ["MODEL", "PRESETS", "Config", "LanguageConfig"]
