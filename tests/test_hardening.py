@@ -5,11 +5,15 @@ These test the library's checks; test_hardening_probes.py gives the same kinds o
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+import bpp.train
+from bpp.benchmarks.draw.dataset import PRESETS, generate
+from bpp.errors import UserError
 from bpp.train import TrainConfig, train
 from helpers import config
 
@@ -385,3 +389,17 @@ def test_the_device_auto_and_cpu_resolve_to_a_device_torch_has():
 
     assert resolve_device("cpu") == torch.device("cpu")
     assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def test_a_store_with_one_demonstration_per_task_is_refused_before_the_model_is_built(tmp_path, monkeypatch):
+    cfg = replace(PRESETS["debug"], num_tasks=3, demos_per_task=1)
+    store = generate(cfg, tmp_path / "single.zarr", workers=1, progress=False)
+
+    def built(*args, **kwargs):
+        raise AssertionError("the model was built before the store was checked")
+
+    monkeypatch.setattr(bpp.train, "build_training", built)
+    run = TrainConfig(data=store.path, out=tmp_path / "run", method="bpp", steps=1, batch_size=4)
+    with pytest.raises(UserError, match="the most any task has is 1.*--demos-per-task 2"):
+        train(run, config("bpp"), progress=False)
+    assert not (tmp_path / "run").exists()

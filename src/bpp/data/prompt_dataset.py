@@ -70,6 +70,22 @@ class ArrayCache:
         self.__init__(state["budget"])
 
 
+def trainable_tasks(store: EpisodeStore, tasks: Sequence[int] | None = None) -> list[int]:
+    """The tasks of `store` (of `tasks`, default all) that training can use: those with at least two
+    demonstrations, one to prompt with and another to imitate. Raises :class:`UserError` when there are none, so that
+    a command can refuse a store before it builds or loads anything."""
+    by_task = store.task_episodes()
+    chosen = range(len(by_task)) if tasks is None else tasks
+    usable = [t for t in chosen if len(by_task[t]) >= 2]
+    if not usable:
+        most = max((len(by_task[t]) for t in chosen), default=0)
+        raise UserError(
+            f"{store.path}: no task has the two demonstrations training needs (one is the prompt, another is "
+            f"imitated; the most any task has is {most}): generate at least 2 per task (--demos-per-task 2)"
+        )
+    return usable
+
+
 class PromptBatchDataset(torch.utils.data.Dataset):
     """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "context_index": (B,),
     "task": (G,)}`` (numpy).
@@ -137,12 +153,8 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         if pad_to_multiple < 0:
             raise UserError(f"pad_to_multiple must be >= 0 (0: pad to the longest only), got {pad_to_multiple}")
         self.pad_to_multiple = pad_to_multiple
-        by_task = self.store.task_episodes()
-        chosen = range(len(by_task)) if tasks is None else tasks
-        self.tasks = [t for t in chosen if len(by_task[t]) >= 2]
-        if not self.tasks:
-            raise UserError(f"{self.store.path}: no task has the two demonstrations training needs")
-        self.task_episodes = by_task
+        self.tasks = trainable_tasks(self.store, tasks)
+        self.task_episodes = self.store.task_episodes()
         self.starts, self.ends = self.store.episode_starts, self.store.episode_ends
         self._arrays: dict[str, np.ndarray] | None = None
         self._frame_cache = ArrayCache(frame_cache_bytes)  # all frames of episodes, by (episode, camera, size)
