@@ -181,6 +181,17 @@ def test_executor_flags_are_checked_before_anything_runs(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
 
 
+def test_a_ray_address_from_the_environment_that_nothing_answers_is_refused_at_once(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    started = time.monotonic()
+    with pytest.raises(SystemExit) as exited:
+        main(["draw", "generate", "--preset", "debug", "--out", str(tmp_path / "x.zarr"), "--executor", "ray"])
+    said = " ".join(f"{exited.value.code} {capsys.readouterr().err}".split())
+    assert "RAY_ADDRESS=127.0.0.1:1" in said and "cannot reach a Ray cluster there" in said
+    assert time.monotonic() - started < 30
+    assert not list(tmp_path.iterdir())
+
+
 def test_the_local_executor_never_imports_ray(tmp_path):
     script = (
         "import sys\nfrom bpp.cli import main\n"

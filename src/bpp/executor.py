@@ -188,14 +188,19 @@ class Ray(Executor):
 
 
 def _check_reachable(address: str, timeout: float = 10.0) -> None:
-    """Refuse a ``host:port`` address nothing answers at, in seconds (Ray itself retries for minutes)."""
+    """Refuse a ``host:port`` address nothing answers at, in seconds (Ray itself retries for minutes). An empty
+    `address` is ``RAY_ADDRESS``'s, if set, which Ray would use: it is checked the same way and named as such."""
+    named = f"--ray-address {address}"
+    if not address and os.environ.get("RAY_ADDRESS", "").strip():
+        address = os.environ["RAY_ADDRESS"].strip()
+        named = f"RAY_ADDRESS={address} (the environment's, as no --ray-address was given)"
     host, _, port = address.rpartition(":")
     if not host or not port.isdigit() or "://" in address:
         return  # "", "auto" or a ray:// client address: left to Ray
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()
     except OSError as err:
-        raise UserError(f"--ray-address {address}: cannot reach a Ray cluster there ({err})") from None
+        raise UserError(f"{named}: cannot reach a Ray cluster there ({err})") from None
 
 
 RAY_MISSING = "--executor ray needs Ray: pip install 'bpp[ray]'"
