@@ -500,3 +500,9 @@ def test_exported_files_import_back_with_the_observations_a_rollout_sees(store, 
     angles = [i for part in ("joint_pos", "eef_pos", "eef_quat") for i in dataset.PROPRIO_LAYOUT[part]]
     assert moved[:, angles].max() < 1e-5 and moved.max() < 5e-3, moved.max(0)
     assert np.abs(near["object_state"] - steps["object_state"]).max() < 1e-2
+
+
+def test_the_score_users_read_says_a_chain_s_steps_must_come_in_order():
+    said = " ".join(BENCHMARK.metric.description.split())
+    assert "Chain task's two steps must be done in their order" in said
+    assert "final_goal" in said and "first_step" in said

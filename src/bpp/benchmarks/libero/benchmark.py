@@ -68,7 +68,11 @@ class LiberoGen:
         "success",
         lower_is_better=False,
         good_threshold=1.0,
-        description="1 if the task's goal predicates (LIBERO's own check) held at some step of the rollout, else 0",
+        description=(
+            "1 if the task's goal predicates (LIBERO's own check) held at some step of the rollout, else 0; a Chain "
+            "task's two steps must be done in their order (its final_goal column ignores the order, first_step "
+            "counts the first step alone)"
+        ),
     )
     max_steps = 550
     """The authors' step limit (ANCHORS.md)."""
