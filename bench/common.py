@@ -199,7 +199,12 @@ def main_job_flops_per_sample(store: Path, args) -> float:
     model_cfg = get_method("bpp").config(args.preset, args.obs, BENCHMARK)
     model = get_method("bpp").model_cls(model_cfg, opened.stats)
     dataset = PromptBatchDataset(
-        opened, model.data_spec(), batch_size=args.batch_size, num_batches=4, tasks_per_batch=args.tasks_per_batch
+        opened,
+        model.data_spec(),
+        frames=BENCHMARK.frames,
+        batch_size=args.batch_size,
+        num_batches=4,
+        tasks_per_batch=args.tasks_per_batch,
     )
     flops = [step_flops(model, to_torch(dataset[i], torch.device("cpu")), amp=False) for i in range(4)]
     return float(np.mean(flops)) / args.batch_size / 1e9

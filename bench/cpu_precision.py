@@ -71,7 +71,7 @@ def main() -> None:
     torch.manual_seed(0)
     model, ema, optimizer = build_training(cfg, get_method(args.method).model_cls(model_cfg, store.stats), cpu)
     dataset = PromptBatchDataset(
-        store, model.data_spec(), batch_size=args.batch_size, num_batches=args.steps + 3,
+        store, model.data_spec(), frames=BENCHMARK.frames, batch_size=args.batch_size, num_batches=args.steps + 3,
         tasks_per_batch=args.tasks_per_batch, frame_cache_bytes=2**31,
     )  # fmt: skip
     batches = [to_torch(dataset[i], cpu) for i in range(args.steps + 3)]

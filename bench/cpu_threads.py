@@ -27,7 +27,7 @@ a = json.loads(sys.argv[1])
 method = get_method("bpp")
 if hasattr(method, "config"):
     from bpp.data.store import EpisodeStore
-    from bpp.benchmarks.registry import get_benchmark
+    from bpp.core.registry import get_benchmark
 
     cfg = method.config(a["preset"], a["obs"], get_benchmark(EpisodeStore(a["data"]).benchmark))
 else:  # before presets were split into sizes and observations

@@ -144,7 +144,7 @@ def simulator(n: int, seed: int) -> None:
     from bpp.benchmarks.draw3d.canvas import canvas_in_base
     from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, random_pose
     from bpp.benchmarks.draw3d.scene import BOARD, HOME_QPOS, Scene, canvas_transform
-    from bpp.benchmarks.poses import invert, pose_to_vector
+    from bpp.core.poses import invert, pose_to_vector
 
     rng = np.random.default_rng(seed)
     scene = Scene(image_size=96)

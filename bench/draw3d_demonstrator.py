@@ -22,12 +22,12 @@ from collections import Counter
 
 import numpy as np
 
-from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
 from bpp.benchmarks.draw3d.canvas import CanvasNotFound, canvas_in_base, canvas_pose, pose_error
 from bpp.benchmarks.draw3d.dataset import ASIDE
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, pixels_to_mm, plan_drawing
 from bpp.benchmarks.draw3d.photo import photo_chamfer
 from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
+from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 
 
 def main() -> None:

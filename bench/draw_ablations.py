@@ -37,9 +37,9 @@ import numpy as np
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
-from bpp.benchmarks.draw.procedural import ProceduralConfig
 from bpp.checkpoint import Checkpoint
 from bpp.data.store import EpisodeStore, stored_with
+from bpp.drawing.procedural import ProceduralConfig
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.policies.registry import get_method

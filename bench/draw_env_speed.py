@@ -17,8 +17,8 @@ import numpy as np
 
 from bpp.benchmarks.draw.demonstrator import demonstrate, replay_paths
 from bpp.benchmarks.draw.env import DrawEnv
-from bpp.benchmarks.draw.geometry import canvas_to_upright
-from bpp.benchmarks.draw.human import human_drawings
+from bpp.drawing.geometry import canvas_to_upright
+from bpp.drawing.human import human_drawings
 
 
 def main() -> None:

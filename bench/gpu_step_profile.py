@@ -84,7 +84,10 @@ def profile(name: str, store: EpisodeStore, device: torch.device, small: bool, r
     cfg = TrainConfig(data=store.path, batch_size=batch_size)
     model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)
     model.train()
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=batch_size, seed=2)[0], device)
+    batch = to_torch(
+        PromptBatchDataset(store, model.data_spec(), frames=BENCHMARK.frames, batch_size=batch_size, seed=2)[0],
+        device,
+    )
     amp = uses_amp(cfg, device)
     steps = parts(model, ema, optimizer, batch, cfg, amp, device)
     issue = {n: [] for n, _ in steps}

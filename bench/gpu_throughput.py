@@ -50,9 +50,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.benchmarks.contract import device_frames
 from bpp.benchmarks.draw import dataset as draw_data
 from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.core.contract import device_frames
 from bpp.data.contexts import task_context
 from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
@@ -121,7 +121,13 @@ def loader_rate(store: EpisodeStore, spec, batch_size: int, batches: int, cache_
     """Samples/s of one loader process over `batches` batches after a first one (which loads the store's arrays);
     with `refs`, batches of frame references (``bpp train --frames-on device``), which render nothing."""
     data = PromptBatchDataset(
-        store, spec, batch_size=batch_size, seed=1, frame_cache_bytes=cache_bytes, frame_refs=refs
+        store,
+        spec,
+        frames=BENCHMARK.frames,
+        batch_size=batch_size,
+        seed=1,
+        frame_cache_bytes=cache_bytes,
+        frame_refs=refs,
     )
     data[0]
     t0 = time.perf_counter()
@@ -160,7 +166,14 @@ def pipeline_rate(
     batches = max(batches, 24 * workers)
     refs = renderer is not None
     data = PromptBatchDataset(
-        store, spec, batch_size=batch_size, num_batches=batches, seed=1, frame_cache_bytes=cache, frame_refs=refs
+        store,
+        spec,
+        frames=BENCHMARK.frames,
+        batch_size=batch_size,
+        num_batches=batches,
+        seed=1,
+        frame_cache_bytes=cache,
+        frame_refs=refs,
     )
     loader = batch_loader(data, range(batches), workers, pin_memory=device.type == "cuda")
     t0 = time.perf_counter()
@@ -189,7 +202,7 @@ def pipeline_rate(
 def device_render_rate(store: EpisodeStore, spec, batch_size: int, device: torch.device, batches: int, renderer):
     """Samples/s of `renderer` (:class:`bpp.benchmarks.draw.device_render.DrawFrameTable`) rendering batches' frames on
     `device` from references (``bpp train --frames-on device``), the batches built beforehand; after a first batch."""
-    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=1, frame_refs=True)
+    data = PromptBatchDataset(store, spec, frames=BENCHMARK.frames, batch_size=batch_size, seed=1, frame_refs=True)
     ready = [data[i] for i in range(batches + 1)]
     first = ready[0]
     frames = sum(first["obs"][k][..., 0].size for k in spec.image_keys)
@@ -259,7 +272,14 @@ def model_rate(
     model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)
     model.train()
     spec = model.data_spec()
-    data = PromptBatchDataset(store, spec, batch_size=batch_size, seed=2, pad_to_multiple=cfg.padding(spec))
+    data = PromptBatchDataset(
+        store,
+        spec,
+        frames=BENCHMARK.frames,
+        batch_size=batch_size,
+        seed=2,
+        pad_to_multiple=cfg.padding(spec),
+    )
     batch = to_torch(data[0], device)
     amp = uses_amp(cfg, device)
     net = compiled(cfg, model)

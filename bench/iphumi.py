@@ -26,7 +26,7 @@ import numpy as np
 from bpp.benchmarks.iphumi.pipeline import process_export
 from bpp.benchmarks.iphumi.process import ProcessSettings
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export
-from bpp.benchmarks.poses import invert, rotation_angle, vector_to_pose
+from bpp.core.poses import invert, rotation_angle, vector_to_pose
 
 
 def accuracy(root: Path, settings: SyntheticSettings, arms: tuple[str, ...]) -> dict:

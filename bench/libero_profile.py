@@ -222,8 +222,8 @@ def instrument(timer: PhaseTimer, env_class: type, rollout: bool) -> None:
     from robosuite.robots.single_arm import SingleArm
     from robosuite.utils.binding_utils import MjRenderContext, MjSim
 
-    from bpp.benchmarks import prompting
     from bpp.benchmarks.libero import dataset, demonstrator, rollouts, sim
+    from bpp.core import prompting
     from bpp.policies.agent import PolicyAgent
 
     for cls in env_class.__mro__:
@@ -574,7 +574,7 @@ def replay_anchor(env, store: EpisodeStore, episode: int, rounds: int, task=None
 
 
 def rollout_once(agent, store: EpisodeStore, plan, max_steps: int, record) -> int:
-    from bpp.benchmarks.prompting import run_prompted
+    from bpp.core.prompting import run_prompted
 
     results, _ = run_prompted(agent, BENCHMARK, store, plan, max_steps, record)
     return results[0].steps

@@ -23,8 +23,8 @@ from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.rollouts import observe, task_problem
 from bpp.benchmarks.libero.sim import make_env, reset_env
-from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
+from bpp.core.registry import get_benchmark
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
 from bpp.policies.agent import PolicyAgent

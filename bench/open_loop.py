@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
+from bpp.core.registry import get_benchmark
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore
 from bpp.policies.agent import PolicyAgent

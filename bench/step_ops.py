@@ -68,7 +68,10 @@ def count(name: str, store: EpisodeStore, method_name: str, amp: bool, top: int)
     model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), torch.device("cpu"))
     assert optimizer.defaults["fused"]  # as on a GPU: one operator for all tensors
     model.train()
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=4, seed=2)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(store, model.data_spec(), frames=BENCHMARK.frames, batch_size=4, seed=2)[0],
+        "cpu",
+    )
     generator = torch.Generator().manual_seed(0)
     parts, totals = {}, Counter()
 
@@ -120,7 +123,10 @@ def flop_budget(name: str, store: EpisodeStore, method_name: str) -> dict:
     torch.manual_seed(0)
     model = method.model_cls(model_cfg, store.stats)
     model.train()
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=8, seed=2)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(store, model.data_spec(), frames=BENCHMARK.frames, batch_size=8, seed=2)[0],
+        "cpu",
+    )
     whole, half = step_flops(model, batch, amp=False), step_flops(model, first_samples(batch, 4), amp=False)
     sample = (whole - half) / 4
     context = batch["context"]

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.draw.geometry import unit_to_canvas
-from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
 from bpp.benchmarks.draw.studio.engine import Studio
+from bpp.drawing.geometry import unit_to_canvas
+from bpp.drawing.metric import chamfer_distance, ink_mask
 
 HOUSE = [
     [[0.25, 0.2], [0.25, 0.55], [0.75, 0.55], [0.75, 0.2], [0.25, 0.2]],

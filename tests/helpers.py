@@ -13,10 +13,13 @@ import numpy as np
 import pytest
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
-from bpp.benchmarks.prompting import run_prompted
+from bpp.core.prompting import run_prompted
 from bpp.data.contexts import task_context
 from bpp.data.spec import DataSpec
 from bpp.policies.registry import get_method
+
+DRAW_FRAMES = BENCHMARK.frames
+"""DrawAnything's frame source (the ``frames`` a training dataset of a DrawAnything store renders its cameras with)."""
 
 OPTIONAL_PARTS = {
     "libero": (("libero", "robosuite", "h5py"), "the libero extra: pip install -e '.[libero]'"),

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from bpp.benchmarks.draw.dataset import DrawDataConfig, render_episode
-from bpp.benchmarks.draw.procedural import describe_parts
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.drawing.procedural import describe_parts
 from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.goal_image.model import GoalImageModel
@@ -17,7 +17,7 @@ from bpp.policies.registry import get_method
 from bpp.policies.validation import ContextError
 from bpp.train import TrainConfig, train
 from bpp.utils import from_dict, to_dict, to_torch
-from helpers import config, context_for, obs_config, rollout, rollout_batch
+from helpers import DRAW_FRAMES, config, context_for, obs_config, rollout, rollout_batch
 
 METHODS = ["goal_image", "language"]
 
@@ -146,7 +146,7 @@ def test_batched_rollouts_match_single_rollouts(method, store_for):
 def test_overfitting_one_batch_lowers_the_loss(method, store_for):
     store = store_for(method)
     model = _model(method, store)
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=16, seed=0)[0], "cpu")
+    batch = to_torch(PromptBatchDataset(store, model.data_spec(), frames=DRAW_FRAMES, batch_size=16, seed=0)[0], "cpu")
     optimizer = torch.optim.Adam(model.parameters(), lr=2e-3)
 
     def loss():  # the same noise and diffusion steps every time: a fixed regression problem
@@ -206,7 +206,7 @@ def test_language_is_not_offered_for_tasks_without_instructions(debug_store):
     with pytest.raises(ContextError, match="Language is not offered"):
         PolicyAgent(model).reset(context_for(model, debug_store, 0))
     with pytest.raises(ValueError, match="carry no instructions"):
-        PromptBatchDataset(debug_store, model.data_spec())
+        PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES)
 
 
 def test_instruction_encoding_ignores_padding(described_store):
@@ -226,7 +226,9 @@ def test_goal_images_are_the_prompts_final_frames(debug_store, observes_images):
         obs = obs_config(image_keys=("image",), image_size=32, image_widths=(8, 16), image_blocks=(1, 1))
         cfg = replace(cfg, obs=obs)
     spec = GoalImageModel(cfg, debug_store.stats).data_spec()
-    data = PromptBatchDataset(debug_store, spec, batch_size=4, seed=0, goal_cache_bytes=1)  # room for 1 frame
+    data = PromptBatchDataset(
+        debug_store, spec, frames=DRAW_FRAMES, batch_size=4, seed=0, goal_cache_bytes=1
+    )  # room for 1 frame
     for episode in (3, 20, 3):
         if observes_images:
             data._episode_frames(episode, "image", 32)  # as training windows would: the goal comes from these
@@ -244,7 +246,7 @@ def test_goal_image_with_image_observations_shares_the_camera_encoder(debug_stor
     assert not any(k.startswith("goal_encoder") for k in model.state_dict())  # the weights are stored once
     own = GoalImageModel(config("goal_image"), debug_store.stats)  # state-only: a goal encoder of its own
     assert any(k.startswith("goal_encoder") for k in own.state_dict())
-    batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=4, seed=0)[0]
+    batch = PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=4, seed=0)[0]
     assert batch["obs"]["image"].shape == (4, 2, 32, 32, 3) and batch["context"]["image"].shape == (1, 32, 32, 3)
     model.encode_context(to_torch(batch["context"], "cpu")).sum().backward()
     assert camera.stem[0].weight.grad.abs().sum() > 0  # the goal image trains the camera encoder

@@ -19,13 +19,13 @@ from bpp.policies.bpp.model import BPPModel, PromptError
 from bpp.policies.model import count_parameters
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
-from helpers import config, obs_config, prompt_from_store, rollout
+from helpers import DRAW_FRAMES, config, obs_config, prompt_from_store, rollout
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 
 
 def _dataset(store, **kw):
-    return PromptBatchDataset(store, DataSpec(lowdim_keys=tuple(KEYS), **kw), batch_size=8, seed=0)
+    return PromptBatchDataset(store, DataSpec(lowdim_keys=tuple(KEYS), **kw), frames=DRAW_FRAMES, batch_size=8, seed=0)
 
 
 def _model(store, cfg=None):
@@ -119,7 +119,7 @@ def test_prompt_encoded_once_per_rollout_and_prompt_encoder_once_per_call(debug_
         (lambda p: p.update(action=p["action"][:0]), "at least one chunk"),
         (lambda p: p.update(action=p["action"][:5]), "at least one chunk"),
         (lambda p: p["obs"].pop("agent_pos"), "lacks 'agent_pos'"),
-        (lambda p: p["obs"].update(agent_pos=p["obs"]["agent_pos"][:, :1]), r"must be \(steps, 2\)"),
+        (lambda p: p["obs"].update(agent_pos=p["obs"]["agent_pos"][:, :1]), r"must have shape \(steps, 2\)"),
         (lambda p: p["obs"]["board_pose"].__setitem__((3, 0), np.nan), "NaN"),
         (lambda p: p["action"].__setitem__((2, 1), np.inf), "NaN"),
         (lambda p: p.update(action=np.zeros((len(p["action"]), 7), np.float32)), r"shape \(steps, 3\)"),
@@ -339,6 +339,7 @@ def test_rendered_frames_are_cached_within_a_byte_budget(debug_store):
     ds = PromptBatchDataset(
         debug_store,
         DataSpec(lowdim_keys=tuple(KEYS), image_keys=("image",), image_size=16),
+        frames=DRAW_FRAMES,
         batch_size=8,
         seed=0,
         frame_cache_bytes=budget,

@@ -16,7 +16,7 @@ from bpp.policies.model import keep_eager
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
-from helpers import config
+from helpers import DRAW_FRAMES, config
 
 
 def _model(store, method: str, **overrides):
@@ -40,7 +40,9 @@ def test_padding_changes_no_loss(debug_store, method):
     spec = model.data_spec()
 
     def batch(pad: int) -> dict:
-        data = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, tasks_per_batch=2, pad_to_multiple=pad)
+        data = PromptBatchDataset(
+            debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, tasks_per_batch=2, pad_to_multiple=pad
+        )
         return data[0]
 
     plain, padded = batch(0), batch(64)
@@ -60,7 +62,7 @@ def test_padding_changes_no_loss(debug_store, method):
 
 def test_pad_to_multiple_must_not_be_negative(debug_store):
     with pytest.raises(ValueError, match="pad_to_multiple"):
-        PromptBatchDataset(debug_store, _model(debug_store, "bpp").data_spec(), pad_to_multiple=-1)
+        PromptBatchDataset(debug_store, _model(debug_store, "bpp").data_spec(), frames=DRAW_FRAMES, pad_to_multiple=-1)
 
 
 def test_auto_padding_is_off_eager_and_an_eighth_of_the_prompt_limit_compiled(debug_store, tmp_path):
@@ -86,7 +88,9 @@ def test_the_loss_is_one_graph_and_its_draws_are_the_generators(debug_store, met
     them all and masks the rest. With a context of 20 tokens the cut is real, and the two losses must agree."""
     model = _model(debug_store, method, **overrides).train()
     spec = model.data_spec()
-    batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=2, pad_to_multiple=100)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=2, pad_to_multiple=100)[0], "cpu"
+    )
     if method == "icrt":
         prompts = batch["context"]["valid"][batch.get("context_index", slice(None))]  # those the rollouts follow
         prompt_tokens = 2 * -(-prompts.sum(1).max() // model.cfg.chunk_len)
@@ -117,7 +121,10 @@ def test_the_compiled_loss_reads_only_the_model_and_the_batch(debug_store, descr
     factories without a device, and moves to a device."""
     store = described_store if method == "language" else debug_store
     model = _model(store, method).train()
-    batch = to_torch(PromptBatchDataset(store, model.data_spec(), batch_size=4, seed=2, pad_to_multiple=100)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(store, model.data_spec(), frames=DRAW_FRAMES, batch_size=4, seed=2, pad_to_multiple=100)[0],
+        "cpu",
+    )
     found = []
 
     def inspect(graph_module, example_inputs):
@@ -157,7 +164,9 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
     were the strings traced, each new instruction would be a constant of a new graph. Four batches of different
     instructions: one graph, and one more for a new token length (after which the length is a dynamic dimension)."""
     model = _model(described_store, "language").train()
-    data = PromptBatchDataset(described_store, model.data_spec(), batch_size=4, seed=2, tasks_per_batch=2)
+    data = PromptBatchDataset(
+        described_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=4, seed=2, tasks_per_batch=2
+    )
     lengths = {"eager": set(), "compiled": set()}
     tokenizer = model.tokenizer
 

@@ -8,16 +8,16 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from bpp.benchmarks.contract import device_frames
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import render_episode_steps
 from bpp.benchmarks.draw.device_render import DrawFrameTable
+from bpp.core.contract import device_frames
 from bpp.data.frame_refs import DeviceFrames, render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.errors import UserError
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, batch_loader, train
-from helpers import assert_same_batches, config, obs_config
+from helpers import DRAW_FRAMES, assert_same_batches, config, obs_config
 
 IMAGE_OBS = obs_config(
     image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
@@ -77,8 +77,8 @@ def _spec(store, method: str):
 def test_batches_of_references_render_to_the_batches_of_frames(debug_store, table, method, pad):
     spec = _spec(debug_store, method)
     kw = dict(batch_size=8, seed=3, tasks_per_batch=2, pad_to_multiple=pad)
-    frames = PromptBatchDataset(debug_store, spec, **kw)
-    refs = PromptBatchDataset(debug_store, spec, frame_refs=True, **kw)
+    frames = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, **kw)
+    refs = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, frame_refs=True, **kw)
     for i in range(3):
         plain, referenced = frames[i], refs[i]
         key = "image" if method == "goal_image" else None
@@ -94,15 +94,15 @@ def test_a_camera_the_table_cannot_render_is_refused(debug_store, table, method)
         fields.update(goal_camera="board_image", goal_image_size=IMAGE_OBS.image_size)
     cfg = replace(config(method), **fields)
     spec = get_method(method).model_cls(cfg, debug_store.stats).data_spec()
-    batch = PromptBatchDataset(debug_store, spec, batch_size=4, seed=3, frame_refs=True)[0]
+    batch = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=4, seed=3, frame_refs=True)[0]
     with pytest.raises(UserError, match="board_image.*--frames-on loader"):
         render_batch(batch, spec, table)
 
 
 def test_references_built_in_loader_processes_render_to_the_same_batches(debug_store, table):
     spec = _spec(debug_store, "bpp")
-    here = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3)
-    there = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_refs=True)
+    here = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3)
+    there = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, frame_refs=True)
     for i, batch in enumerate(batch_loader(there, range(3), workers=2, pin_memory=False)):
         assert_same_batches(here[i], render_batch(batch, spec, table), f"batch {i}")
 

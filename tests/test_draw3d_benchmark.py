@@ -26,7 +26,7 @@ import_optional("robosuite", "libero")
 import_optional("cv2", "iphumi")
 
 from bpp.benchmarks.draw3d.benchmark import BENCHMARK  # noqa: E402
-from bpp.benchmarks.registry import get_benchmark  # noqa: E402
+from bpp.core.registry import get_benchmark  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
 
 

@@ -26,7 +26,7 @@ from bpp.benchmarks.draw3d.canvas import (  # noqa: E402
     random_canvas_pose,
     render_canvas,
 )
-from bpp.benchmarks.poses import make_pose  # noqa: E402
+from bpp.core.poses import make_pose  # noqa: E402
 from bpp.errors import UserError  # noqa: E402
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])  # a 640x480 RGB camera, ~56 deg wide

@@ -10,7 +10,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports MuJoCo (rob
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from bpp.benchmarks.poses import invert, make_pose, pose_to_vector  # noqa: E402
+from bpp.core.poses import invert, make_pose, pose_to_vector  # noqa: E402
 from helpers import import_optional  # noqa: E402
 
 pytestmark = pytest.mark.libero  # robosuite's Panda model ships with the libero extra
@@ -98,9 +98,9 @@ def test_the_ink_is_painted_where_the_cameras_see_the_canvas(scene):
 
 
 def test_the_scripted_demonstrator_draws_procedural_drawings_on_canvases_anywhere(scene):
-    from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
     from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, plan_drawing
     from bpp.benchmarks.draw3d.scene import CONTROL_HZ
+    from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 
     rng = np.random.default_rng(3)
     for seed, (u, v, angle) in enumerate([(-0.12, 0.04, -40.0), (0.1, -0.03, 35.0)]):
@@ -114,7 +114,7 @@ def test_the_scripted_demonstrator_draws_procedural_drawings_on_canvases_anywher
         assert exact < 1.0  # DrawAnything pixels: under 0.7 mm here
         assert recorded.pen_down[0, 0] == 0 and recorded.ink_length[0, 0] == 0  # recording starts in the air
         # the actions are the relative steps between the commanded poses: integrated, they give the plan back
-        from bpp.benchmarks.poses import integrate_actions
+        from bpp.core.poses import integrate_actions
 
         replayed = integrate_actions(plan.poses[0], recorded.actions[:, :9])
         np.testing.assert_allclose(replayed, np.stack(plan.poses), atol=1e-9)

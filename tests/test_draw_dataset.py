@@ -7,10 +7,10 @@ from bpp.benchmarks.draw.dataset import (
     generate,
     render_episode,
     render_last_observation,
-    task_drawing,
 )
 from bpp.benchmarks.draw.env import DrawEnv
-from bpp.benchmarks.draw.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
+from bpp.drawing.drawing import task_drawing
+from bpp.drawing.geometry import BOARD_SIZE, MAX_BOARD_ANGLE
 
 
 def test_store_contents(debug_store):

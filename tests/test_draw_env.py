@@ -7,9 +7,9 @@ import bpp.benchmarks  # noqa: F401  (registers the environments)
 from bpp.benchmarks.draw.demonstrator import demonstrate
 from bpp.benchmarks.draw.env import ENV_ID as DRAW_ENV_ID
 from bpp.benchmarks.draw.env import DrawEnv
-from bpp.benchmarks.draw.geometry import canvas_to_upright
-from bpp.benchmarks.draw.human import glyph_drawing
 from bpp.benchmarks.draw.render import CURSOR_RGB, SceneRenderer
+from bpp.drawing.geometry import canvas_to_upright
+from bpp.drawing.human import glyph_drawing
 
 
 @pytest.mark.filterwarnings("ignore:.*symmetric and normalized space")

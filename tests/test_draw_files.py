@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from bpp.benchmarks.draw.dataset import DrawDataConfig, generate, task_drawing
-from bpp.benchmarks.draw.drawing import Drawing, DrawingError
-from bpp.benchmarks.draw.files import load_drawings, save_json
+from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
+from bpp.drawing.drawing import Drawing, DrawingError, task_drawing
+from bpp.drawing.files import load_drawings, save_json
 
 GOOD = {
     "drawings": [

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from bpp.benchmarks.draw import physics
-from bpp.benchmarks.draw.geometry import BOARD_SIZE, board_corners, canvas_to_unit, canvas_to_upright, unit_to_canvas
+from bpp.drawing.geometry import BOARD_SIZE, board_corners, canvas_to_unit, canvas_to_upright, unit_to_canvas
 
 
 @pytest.mark.parametrize("angle", [0.0, 0.3, -np.pi / 4, 2.0])

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from bpp.benchmarks.draw.geometry import canvas_to_upright, unit_to_canvas
-from bpp.benchmarks.draw.metric import EMPTY_DISTANCE, chamfer_distance, ink_mask
+from bpp.drawing.geometry import canvas_to_upright, unit_to_canvas
+from bpp.drawing.metric import EMPTY_DISTANCE, chamfer_distance, ink_mask
 
 
 def _line(y):
@@ -56,7 +56,7 @@ def test_cropping_does_not_change_the_score(rng):
 
 
 def test_incremental_tracker_matches_direct_computation(rng):
-    from bpp.benchmarks.draw.metric import ChamferTracker, InkMask
+    from bpp.drawing.metric import ChamferTracker, InkMask
 
     target = ink_mask([_circle(80)])
     tracker = ChamferTracker(target)

@@ -5,9 +5,11 @@ import pytest
 
 from bpp.benchmarks.draw import physics, render
 from bpp.benchmarks.draw.dataset import render_episode, render_episode_steps
-from bpp.benchmarks.draw.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
-from bpp.benchmarks.draw.render import INK_WIDTH, ink_segments, render_board, render_frames
+from bpp.benchmarks.draw.render import ink_segments, render_board, render_frames
 from bpp.benchmarks.draw.viz import episode_frames
+from bpp.drawing import raster
+from bpp.drawing.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
+from bpp.drawing.raster import INK_WIDTH
 
 
 def stored(store, episode: int):
@@ -109,7 +111,7 @@ def test_zero_length_segments_make_a_dot(rng):
 
 def whole_image_board(resolution: int, angle: float) -> np.ndarray:
     """The board as every pixel's distance to each line says (what render_board computes only near the lines)."""
-    x, y = render.pixel_centers(resolution)
+    x, y = raster.pixel_centers(resolution)
     pixel = CANVAS_SIZE / resolution
     image = np.empty((resolution, resolution, 3))
     image[:] = render.BACKGROUND_RGB
@@ -121,7 +123,7 @@ def whole_image_board(resolution: int, angle: float) -> np.ndarray:
         (np.array([np.r_[tr, br], np.r_[br, bl], np.r_[bl, tl]]), render.BOARD_EDGE_WIDTH, render.BOARD_EDGE_RGB),
         (np.r_[tl, tr][None], render.BOARD_EDGE_WIDTH, render.BOARD_TOP_EDGE_RGB),
     ):
-        cover = render.coverage(render.segment_distance(x, y, segments), width / 2, pixel)[..., None]
+        cover = raster.coverage(raster.segment_distance(x, y, segments), width / 2, pixel)[..., None]
         image *= 1.0 - cover
         image += cover * np.asarray(rgb, dtype=np.float64)
     return image

@@ -5,10 +5,10 @@ import pytest
 
 from bpp.benchmarks.draw.demonstrator import DemoConfig, demonstrate, replay_paths
 from bpp.benchmarks.draw.env import DrawEnv
-from bpp.benchmarks.draw.geometry import canvas_to_upright, unit_to_canvas
-from bpp.benchmarks.draw.human import HUMAN_GLYPHS, human_drawings
-from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
-from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
+from bpp.drawing.geometry import canvas_to_upright, unit_to_canvas
+from bpp.drawing.human import HUMAN_GLYPHS, human_drawings
+from bpp.drawing.metric import chamfer_distance, ink_mask
+from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 
 
 def test_procedural_drawings_respect_their_config():

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 import bpp.benchmarks.draw.rollouts as draw_rollouts
-import bpp.benchmarks.prompting as prompting
-from bpp.benchmarks.contract import TaskSet
+import bpp.core.prompting as prompting
 from bpp.benchmarks.draw.benchmark import BENCHMARK
+from bpp.core.contract import TaskSet
 from bpp.data.contexts import CONTROL_CHUNK, prompt_steps, task_context
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent

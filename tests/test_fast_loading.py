@@ -17,7 +17,7 @@ from bpp.nn.vision import ResNetGN
 from bpp.policies.config import ObsConfig
 from bpp.policies.registry import get_method
 from bpp.utils import to_torch
-from helpers import assert_same_batches, config, obs_config
+from helpers import DRAW_FRAMES, assert_same_batches, config, obs_config
 
 IMAGE_OBS = obs_config(
     image_keys=("image",), image_size=24, image_features=16, image_widths=(8, 16), image_blocks=(1, 1)
@@ -34,13 +34,19 @@ def _bpp(store, relative_to: str = "", **prompt):
 def test_batches_rendering_only_their_frames_equal_those_from_whole_episodes(debug_store):
     spec = _bpp(debug_store).data_spec()
     assert spec.context_obs_stride == 10
-    whole = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=1 << 30)
-    selective = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=0)
+    whole = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, frame_cache_bytes=1 << 30)
+    selective = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, frame_cache_bytes=0)
     assert whole.whole_episodes and not selective.whole_episodes
     for i in range(3):
         a, b = whole[i], selective[i]
         assert_same_batches(a, b)
     assert len(selective._frame_cache) == 0 and len(whole._frame_cache) > 0
+
+
+def test_the_frames_of_a_policy_that_observes_cameras_come_from_the_store_s_benchmark(debug_store):
+    """The data layer knows no benchmark: a dataset for a policy that observes cameras is given their source."""
+    with pytest.raises(ValueError, match=r"camera frames \(image\): pass `frames`.*drawanything"):
+        PromptBatchDataset(debug_store, _bpp(debug_store).data_spec())
 
 
 def test_batches_built_in_loader_processes_equal_those_built_here(debug_store):
@@ -49,8 +55,8 @@ def test_batches_built_in_loader_processes_equal_those_built_here(debug_store):
 
     spec = _bpp(debug_store).data_spec()
     for cache in (0, 1 << 30):  # each batch's frames, and whole episodes kept
-        here = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=cache)
-        there = PromptBatchDataset(debug_store, spec, batch_size=8, seed=3, frame_cache_bytes=cache)
+        here = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, frame_cache_bytes=cache)
+        there = PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=3, frame_cache_bytes=cache)
         arrived = list(batch_loader(there, range(4), workers=2, pin_memory=False))
         assert isinstance(arrived[0]["obs"]["image"], torch.Tensor)
         assert here[0]["obs"]["image"].dtype == np.uint8 and here[0]["obs"]["image"].any()
@@ -75,7 +81,9 @@ def test_a_prompt_with_one_observation_per_chunk_encodes_like_the_whole_prompt(d
 
 def test_training_batches_carry_strided_prompts_and_train(debug_store):
     model = _bpp(debug_store).train()
-    batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=8, seed=0, tasks_per_batch=2)[0]
+    batch = PromptBatchDataset(
+        debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=8, seed=0, tasks_per_batch=2
+    )[0]
     context = batch["context"]
     assert context["obs"]["image"].shape[1] == -(-context["action"].shape[1] // 10)
     model.compute_loss(to_torch(batch, "cpu")).backward()

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bpp.benchmarks.draw.drawing import Drawing, DrawingError
-from bpp.benchmarks.draw.files import load_drawings
+from bpp.drawing.drawing import Drawing, DrawingError
+from bpp.drawing.files import load_drawings
 from bpp.errors import UserError
 
 DIGITS_500 = "9" * 500
@@ -83,7 +83,7 @@ def test_a_stroke_of_one_point_is_a_dot_as_documented(tmp_path):
     """Documented rather than refused: the studio's task file keeps a click as a one-point stroke, and `bpp eval
     --files` must read it back; the demonstrator inks a dot there."""
     from bpp.benchmarks.draw.demonstrator import demonstrate, replay_paths
-    from bpp.benchmarks.draw.geometry import unit_to_canvas
+    from bpp.drawing.geometry import unit_to_canvas
 
     path = tmp_path / "dot.json"
     path.write_text(json.dumps({"drawings": [{"id": "i", "strokes": [[[0.5, 0.2], [0.5, 0.7]], [[0.5, 0.9]]]}]}))

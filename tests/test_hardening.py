@@ -137,7 +137,7 @@ def test_training_warns_when_demonstrations_are_longer_than_the_model_s_prompts(
 def test_eval_reuses_results_only_for_the_same_weights_and_task_content(debug_store, tmp_path, capsys):
     import shutil
 
-    from bpp.benchmarks.registry import get_benchmark
+    from bpp.core.registry import get_benchmark
     from bpp.evaluation.evaluate import Protocol, evaluate
 
     benchmark = get_benchmark("drawanything")
@@ -171,8 +171,8 @@ def test_eval_reuses_results_only_for_the_same_weights_and_task_content(debug_st
     [(["0.5", 0.2], "['0.5', 0.2]"), ([True, 0.2], "[True, 0.2]"), ([0.5, None], "[0.5, None]"), (0.5, "0.5")],
 )
 def test_drawing_coordinates_must_be_json_numbers(tmp_path, point, shown):
-    from bpp.benchmarks.draw.drawing import DrawingError
-    from bpp.benchmarks.draw.files import load_drawings
+    from bpp.drawing.drawing import DrawingError
+    from bpp.drawing.files import load_drawings
 
     path = tmp_path / "d.json"
     path.write_text(json.dumps({"drawings": [{"id": "a", "strokes": [[[0.1, 0.1], point]]}]}))
@@ -182,9 +182,9 @@ def test_drawing_coordinates_must_be_json_numbers(tmp_path, point, shown):
 
 
 def test_deeply_nested_json_is_refused_naming_the_file(tmp_path, debug_store):
-    from bpp.benchmarks.draw.drawing import DrawingError
-    from bpp.benchmarks.draw.files import load_drawings
     from bpp.checkpoint import read_state
+    from bpp.drawing.drawing import DrawingError
+    from bpp.drawing.files import load_drawings
 
     deep = "[" * 100_000 + "]" * 100_000
     drawing = tmp_path / "deep.json"
@@ -201,7 +201,7 @@ def test_deeply_nested_json_is_refused_naming_the_file(tmp_path, debug_store):
 def test_svg_transforms_are_applied_in_document_order(tmp_path):
     import numpy as np
 
-    from bpp.benchmarks.draw.files import load_drawings
+    from bpp.drawing.files import load_drawings
 
     def svg(body: str) -> Path:
         path = tmp_path / f"s{len(list(tmp_path.iterdir()))}.svg"
@@ -226,8 +226,8 @@ def test_any_drawing_file_is_read_and_demonstrated_in_bounded_time(tmp_path):
     import numpy as np
 
     from bpp.benchmarks.draw.demonstrator import demonstrate
-    from bpp.benchmarks.draw.drawing import DrawingError
-    from bpp.benchmarks.draw.files import MAX_POINTS, MAX_STROKES, load_drawings
+    from bpp.drawing.drawing import DrawingError
+    from bpp.drawing.files import MAX_POINTS, MAX_STROKES, load_drawings
 
     def json_file(name, strokes):
         path = tmp_path / f"{name}.json"
@@ -298,8 +298,8 @@ def test_damaged_stores_are_named_with_the_damaged_part(tmp_path, debug_store):
 
 @pytest.mark.parametrize("angle", [0.3, -0.7, 1.0, -np.pi / 4])
 def test_identical_integer_drawings_score_exactly_zero_at_any_angle(angle, rng):
-    from bpp.benchmarks.draw.geometry import BOARD_CENTER, canvas_to_upright, rotation
-    from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
+    from bpp.drawing.geometry import BOARD_CENTER, canvas_to_upright, rotation
+    from bpp.drawing.metric import chamfer_distance, ink_mask
 
     line = np.array([[x, 256] for x in range(156, 357, 10)], float)
     polylines = [line, *(rng.integers(100, 412, (int(rng.integers(2, 30)), 2)).astype(float) for _ in range(20))]
@@ -337,7 +337,7 @@ def test_identical_integer_drawings_score_exactly_zero_at_any_angle(angle, rng):
 def test_every_config_refuses_values_out_of_range_naming_the_field(make, field):
     from bpp.benchmarks.draw.dataset import DrawDataConfig  # noqa: F401 - used by eval below
     from bpp.benchmarks.draw.demonstrator import DemoConfig  # noqa: F401
-    from bpp.benchmarks.draw.procedural import ProceduralConfig  # noqa: F401
+    from bpp.drawing.procedural import ProceduralConfig  # noqa: F401
     from bpp.evaluation.evaluate import Protocol  # noqa: F401
     from bpp.policies.bpp.config import BPPConfig  # noqa: F401
     from bpp.policies.config import DiffusionConfig, Horizons, ObsConfig  # noqa: F401

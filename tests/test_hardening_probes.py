@@ -543,7 +543,7 @@ def test_resume_with_damaged_optimizer_state_falls_back_to_the_checkpoint_before
 
 
 def test_an_svg_nested_100k_groups_deep_is_read(tmp_path):
-    from bpp.benchmarks.draw.files import load_drawings
+    from bpp.drawing.files import load_drawings
 
     svg = tmp_path / "deep.svg"
     svg.write_text(_svg("<g>" * 100_000 + '<path d="M 0 0 L 100 100"/>' + "</g>" * 100_000))

@@ -11,7 +11,7 @@ from bpp.policies.model import count_parameters
 from bpp.policies.validation import PromptError
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
-from helpers import config, obs_config, prompt_from_store, rollout
+from helpers import DRAW_FRAMES, config, obs_config, prompt_from_store, rollout
 
 KEYS = ["board_pose", "cursor_on_board", "agent_pos", "pen_down"]
 N = config("icrt").chunk_len
@@ -134,7 +134,9 @@ def test_long_rollouts_keep_the_prompt_and_the_latest_chunks(debug_store):
         window = _uncached_chunks(model, prompt, episode, acted[first * N : (call + 1) * N], start=first * N)
         torch.testing.assert_close(torch.from_numpy(acted[call * N : (call + 1) * N]), window[-1], rtol=1e-5, atol=1e-5)
     # Training cuts rollouts that don't fit after the prompt and still learns from their first chunks.
-    batch = to_torch(PromptBatchDataset(debug_store, model.data_spec(), batch_size=4, seed=3)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=4, seed=3)[0], "cpu"
+    )
     prompt_chunks = -(-batch["context"]["action"].shape[1] // N)
     assert batch["action"].shape[1] > (max_tokens // 2 - prompt_chunks) * N
     assert torch.isfinite(model.compute_loss(batch))
@@ -160,7 +162,9 @@ def test_bad_prompts_are_refused_with_a_reason(debug_store, mutate, message):
 
 def test_loss_falls_when_overfitting_one_batch(debug_store):
     model = _model(debug_store).train()
-    batch = to_torch(PromptBatchDataset(debug_store, model.data_spec(), batch_size=4, seed=0)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=4, seed=0)[0], "cpu"
+    )
     assert batch["valid"].shape == batch["action"].shape[:2] and not batch["valid"].all()  # padded demos
     optimizer = torch.optim.AdamW(model.parameters(), lr=3e-3)
     losses = []
@@ -192,7 +196,7 @@ def test_preset_sizes(debug_store):
 def test_image_observations_train_and_act(debug_store):
     obs = obs_config(image_keys=("image",), image_size=32, image_features=16, image_widths=(8, 16), image_blocks=(1, 1))
     model = _model(debug_store, obs=obs)
-    batch = PromptBatchDataset(debug_store, model.data_spec(), batch_size=2, seed=0)[0]
+    batch = PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=2, seed=0)[0]
     assert batch["obs"]["image"].shape[2:] == (32, 32, 3) and batch["context"]["obs"]["image"].shape[0] == 1
     model.compute_loss(to_torch(batch, "cpu")).backward()
     assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0

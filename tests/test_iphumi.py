@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bpp.benchmarks.poses import (
+from bpp.cli import main
+from bpp.core.poses import (
     integrate_actions,
     interpolate_poses,
     invert,
@@ -24,7 +25,6 @@ from bpp.benchmarks.poses import (
     rotation_angle,
     vector_to_pose,
 )
-from bpp.cli import main
 from bpp.errors import UserError
 from helpers import import_optional
 

@@ -14,10 +14,10 @@ import pytest
 
 from bpp.benchmarks.lerobot.benchmark import BENCHMARK
 from bpp.benchmarks.lerobot.export import export_store
-from bpp.benchmarks.lerobot.replay import replayed_episode, run_rollouts
 from bpp.cli import main
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.recorded.replay import replayed_episode, run_rollouts
 from helpers import import_optional
 
 pytestmark = pytest.mark.lerobot

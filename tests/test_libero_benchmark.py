@@ -20,6 +20,7 @@ from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.export import CAMERA_NAMES, EXTRA_ATTRS, LIBERO_ATTRS, LIBERO_DATASETS, LIBERO_TAG
 from bpp.benchmarks.libero.suites import combination
 from bpp.cli import main
+from bpp.core.registry import open_store
 from bpp.data.store import EpisodeStore, StoreError
 from bpp.evaluation.evaluate import resolve_tasks
 
@@ -33,7 +34,7 @@ def store(tmp_path_factory):
     out = tmp_path_factory.mktemp("libero") / "train.zarr"
     flags = ["--task-indices", "0", "--demos-per-task", "2", "--cameras", "agentview", "eye_in_hand"]
     main(["libero", "generate", "--preset", "debug", "--out", str(out), "--workers", "1", "--image-size", "32", *flags])
-    return EpisodeStore(out)
+    return open_store(out)
 
 
 def test_generation_stores_only_demonstrations_that_libero_accepts(store):
@@ -87,8 +88,8 @@ def test_a_video_rendered_from_states_ends_without_renderer_errors(store, tmp_pa
 
 def test_a_spawned_process_reads_the_derived_keys_of_the_benchmark(store):
     """A fresh interpreter that has imported nothing of LIBERO-Gen (a data-loader worker under the spawn start
-    method) sees the store's derived key ``eef``: it comes from the benchmark contract through the registry, not from
-    which modules the process happened to import. Whether given the path or a pickled store."""
+    method) sees the store's derived key ``eef``: opened by its path through the registry, it comes from the benchmark
+    contract, not from which modules the process happened to import; a pickled store carries it."""
     import multiprocessing as mp
 
     from spawned_reader import read_key

@@ -16,6 +16,7 @@ from bpp.benchmarks.draw.dataset import generate
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.policies.registry import METHODS, get_method
 from bpp.utils import from_dict, to_dict, to_torch
+from helpers import DRAW_FRAMES
 
 SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "canvas-ink"), ("cpu", "board"), ("cpu", "image64")]
 CASES = [(m, size, obs) for m in METHODS for size, obs in SETTINGS]
@@ -38,7 +39,7 @@ def test_preset_builds_and_takes_a_finite_loss(store, method, size, obs):
     model = m.model_cls(cfg, store.stats)
     spec = model.data_spec()
     assert set(spec.image_keys) == set(cfg.obs.image_keys)
-    batch = to_torch(PromptBatchDataset(store, spec, batch_size=2, seed=0)[0], "cpu")
+    batch = to_torch(PromptBatchDataset(store, spec, frames=DRAW_FRAMES, batch_size=2, seed=0)[0], "cpu")
     loss = model(batch, torch.Generator().manual_seed(0))
     assert loss.ndim == 0 and math.isfinite(loss.item())
 

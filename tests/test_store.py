@@ -5,7 +5,7 @@ import pickle
 import numpy as np
 import pytest
 
-from bpp.benchmarks import registry
+from bpp.core import registry
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, merge_stores, with_derived
 
 
@@ -57,9 +57,10 @@ def test_derived_keys_read_and_normalise_like_stored_ones(tmp_path, monkeypatch)
         w.add_task("t")
         for e in range(2):
             w.add_episode({"state": np.arange(12.0 * (e + 1)).reshape(-1, 3) + 100 * e}, 0)
-    store = EpisodeStore(path)  # opened before its benchmark is registered: derived keys are looked up when used
+    assert registry.open_store(path).keys == ["state"]  # no benchmark of that name yet: its stored keys alone
     registry.register_benchmark("test", WithDerived())
-    assert store.keys == ["ends", "state"]
+    store = registry.open_store(path)  # opened with the derived keys of the benchmark its header names
+    assert store.keys == ["ends", "state"] and EpisodeStore(path).keys == ["state"]
     np.testing.assert_array_equal(store.array("ends"), store.array("state")[:, [2, 0]])
     np.testing.assert_array_equal(store.episode(1, ["ends"])["ends"], store.episode(1)["state"][:, [2, 0]])
     np.testing.assert_array_equal(store["ends"][2:5], store.array("state")[2:5, [2, 0]])
@@ -67,10 +68,12 @@ def test_derived_keys_read_and_normalise_like_stored_ones(tmp_path, monkeypatch)
     assert store["ends"].shape == (12, 2)
     full, ends = store.stats["state"], store.stats["ends"]
     assert ends["min"] == [full["min"][2], full["min"][0]] and ends["std"] == [full["std"][2], full["std"][0]]
-    obs = with_derived("test", {"state": np.array([[1.0, 2.0, 3.0]])})
+    obs = with_derived(WithDerived.derived_keys, {"state": np.array([[1.0, 2.0, 3.0]])})
     np.testing.assert_array_equal(obs["ends"], [[3.0, 1.0]])
-    assert with_derived("other", {"state": np.zeros(3)}).keys() == {"state"}  # no benchmark of that name
-    assert pickle.loads(pickle.dumps(store)).keys == ["ends", "state"]  # a copy looks its keys up again
+    assert with_derived({}, {"state": np.zeros(3)}).keys() == {"state"}
+    assert pickle.loads(pickle.dumps(store)).keys == ["ends", "state"]  # a copy carries its derived keys
+    missing = EpisodeStore(path, {"far": ("other", (0,)), "state": ("state", (0,))})
+    assert missing.keys == ["state"]  # a derived key whose source the store lacks, or that it stores, is left out
 
     class BadDerived(WithDerived):
         derived_keys = {"bad": ("state", ())}

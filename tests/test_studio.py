@@ -125,7 +125,7 @@ def test_a_rollout_streams_steps_and_is_downloadable(server, tmp_path):
         assert gif.read_bytes()[:3] == b"GIF"
         task = tmp_path / "task.json"
         task.write_text(json.dumps(c.task_file(prompt["id"])))
-        from bpp.benchmarks.draw.files import load_drawings
+        from bpp.drawing.files import load_drawings
 
         assert len(load_drawings(task)[0].strokes) == 1  # a task file `bpp eval --files` accepts
 

@@ -73,14 +73,14 @@ def test_whatever_the_file_parser_raises_is_a_4xx_with_its_message(server, monke
         with pytest.raises(StudioClientError) as err:
             c._call("POST", "/api/prompts", {"kind": "file", "name": "huge.svg", "text": svg})
         assert err.value.status == 422 and err.value.field == "text" and "huge.svg" in err.value.detail
-        import bpp.benchmarks.draw.files as files
+        import bpp.benchmarks.draw.studio.engine as engine
 
         for error in (OverflowError("int too large"), RecursionError("too deep"), IndexError("list index")):
 
             def parse(_paths, error=error):
                 raise error
 
-            monkeypatch.setattr(files, "load_drawings", parse)
+            monkeypatch.setattr(engine, "load_drawings", parse)
             with pytest.raises(StudioClientError) as err:
                 c._call("POST", "/api/prompts", {"kind": "file", "name": "x.svg", "text": "<svg/>"})
             assert err.value.status == 422 and str(error) in err.value.detail and "x.svg" in err.value.detail
@@ -452,7 +452,7 @@ def test_the_token_is_traded_for_a_strict_http_only_cookie(server):
 def person_drawing(strokes, px_per_s: float, hz: float = 120.0):
     """A person drawing unit-square `strokes` at `px_per_s` on a board at angle 0: the pointer's positions
     (canvas px, at `hz`) and the page's 10 Hz samples of them [x, y, pen], pen up for 0.3 s between strokes."""
-    from bpp.benchmarks.draw.geometry import unit_to_canvas
+    from bpp.drawing.geometry import unit_to_canvas
 
     timeline = []  # (t, x, y, pen)
     t = 0.0
@@ -477,13 +477,13 @@ def person_drawing(strokes, px_per_s: float, hz: float = 120.0):
 
 
 def chamfer_px(lines_a, lines_b) -> float:
-    from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
+    from bpp.drawing.metric import chamfer_distance, ink_mask
 
     return chamfer_distance(ink_mask([np.asarray(a) for a in lines_a]), ink_mask([np.asarray(b) for b in lines_b]))
 
 
 def test_a_traced_drawing_records_the_strokes_it_was_given(server):
-    from bpp.benchmarks.draw.geometry import unit_to_canvas
+    from bpp.drawing.geometry import unit_to_canvas
 
     drawn = [unit_to_canvas(np.asarray(s), 0.0) for s in HOUSE]
     samples = person_drawing(HOUSE, px_per_s=600.0)  # a quick sketch

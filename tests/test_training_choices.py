@@ -11,7 +11,7 @@ from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
-from helpers import config
+from helpers import DRAW_FRAMES, config
 
 RELATIVE = {"bpp": "agent_pos", "goal_image": "agent_pos", "icrt": "agent_pos"}
 
@@ -24,7 +24,9 @@ def _model(store, method: str, **overrides):
 
 def test_grouped_batches_take_each_sample_from_its_own_tasks_other_demos(debug_store):
     model = _model(debug_store, "bpp")
-    ds = PromptBatchDataset(debug_store, model.data_spec(), batch_size=12, seed=0, tasks_per_batch=4)
+    ds = PromptBatchDataset(
+        debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=12, seed=0, tasks_per_batch=4
+    )
     batch = ds[7]
     assert batch["task"].shape == (4,) and len(set(batch["task"].tolist())) == 4  # distinct tasks
     np.testing.assert_array_equal(batch["context_index"], np.repeat(np.arange(4), 3))
@@ -57,7 +59,7 @@ def test_grouped_batches_take_each_sample_from_its_own_tasks_other_demos(debug_s
 def test_batch_size_must_split_into_tasks(debug_store):
     model = _model(debug_store, "bpp")
     with pytest.raises(ValueError, match="multiple of tasks_per_batch"):
-        PromptBatchDataset(debug_store, model.data_spec(), batch_size=10, tasks_per_batch=4)
+        PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=10, tasks_per_batch=4)
 
 
 @pytest.mark.parametrize("method", ["bpp", "goal_image", "icrt"])
@@ -65,7 +67,9 @@ def test_grouped_loss_equals_the_loss_with_one_context_per_sample(debug_store, m
     """Encoding G contexts once and selecting per sample is exactly the same as giving each sample its own copy."""
     model = _model(debug_store, method).eval()
     spec = model.data_spec()
-    batch = to_torch(PromptBatchDataset(debug_store, spec, batch_size=8, seed=1, tasks_per_batch=4)[0], "cpu")
+    batch = to_torch(
+        PromptBatchDataset(debug_store, spec, frames=DRAW_FRAMES, batch_size=8, seed=1, tasks_per_batch=4)[0], "cpu"
+    )
     index = batch["context_index"]
     repeated = dict(batch)
     repeated["context"] = index_contexts(batch["context"], index)

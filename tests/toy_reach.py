@@ -1,4 +1,4 @@
-"""A second, tiny benchmark that proves the benchmark contract (bpp.benchmarks.contract): 2-D point reaching.
+"""A second, tiny benchmark that proves the benchmark contract (bpp.core.contract): 2-D point reaching.
 
 A task is 2-4 waypoints in the unit square; a demonstration moves a point through them in order from a random start.
 The policy observes the point's position (state only) and outputs the next target position; the point moves toward
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
+from bpp.core.contract import Metric, RolloutResult, TaskSet
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, EpisodeWriter
 

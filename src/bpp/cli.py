@@ -11,28 +11,33 @@ from __future__ import annotations
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, make_dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 import tyro
 
-from bpp.benchmarks.registry import (
+from bpp.core.registry import (
     DEFAULT_BENCHMARK,
     benchmark_commands,
     benchmark_for_command,
     benchmark_names,
     get_benchmark,
+    open_store,
 )
+from bpp.data.store import EpisodeStore, merge_stores
 from bpp.errors import UserError, raise_interrupted
 from bpp.evaluation.protocol import PromptChoice
+from bpp.evaluation.report import markdown_table
 from bpp.executor import check_executor_flags, make_executor
 from bpp.policies.registry import get_method
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
 from bpp.train_config import TrainConfig
-from bpp.utils import check_fields
+from bpp.utils import check_fields, write_json_atomic, write_text_atomic
 
 # ----------------------------------------------------------------------------- bpp <benchmark> generate
 
@@ -78,8 +83,6 @@ def _generate_class(benchmark) -> type:
 
 
 def generate_cmd(args: Generate, benchmark) -> None:
-    import time
-
     t0 = time.perf_counter()
     executor = make_executor(args.executor, args.workers, args.ray_address)
     store = benchmark.generate(args.data, args.out, workers=executor, overwrite=args.overwrite)
@@ -107,13 +110,7 @@ class StoreInfo:
 
 
 def store_info(args: StoreInfo) -> None:
-    import time
-
-    import numpy as np
-
-    from bpp.data.store import EpisodeStore
-
-    s = EpisodeStore(args.store)
+    s = open_store(args.store)
     lengths = np.diff(np.concatenate([[0], s.episode_ends]))
     print(s)
     print(f"  created {s.attrs.get('created')}, {s.disk_bytes() / 1e6:.1f} MB")
@@ -150,8 +147,6 @@ class StoreMerge:
 
 
 def store_merge(args: StoreMerge) -> None:
-    from bpp.data.store import merge_stores
-
     store = merge_stores(args.stores, args.out, overwrite=args.overwrite)
     print(f"wrote {store}")
 
@@ -196,8 +191,6 @@ def _train_class(method) -> type:
 def _train_default(argv: list[str]) -> tuple[type, Train]:
     """The `Train` class and defaults for argv: the method, size and observation presets decide the defaults of
     every --model.* flag, and the store decides the benchmark (the default benchmark's presets for --help alone)."""
-    from bpp.data.store import EpisodeStore
-
     method = get_method(_flag(argv, "--method", "bpp"))
     data = _flag(argv, "--data", "")
     benchmark = get_benchmark(EpisodeStore(data).benchmark if data else DEFAULT_BENCHMARK)
@@ -208,6 +201,7 @@ def _train_default(argv: list[str]) -> tuple[type, Train]:
 
 
 def train_cmd(args: Train) -> None:
+    # torch: imported when the command runs, not when the command line starts
     from bpp.train import train
 
     ckpt = train(args.train, args.model)
@@ -278,11 +272,10 @@ class Eval:
 
 
 def eval_cmd(args: Eval) -> None:
+    # torch: imported when the command runs, not when the command line starts
     from bpp.checkpoint import Checkpoint
     from bpp.evaluation.evaluate import Protocol, combine, evaluate, resolve_tasks
-    from bpp.evaluation.report import markdown_table
     from bpp.policies.agent import PolicyAgent
-    from bpp.utils import write_json_atomic, write_text_atomic
 
     protocol = Protocol(
         rollouts=args.rollouts,

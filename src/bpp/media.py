@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from bpp.utils import atomic_path
 
@@ -17,13 +18,13 @@ def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     frames = np.asarray(frames, dtype=np.uint8)
     if frames.shape[1:3] == (size, size):
         return frames
-    from PIL import Image
 
     return np.stack([np.asarray(Image.fromarray(f).resize((size, size), Image.BILINEAR)) for f in frames])
 
 
 def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10) -> Path:
     """Write frames as a GIF (or MP4 if the suffix is .mp4), complete or not at all."""
+    # imageio: for video and GIF files only
     import imageio.v3 as iio
 
     path = Path(path)
@@ -48,6 +49,7 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10
 def _check_video(path: Path, frames: int) -> None:
     """Refuse the video ffmpeg wrote to `path` unless it holds all `frames`: imageio-ffmpeg ignores how ffmpeg ended,
     so a video cut short (a full disk) would otherwise pass as written."""
+    # imageio-ffmpeg: for video files only
     import imageio_ffmpeg
 
     try:
@@ -58,8 +60,21 @@ def _check_video(path: Path, frames: int) -> None:
         raise OSError(errno.EIO, f"ffmpeg wrote {count or 0} of {frames} frames (is the disk full?)", str(path))
 
 
+def pyplot():
+    """matplotlib's pyplot, drawing off screen (the Agg backend): every picture of bpp is made with it."""
+    # matplotlib: half a second to import, for pictures only
+    import matplotlib
+
+    matplotlib.use("Agg")
+    # pyplot after the backend is chosen
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def save_figure(fig, path: str | Path, dpi: int) -> Path:
     """Save a matplotlib figure (its format from `path`'s suffix), complete or not at all, and close it."""
+    # matplotlib: half a second to import, for pictures only (whichever backend made the figure)
     import matplotlib.pyplot as plt
 
     path = Path(path)
@@ -76,11 +91,7 @@ def contact_sheet(
     images: Sequence[np.ndarray], titles: Sequence[str], path: str | Path, columns: int = 8, title: str = ""
 ) -> Path:
     """Lay out images in a titled grid and save as PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     rows = max(1, int(np.ceil(len(images) / columns)))
     fig, axes = plt.subplots(rows, columns, figsize=(columns * 1.9, rows * 2.05), squeeze=False)
     for ax in axes.flat:

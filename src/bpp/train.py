@@ -15,14 +15,14 @@ from pathlib import Path
 
 import torch
 import torch.distributed as dist
+from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from bpp.benchmarks.contract import device_frames
-from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpoint
+from bpp.core.contract import device_frames
+from bpp.core.registry import get_benchmark, open_store
 from bpp.data.frame_refs import render_batch
 from bpp.data.prompt_dataset import PromptBatchDataset, trainable_tasks
-from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
@@ -109,8 +109,8 @@ def build_training(cfg: TrainConfig, model: torch.nn.Module, device: torch.devic
         if cfg.channels_last:
             model = model.to(memory_format=torch.channels_last)
     ema = copy.deepcopy(model).requires_grad_(False).eval()
-    # Fused: one operation for every tensor (on a GPU one launch instead of hundreds; on a CPU 43-61 -> 18-19 ms a
-    # step of the main job's model, BENCHMARKS.md). A run checkpointed unfused resumes unfused: the flag is in its
+    # Fused: one operation for every tensor (on a GPU one launch instead of hundreds; on a CPU a shorter optimiser
+    # step, measured in BENCHMARKS.md's git history). A run checkpointed unfused resumes unfused: the flag is in its
     # saved optimiser state.
     optimizer = torch.optim.AdamW(
         model.parameters(),
@@ -209,7 +209,8 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     if cfg.resume:
         check_resume(run, cfg, model_cfg)
 
-    store = EpisodeStore(cfg.data)
+    store = open_store(cfg.data)
+    benchmark = get_benchmark(store.benchmark)
     trainable_tasks(store)  # refused now, not after the model is built (or loaded, or compiled)
     method = get_method(cfg.method)
     torch.manual_seed(cfg.seed)
@@ -249,7 +250,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
 
     renderer = None  # with frames_on device: the benchmark's renderer of the store's frames on the device
     if cfg.frames_on == "device" and (spec.image_keys or spec.context == "goal_image"):
-        renderer = device_frames(get_benchmark(store.benchmark), store, device)
+        renderer = device_frames(benchmark, store, device)
         if main:
             print(f"[train] camera frames rendered on {device} from references the loader sends (--frames-on device)")
     dataset = PromptBatchDataset(
@@ -260,6 +261,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         seed=cfg.seed,
         rank=rank,
         tasks_per_batch=cfg.tasks_per_batch,
+        frames=benchmark.frames,
         frame_cache_bytes=cfg.frame_cache_share(workers),
         pad_to_multiple=padding,
         frame_refs=renderer is not None,
@@ -270,7 +272,6 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         run.mkdir(parents=True, exist_ok=True)
         if not cfg.resume:  # a resumed run keeps the record of how it began (check_resume made sure it matches)
             write_json_atomic(run / "config.json", {k: v for k, v in meta.items() if k != "stats"})
-        from torch.utils.tensorboard import SummaryWriter
 
         writer = SummaryWriter(str(run / "tb"), purge_step=start)
     amp = uses_amp(cfg, device)

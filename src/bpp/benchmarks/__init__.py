@@ -1,7 +1,15 @@
-"""Benchmarks and their environments (one folder each; see :mod:`bpp.benchmarks.contract` for the contract).
+"""Benchmarks and their environments, one folder each; each satisfies the contract of :mod:`bpp.core.contract` and is
+found through :mod:`bpp.core.registry`.
 
-Importing this package registers the environments with Gymnasium."""
+Importing this package registers the environments of :data:`GYM_ENVS` with Gymnasium."""
 
-from bpp.benchmarks.registry import register_gym_envs
+import gymnasium as gym
 
-register_gym_envs()
+GYM_ENVS: dict[str, str] = {
+    "bpp/DrawAnything-v0": "bpp.benchmarks.draw.env:DrawEnv",
+}
+"""Gymnasium ids registered by ``import bpp.benchmarks`` (entry points are imported lazily, on ``gym.make``)."""
+
+for _env_id, _entry_point in GYM_ENVS.items():
+    if _env_id not in gym.registry:
+        gym.register(_env_id, entry_point=_entry_point)

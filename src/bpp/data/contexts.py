@@ -22,7 +22,7 @@ FrameSource = Callable[..., np.ndarray]
 """``frames(store, episode, key, size, last_only=False, steps=None)``: (T, size, size, 3) uint8 frames of an
 episode's observations from camera `key`; with ``last_only``, just the final observation, (1, size, size, 3); with
 ``steps``, those steps' (k, size, size, 3). Each benchmark provides one (see
-:class:`bpp.benchmarks.contract.Benchmark`)."""
+:class:`bpp.core.contract.Benchmark`)."""
 
 
 PROMPT_EDITS = ("shuffled", "first-half")

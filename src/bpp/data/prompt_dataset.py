@@ -109,6 +109,9 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     With `pad_to_multiple` k > 0, these padded time axes (a demonstration context's L, whole-episode samples' L)
     are padded further, to a multiple of k steps (at most the spec's limit), so that batches come in a few shapes.
 
+    Camera frames come from `frames`, the frame source of the store's benchmark (its
+    :meth:`~bpp.core.contract.Benchmark.frames`), which a spec that observes cameras or a goal image needs.
+
     With `frame_refs`, every camera frame is a reference instead, (..., 2) int64 where the frame would be
     (..., H, W, 3) uint8 (see :mod:`bpp.data.frame_refs`): nothing is rendered, and the training process renders
     them on its device (:func:`bpp.data.frame_refs.render_batch`).
@@ -140,9 +143,10 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         if frame_refs:
             frames = reference_source
         if frames is None and (spec.image_keys or spec.context == "goal_image"):
-            from bpp.benchmarks.registry import get_benchmark
-
-            frames = get_benchmark(self.store.benchmark).frames  # how the store's benchmark yields camera frames
+            raise ValueError(
+                f"the policy observes camera frames ({', '.join(spec.image_keys) or 'a goal image'}): pass `frames`, "
+                f"the frame source of the store's benchmark ({self.store.benchmark}), e.g. its Benchmark.frames"
+            )
         self.frames = frames
         if spec.context == "instruction" and not any(str(t.get("instruction") or "") for t in self.store.tasks):
             raise UserError(f"{self.store.path}: its tasks carry no instructions, so a language policy can't train")

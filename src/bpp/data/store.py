@@ -10,9 +10,10 @@ Layout (a zarr v3 directory)::
       meta/<column>      (E,) the episode table: task_index and any per-episode parameters
       tasks/<key>        ragged per-task arrays (e.g. a task's waypoints), with tasks/<key>__ends (K,)
 
-A benchmark may also declare *derived* per-step keys (:attr:`bpp.benchmarks.contract.Benchmark.derived_keys`):
-chosen features of a stored key, read and normalised like a stored key but never written. A store finds them through
-the registry from its own benchmark name, so every process that opens it sees the same keys.
+A benchmark may also declare *derived* per-step keys (:attr:`bpp.core.contract.Benchmark.derived_keys`):
+chosen features of a stored key, read and normalised like a stored key but never written. Whoever opens a store
+passes them (:func:`bpp.core.registry.open_store` passes those of the benchmark the store names), and a pickled store
+carries them, so every process that uses it sees the same keys.
 
 Writing is atomic: everything goes into a hidden ``.<name>.partial-<id>`` sibling, ``complete`` is set last,
 and only then is the folder renamed into place — an interrupted generation never leaves a store that loads
@@ -42,13 +43,12 @@ import os
 import re
 import shutil
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from bpp.benchmarks.registry import derived_keys
 from bpp.errors import UserError
 from bpp.utils import naming, read_json, to_dict
 
@@ -56,6 +56,11 @@ try:
     import fcntl
 except ImportError:  # not POSIX: writers are kept apart by the check at the rename alone
     fcntl = None
+
+try:  # the package zarr's own crc32c codec uses: google-crc32c since zarr 3.1, crc32c before
+    from google_crc32c import value as _crc32c
+except ModuleNotFoundError:
+    from crc32c import crc32c as _crc32c
 
 FORMAT = "bpp-episodes"
 VERSION = 2
@@ -83,12 +88,16 @@ class EpisodeIndexError(StoreError, IndexError):
     """An episode index outside the store."""
 
 
-def with_derived(benchmark: str, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """`obs` (per-step arrays, features last) plus every derived key of the benchmark named `benchmark` whose source
-    it has (the same features a store of that benchmark presents)."""
+DerivedKeys = Mapping[str, tuple[str, tuple[int, ...]]]
+"""Derived per-step keys: key -> (stored source key, feature indices), as a benchmark declares them."""
+
+
+def with_derived(derived_keys: DerivedKeys, obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """`obs` (per-step arrays, features last) plus every key of `derived_keys` whose source it has (the same features
+    a store opened with those keys presents)."""
     derived = {
         key: np.asarray(obs[source])[..., list(features)]
-        for key, (source, features) in derived_keys(benchmark).items()
+        for key, (source, features) in derived_keys.items()
         if source in obs and key not in obs
     }
     return {**obs, **derived}
@@ -191,21 +200,10 @@ class _RunningStats:
 
 
 # ------------------------------------------------------------------ integrity
-@functools.cache
-def _crc32c():
-    """The crc32c function of the package zarr's own ``crc32c`` codec uses (google-crc32c since zarr 3.1, crc32c
-    before)."""
-    try:
-        from google_crc32c import value
-    except ModuleNotFoundError:
-        from crc32c import crc32c as value
-    return value
-
-
 def _checksum_matches(data: np.ndarray) -> bool:
     """Whether a chunk's stored bytes (uint8) end with the crc32c of the bytes before, as zarr's crc32c codec writes
     it (4 bytes, little-endian)."""
-    return len(data) >= 4 and _crc32c()(data[:-4]) == int.from_bytes(data[-4:].tobytes(), "little")
+    return len(data) >= 4 and _crc32c(data[:-4]) == int.from_bytes(data[-4:].tobytes(), "little")
 
 
 def _checked_chunk(root, key: str, value, whole: bool):
@@ -231,6 +229,7 @@ def _checked_chunk(root, key: str, value, whole: bool):
 def _checked_store_class() -> type:
     """A read-only zarr LocalStore that refuses a chunk that is missing or fails its crc32c checksum with a StoreError
     naming the store, the array and the chunk: every read of an array goes through it, whoever reads."""
+    # zarr: a third of a second to import, when a store is read or written
     from zarr.storage import LocalStore
 
     class CheckedStore(LocalStore):
@@ -249,6 +248,7 @@ def _array_settings() -> dict:
     """How every array of a store is written: zstd, then a crc32c checksum of the compressed bytes, on each chunk;
     and every chunk written, even one that holds only zeros (zarr skips those by default and reads the fill value in
     their place), so that a missing chunk is damage, never data."""
+    # zarr: a third of a second to import, when a store is read or written
     from zarr.codecs import Crc32cCodec, ZstdCodec
 
     return {"compressors": (ZstdCodec(level=5), Crc32cCodec()), "config": {"write_empty_chunks": True}}
@@ -416,6 +416,7 @@ class EpisodeWriter:
         chunk_steps: int = 16384,
         stats_keys: Iterable[str] | None = None,
     ):
+        # zarr: a third of a second to import, when a store is read or written
         import zarr
 
         self.path = Path(path)
@@ -635,7 +636,7 @@ class EpisodeStore:
     checksum, or refused with a StoreError naming it.
     """
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, derived_keys: DerivedKeys | None = None):
         self.path = Path(path)
         attrs = read_header(self.path)
         self.attrs = attrs
@@ -648,13 +649,19 @@ class EpisodeStore:
             raise StoreError(f"{self.path}: damaged store header (no {err} entry); generate it again") from None
         self._arrays: frozenset[str] = frozenset(attrs["arrays"])
         self._cache: dict[str, np.ndarray] = {}
-        self._derived: dict[str, tuple[str, tuple[int, ...]]] | None = None
         try:
             self.episode_ends = self._read("meta/episode_ends")
         except KeyError:
             raise StoreError(f"{self.path}: damaged store (no meta/episode_ends); generate it again") from None
         self.episode_starts = np.concatenate([[0], self.episode_ends[:-1]])
         self._stored_keys: list[str] = self._names("data")
+        self.derived: dict[str, tuple[str, tuple[int, ...]]] = {
+            key: (source, tuple(features))
+            for key, (source, features) in (derived_keys or {}).items()
+            if source in self._stored_keys and key not in self._stored_keys
+        }
+        """Its derived keys: key -> (stored source key, feature indices), those of `derived_keys` whose source it
+        stores (:attr:`bpp.core.contract.Benchmark.derived_keys`)."""
         if len(self.episode_ends) == 0 or np.any(np.diff(self.episode_ends) <= 0) or self.episode_ends[0] <= 0:
             raise StoreError(f"{self.path}: damaged store (meta/episode_ends is not increasing); generate it again")
 
@@ -681,6 +688,7 @@ class EpisodeStore:
         # One handle per process: handles are not shared across fork/spawn (see __getstate__).
         handle = getattr(self, "_handle", None)
         if handle is None or handle[0] != os.getpid():
+            # zarr: a third of a second to import, when a store is read or written
             import zarr
 
             store = _checked_store_class()(str(self.path), read_only=True)
@@ -708,23 +716,9 @@ class EpisodeStore:
         state = self.__dict__.copy()
         state.pop("_handle", None)
         state["_cache"] = {}
-        state["_derived"] = None  # each process looks them up itself, as when it opens the store
         return state
 
     # ---------------------------------------------------------------- queries
-    @property
-    def derived(self) -> dict[str, tuple[str, tuple[int, ...]]]:
-        """This store's derived keys: key -> (stored source key, feature indices), its benchmark's
-        (:attr:`bpp.benchmarks.contract.Benchmark.derived_keys`) whose source it stores. Looked up on first use, in
-        the process that uses the store."""
-        if self._derived is None:
-            self._derived = {
-                key: (source, tuple(features))
-                for key, (source, features) in derived_keys(self.benchmark).items()
-                if source in self._stored_keys and key not in self._stored_keys
-            }
-        return self._derived
-
     @property
     def keys(self) -> list[str]:
         """Per-step keys: stored and derived."""

@@ -25,17 +25,20 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+import torch
 from tqdm import tqdm
 
 from bpp import __version__
-from bpp.benchmarks.contract import Benchmark, TaskSet
-from bpp.benchmarks.prompting import run_prompted
-from bpp.benchmarks.registry import get_benchmark
 from bpp.checkpoint import Checkpoint
+from bpp.core.contract import Benchmark, TaskSet
+from bpp.core.prompting import run_prompted
+from bpp.core.registry import get_benchmark
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.evaluation import report
 from bpp.evaluation.protocol import Protocol, TaskResult, results_json, rollout_rows, summarize
 from bpp.executor import Executor, as_executor, local_path
+from bpp.policies.agent import PolicyAgent
 from bpp.utils import (
     atomic_path,
     file_stem,
@@ -54,10 +57,6 @@ _WORKER: dict = {}
 
 
 def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_folder, protocol: Protocol, threads: int):
-    import torch
-
-    from bpp.policies.agent import PolicyAgent
-
     # An exception here would make a process pool restart the worker forever: keep it for the first task instead.
     _WORKER.clear()
     try:
@@ -65,7 +64,7 @@ def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_folder, pro
         model = checkpoint.build_model()
         _WORKER["agent"] = PolicyAgent(model, record_attention=True, **protocol.agent_options())
         _WORKER["benchmark"] = benchmark
-        _WORKER["store"] = EpisodeStore(local_path(store_folder))
+        _WORKER["store"] = EpisodeStore(local_path(store_folder), benchmark.derived_keys)
         _WORKER["protocol"] = protocol
     except Exception as err:  # noqa: BLE001 - re-raised by _run_task, in the parent
         _WORKER["error"] = err
@@ -234,6 +233,7 @@ def resolve_tasks(
     data_dir: Path | None = None,
     num_tasks: int = 0,
     workers: int = 0,
+    flag: str = "--tasks",
 ) -> tuple[Benchmark, TaskSet, list[int]]:
     """(benchmark, task set, task indices) to evaluate `checkpoint` on; the benchmark is the checkpoint's own.
 
@@ -242,7 +242,9 @@ def resolve_tasks(
     * a store path: any store of the same benchmark (e.g. a validation split);
     * with `files`: the benchmark's tasks from those files in its file format, demonstrated by its demonstrator.
 
-    A task set generated here is demonstrated over `workers` processes (0: one per core).
+    A task set generated here is demonstrated over `workers` processes (0: one per core). Errors name `tasks` as
+    the command's `flag`. The task set's store is
+    opened with the benchmark's derived keys, as training opened its own.
     """
     benchmark = get_benchmark(checkpoint.benchmark)
     data_dir = Path(data_dir) if data_dir is not None else benchmark.default_data_dir
@@ -257,10 +259,14 @@ def resolve_tasks(
         task_set = TaskSet(EpisodeStore(tasks), f"tasks of {Path(tasks).name}")
     else:
         names = ", ".join(["train", *benchmark.task_sets])
-        raise UserError(f"--tasks {tasks!r}: not a task set of {benchmark.name} ({names}) nor a store path")
-    store = task_set.store
-    if store.benchmark != benchmark.name:
-        raise UserError(f"{store.path} holds {store.benchmark} tasks; the checkpoint was trained on {benchmark.name}")
+        raise UserError(f"{flag} {tasks!r}: not a task set of {benchmark.name} ({names}) nor a store path")
+    if task_set.store.benchmark != benchmark.name:
+        holds = task_set.store.benchmark
+        raise UserError(
+            f"{flag} {task_set.store.path} holds {holds} tasks; the checkpoint was trained on {benchmark.name}"
+        )
+    store = EpisodeStore(task_set.store.path, benchmark.derived_keys)  # as the benchmark presents it
+    task_set = replace(task_set, store=store)
     count = min(num_tasks or store.num_tasks, store.num_tasks)
     chosen = np.unique(np.linspace(0, store.num_tasks - 1, count).round().astype(int)).tolist()
     return benchmark, task_set, chosen
@@ -298,8 +304,6 @@ def evaluate(
     nothing that a rerun would reuse. A task's video is named from its id by :func:`bpp.utils.file_stem` (one name
     per id), and the names and the folder are checked before any rollout runs.
     """
-    from bpp.evaluation import report
-
     ckpt = checkpoint if isinstance(checkpoint, Checkpoint) else Checkpoint.load(checkpoint, use_ema=True)
     benchmark = get_benchmark(ckpt.benchmark)
     store = task_set.store

@@ -10,7 +10,7 @@ from typing import Literal, get_args
 
 import numpy as np
 
-from bpp.benchmarks.contract import Benchmark, Metric, RolloutResult
+from bpp.core.contract import Benchmark, Metric, RolloutResult
 from bpp.data.contexts import PROMPT_EDITS
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError

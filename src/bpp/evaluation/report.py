@@ -9,16 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from bpp.data.store import EpisodeStore
-from bpp.media import contact_sheet, save_animation, save_figure
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from bpp.media import contact_sheet, pyplot, save_animation, save_figure
 
 
 def _save(fig, path: Path) -> Path:
@@ -46,7 +37,7 @@ def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, titl
 
     attention: (calls, n_chunks + 1), column 0 the attention-sink mass, column i + 1 prompt chunk i.
     """
-    plt = _pyplot()
+    plt = pyplot()
     used = np.flatnonzero(attention.sum(axis=0) > 0)
     attention = attention[:, : used.max() + 1] if len(used) else attention  # drop chunks padded in by batching
     calls, columns = attention.shape
@@ -88,7 +79,7 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
 
 def bar_chart(values: Mapping[str, Mapping[str, tuple[float, float]]], path: Path, ylabel: str, title: str = ""):
     """Grouped bars: values[group][series] = (mean, std), e.g. values["unseen human"]["BPP"] = (3.4, 0.1)."""
-    plt = _pyplot()
+    plt = pyplot()
     groups = list(values)
     series = list(dict.fromkeys(s for g in groups for s in values[g]))
     width = 0.8 / max(1, len(series))

@@ -1,4 +1,4 @@
-"""DrawAnything-Sim as a benchmark (the contract of :mod:`bpp.benchmarks.contract`): its data, observation settings,
+"""DrawAnything-Sim as a benchmark (the contract of :mod:`bpp.core.contract`): its data, observation settings,
 task sets, rollouts, Chamfer metric and pictures."""
 
 from __future__ import annotations
@@ -9,12 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
 from bpp.benchmarks.draw import dataset
 from bpp.benchmarks.draw.env import CAMERAS
-from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE
+from bpp.benchmarks.draw.physics import CONTROL_HZ
+from bpp.benchmarks.draw.rollouts import run_rollouts
+from bpp.benchmarks.draw.viz import group_strokes, render_strokes
+from bpp.core.contract import Metric, RolloutResult, TaskSet
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, StoreError
+from bpp.drawing.geometry import MAX_BOARD_ANGLE
 from bpp.errors import UserError
 
 CANVAS = ObservationPreset(
@@ -27,9 +30,9 @@ CANVAS_INK = ObservationPreset(
     proprio_keys=(*CANVAS.proprio_keys, "ink_length"),
     description=(
         "canvas, plus the ink drawn so far (the progress an image would show): the state analog of the paper's visual "
-        "setting, canvas actions and all, and the default of the state size presets (32.8 and 32.5 px against "
-        "canvas's 48.0 and 42.2 on the unseen drawings at the main job's budget, two seeds; board's 19.1: "
-        "BENCHMARKS.md)"
+        "setting, canvas actions and all, and the default of the state size presets (32.77 and 32.52 px against "
+        "canvas's 47.96 and 42.18 on the unseen drawings at the main job's budget, two seeds; board, the main job's: "
+        "18.84-20.40 px; BENCHMARKS.md)"
     ),
 )
 BOARD = ObservationPreset(
@@ -37,9 +40,10 @@ BOARD = ObservationPreset(
     action_key="action_on_board",
     description=(
         "state in the board's own frame: the cursor as seen on the board, the pen and the ink drawn so far (the "
-        "progress an image would show; without it BPP keeps drawing after it has finished: 40.4 against 15.9 px on "
-        "the unseen drawings in BENCHMARKS.md); board-frame action targets, so a prompt's actions carry over to a "
-        "new board angle unchanged. A simplification of the paper's setting, named as such wherever it is used"
+        "progress an image would show; without it BPP keeps drawing after it has finished: 40.44 against 15.89 px on "
+        "the unseen drawings at 8,000 steps, BENCHMARKS.md); board-frame action targets, so a prompt's actions carry "
+        "over to a new board angle unchanged. A simplification of the paper's setting, named as such wherever it is "
+        "used"
     ),
 )
 BOARD_IMAGE = ObservationPreset(
@@ -72,6 +76,8 @@ class DrawAnything:
 
     name = dataset.BENCHMARK
     command = "draw"
+    control_hz = CONTROL_HZ
+    """Actions per second of its robot (a policy server tells its clients)."""
     command_table = "bpp.benchmarks.draw.commands:COMMANDS"
     description = "DrawAnything-Sim: draw a drawing on a rotated board from one demonstration (Chamfer, px)"
     data_config = dataset.DrawDataConfig
@@ -118,6 +124,7 @@ class DrawAnything:
     def device_frames(self, store: EpisodeStore, device):
         """What :meth:`frames` draws, held on `device`, which renders frame references there (``bpp train
         --frames-on device``; :mod:`bpp.data.frame_refs`)."""
+        # torch: only when training renders frames on its device (--frames-on device)
         from bpp.benchmarks.draw.device_render import DrawFrameTable
 
         return DrawFrameTable(store, device)
@@ -143,13 +150,9 @@ class DrawAnything:
         return {"board_angle": float(rng.uniform(-MAX_BOARD_ANGLE, MAX_BOARD_ANGLE))}
 
     def run_rollouts(self, agent, store, rollouts, max_steps, record_frames) -> list[RolloutResult]:
-        from bpp.benchmarks.draw.rollouts import run_rollouts
-
         return run_rollouts(agent, store, rollouts, max_steps, record_frames)
 
     def prompt_picture(self, store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
-        from bpp.benchmarks.draw.viz import group_strokes, render_strokes
-
         ep = store.episode(episode, ("state", "action"))
         strokes = group_strokes(ep["state"], ep["action"].astype(np.float64))
         return render_strokes(strokes, float(store.column("board_angle")[episode]), size)

@@ -20,10 +20,11 @@ from bpp.benchmarks.draw.dataset import PRESETS, DrawDataConfig, generate
 from bpp.benchmarks.draw.sheets import write_contact_sheet
 from bpp.benchmarks.draw.studio.command import StudioCommand, studio
 from bpp.benchmarks.draw.viz import episode_frames
-from bpp.benchmarks.prompting import run_prompted
+from bpp.core.prompting import run_prompted
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
 from bpp.media import contact_sheet, save_animation
+from bpp.policies.registry import get_method
 from bpp.utils import check_fields, write_text_atomic
 
 
@@ -105,6 +106,7 @@ class DrawRollout:
 
 
 def draw_rollout(args: DrawRollout) -> None:
+    # torch: imported when the command runs, not when the command line starts
     from bpp.checkpoint import Checkpoint
     from bpp.policies.agent import PolicyAgent
 
@@ -196,9 +198,9 @@ class Demo:
 
 
 def demo(args: Demo) -> None:
+    # torch: imported when the command runs, not when the command line starts
     from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
     from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
-    from bpp.policies.registry import get_method
     from bpp.train import TrainConfig, run_differences, train
 
     t0 = time.perf_counter()

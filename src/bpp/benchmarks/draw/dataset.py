@@ -11,12 +11,14 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp.benchmarks.draw.demonstrator import DemoConfig, Demonstration, demonstrate, replay_paths
-from bpp.benchmarks.draw.drawing import Drawing
 from bpp.benchmarks.draw.env import CURSOR_START_RANGE, action_to_board, board_pose, ink_lengths
-from bpp.benchmarks.draw.geometry import MAX_BOARD_ANGLE, canvas_to_unit
-from bpp.benchmarks.draw.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.benchmarks.draw.render import render_frames
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.drawing.drawing import Drawing, strokes_array
+from bpp.drawing.files import load_drawings
+from bpp.drawing.geometry import MAX_BOARD_ANGLE, canvas_to_unit
+from bpp.drawing.human import human_drawings
+from bpp.drawing.procedural import ProceduralConfig, describe_parts, generate_drawing
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
 from bpp.utils import check_fields
@@ -88,17 +90,6 @@ def _task_job(job: tuple) -> tuple[Drawing, dict, list[Demonstration]]:
     return drawing, info, demos
 
 
-def strokes_array(drawing: Drawing) -> np.ndarray:
-    """(P, 3) float64 [u, v, stroke_index]: a drawing as one ragged-store row."""
-    return np.concatenate([np.c_[s, np.full(len(s), i, dtype=np.float64)] for i, s in enumerate(drawing.strokes)])
-
-
-def drawing_from_array(drawing_id: str, arr: np.ndarray) -> Drawing:
-    """Inverse of :func:`strokes_array`."""
-    idx = arr[:, 2].astype(int)
-    return Drawing.from_strokes(drawing_id, [arr[idx == i, :2] for i in np.unique(idx)], source="store")
-
-
 def episode_steps(demo: Demonstration) -> dict[str, np.ndarray]:
     """The per-step arrays stored for one demonstration."""
     n = len(demo)
@@ -122,12 +113,8 @@ def generate(
     if cfg.source == "procedural":
         drawings: list[Drawing | None] = [None] * cfg.num_tasks
     elif cfg.source == "human":
-        from bpp.benchmarks.draw.human import human_drawings
-
         drawings = list(human_drawings())
     else:
-        from bpp.benchmarks.draw.files import load_drawings
-
         drawings = list(load_drawings(cfg.drawings))  # validates every file before anything is written
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(drawings))
     jobs = [(i, d, s, cfg) for i, (d, s) in enumerate(zip(drawings, seeds, strict=True))]
@@ -152,11 +139,6 @@ def generate(
 
 
 # --------------------------------------------------------------------------- reading back
-def task_drawing(store: EpisodeStore, task_index: int) -> Drawing:
-    """The drawing of a task, from the store."""
-    return drawing_from_array(store.tasks[task_index]["id"], store.task_array("strokes", task_index))
-
-
 def episode_physics(store: EpisodeStore, episode: int) -> tuple[np.ndarray, np.ndarray]:
     """An episode's (T, 5) states (a view of the cached column: do not modify it) and (T, 3) float64 actions, from
     the store's whole columns, read into memory once (52 bytes a step, about 51 MB for the paper's 10,000

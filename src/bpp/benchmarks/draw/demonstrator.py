@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from bpp.benchmarks.draw import physics
-from bpp.benchmarks.draw.drawing import Drawing, DrawingError
-from bpp.benchmarks.draw.geometry import unit_to_canvas
+from bpp.drawing.drawing import Drawing, DrawingError
+from bpp.drawing.geometry import unit_to_canvas
 from bpp.utils import check_fields
 
 

@@ -2,7 +2,7 @@
 
 :func:`bpp.benchmarks.draw.render.render_frames` renders a batch's frames in numpy, in the loader processes; at a GPU's
 rate the loader processes take most of the machine's cores to draw pixels, and the training process takes time to
-receive them (a 224-px frame is 150 kB; about 7 ms a paper batch here, BENCHMARKS.md). Here the loader sends a frame
+receive them (a paper batch moves 19.5 MB: BENCHMARKS.md, "Feeding the GPU"). Here the loader sends a frame
 *reference* instead, (episode + 1, step), 16 bytes (see :mod:`bpp.data.frame_refs`), and :class:`DrawFrameTable`
 holds what every frame of the store is drawn from: each episode's ink segments and the step that inks them (on the
 device), its board angle and its cursor positions. :meth:`DrawFrameTable.render` then draws a batch's frames with
@@ -24,8 +24,9 @@ import numpy as np
 import torch
 
 from bpp.benchmarks.draw import physics, render
-from bpp.benchmarks.draw.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
 from bpp.data.store import EpisodeStore
+from bpp.drawing import raster
+from bpp.drawing.geometry import CANVAS_SIZE, board_corners, unit_to_canvas
 
 SEGMENT_ENTRIES = 1 << 24
 """Segment-pixel coverages measured at once (float64 temporaries of about 8 bytes x a few each)."""
@@ -53,7 +54,7 @@ _BOARD_LAYERS = (
 
 
 def _distance(px: torch.Tensor, py: torch.Tensor, dx, dy, length2) -> torch.Tensor:
-    """render.segment_distance's arithmetic for one segment (length2 > 0), from the point's offset (px, py)."""
+    """raster.segment_distance's arithmetic for one segment (length2 > 0), from the point's offset (px, py)."""
     t = torch.clamp((px * dx + py * dy) / length2, 0.0, 1.0)
     px = px - t * dx
     py = py - t * dy
@@ -208,7 +209,7 @@ class DrawFrameTable:
             return
         # Each segment's pixel window, as render._window_starts works it out.
         seg = self.segments[index]
-        margin, scale = render.INK_WIDTH / 2 + pixel, size / CANVAS_SIZE
+        margin, scale = raster.INK_WIDTH / 2 + pixel, size / CANVAS_SIZE
         lo = np.floor((np.minimum(seg[:, :2], seg[:, 2:]) - margin) * scale - 0.5).astype(np.int64)
         hi = np.ceil((np.maximum(seg[:, :2], seg[:, 2:]) + margin) * scale + 0.5).astype(np.int64)
         width = int((hi - lo).max())
@@ -228,6 +229,6 @@ class DrawFrameTable:
             t = torch.clamp(t, 0.0, 1.0) * long  # a dot is not projected onto
             px = px - t * dx
             py = py - t * dy
-            cover = _coverage(torch.sqrt(px * px + py * py), render.INK_WIDTH / 2, pixel)
+            cover = _coverage(torch.sqrt(px * px + py * py), raster.INK_WIDTH / 2, pixel)
             target = layer_s[:, None, None] * (size * size) + rows * size + cols
             ink.scatter_reduce_(0, target.reshape(-1), cover.reshape(-1), reduce="amax")

@@ -9,8 +9,10 @@ import numpy as np
 from gymnasium import spaces
 
 from bpp.benchmarks.draw import physics
-from bpp.benchmarks.draw.drawing import Drawing
-from bpp.benchmarks.draw.geometry import (
+from bpp.benchmarks.draw.render import SceneRenderer, upright_points
+from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
+from bpp.drawing.drawing import Drawing
+from bpp.drawing.geometry import (
     BOARD_CENTER,
     BOARD_SIZE,
     CANVAS_SIZE,
@@ -19,11 +21,10 @@ from bpp.benchmarks.draw.geometry import (
     canvas_to_upright,
     unit_to_canvas,
 )
-from bpp.benchmarks.draw.metric import ChamferTracker, InkMask, ink_mask
-from bpp.benchmarks.draw.render import SceneRenderer, upright_points
+from bpp.drawing.metric import ChamferTracker, InkMask, ink_mask
 
 ENV_ID = "bpp/DrawAnything-v0"
-"""Its Gymnasium id (registered by ``import bpp.benchmarks``; see bpp.benchmarks.registry.GYM_ENVS)."""
+"""Its Gymnasium id (registered by ``import bpp.benchmarks``; see bpp.benchmarks.GYM_ENVS)."""
 CURSOR_START_RANGE = (50.0, 450.0)
 """At reset the cursor rests at a uniformly random canvas position in this range on each axis, pen up."""
 MAX_EPISODE_STEPS = 400
@@ -255,8 +256,6 @@ class DrawEnv(gym.Env):
             return None
         frame = self._video.frame(self.state[:2])
         if self.target_mask is not None:
-            from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
-
             if self.target_overlay is None:
                 self.target_overlay = 0.35 * target_coverage(self.target_paths, self.board_angle, self.render_size)
             c = self.target_overlay[..., None]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bpp.benchmarks.draw.geometry import CANVAS_SIZE
+from bpp.drawing.geometry import CANVAS_SIZE
 
 KP = 100.0
 KV = 20.0

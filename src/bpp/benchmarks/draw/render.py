@@ -1,6 +1,7 @@
 """Rasterisation of the drawing scene at any resolution, directly (no resize of a 512 render).
 
-Everything is drawn from geometry in canvas pixels with analytic, anti-aliased coverage: a pixel's coverage
+Everything is drawn from geometry in canvas pixels with analytic, anti-aliased coverage (:mod:`bpp.drawing.raster`):
+a pixel's coverage
 by a thick line is ``clip((half_width - distance) / pixel_size + 0.5, 0, 1)`` where the distance is measured
 from the pixel centre to the line's centre segment. Ink coverage is the *maximum* over segments, so the ink
 layer does not depend on how a path is split into steps: replaying a stored episode reproduces every frame
@@ -12,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from bpp.benchmarks.draw import physics
-from bpp.benchmarks.draw.geometry import BOARD_CENTER, CANVAS_SIZE, board_corners, unit_to_canvas
+from bpp.drawing.geometry import BOARD_CENTER, CANVAS_SIZE, board_corners, unit_to_canvas
+from bpp.drawing.raster import INK_WIDTH, centers, coverage, pixel_centers, polyline_segments, segment_distance
 
 BACKGROUND_RGB = (255, 255, 255)
 BOARD_EDGE_RGB = (0, 0, 0)
@@ -24,51 +26,8 @@ CURSOR_OUTLINE_RGB = (255, 255, 255)
 
 BOARD_EDGE_WIDTH = 8.0
 HELPER_LINE_WIDTH = 8.0
-INK_WIDTH = 12.0
 CURSOR_RADIUS = 15.0
 CURSOR_OUTLINE_WIDTH = 2.0
-
-
-def centers(resolution: int) -> np.ndarray:
-    """(R,) canvas coordinate of each pixel row's (or column's) centre in a `resolution`-sized image."""
-    return (np.arange(resolution, dtype=np.float64) + 0.5) * (CANVAS_SIZE / resolution)
-
-
-def pixel_centers(resolution: int, rows: slice = slice(None), cols: slice = slice(None)):
-    """Canvas coordinates of pixel centres of a `resolution`-sized image, restricted to rows x cols.
-
-    Returns (x, y) arrays of shape (H, W).
-    """
-    coordinate = centers(resolution)
-    return np.meshgrid(coordinate[cols], coordinate[rows])
-
-
-def segment_distance(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Distance from points (x, y) of shape S to the nearest of (M, 4) segments [x0, y0, x1, y1]; shape S."""
-    best = np.full(x.shape, np.inf)
-    for x0, y0, x1, y1 in np.asarray(segments, dtype=np.float64):
-        dx, dy = x1 - x0, y1 - y0
-        length2 = dx * dx + dy * dy
-        px, py = x - x0, y - y0
-        if length2 > 0.0:
-            t = np.clip((px * dx + py * dy) / length2, 0.0, 1.0)
-            px = px - t * dx
-            py = py - t * dy
-        np.minimum(best, np.sqrt(px * px + py * py), out=best)
-    return best
-
-
-def polyline_segments(points: np.ndarray) -> np.ndarray:
-    """(N, 2) polyline -> (max(N-1, 1), 4) segments; a single point becomes a zero-length segment (a dot)."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    if len(points) == 1:
-        return np.concatenate([points, points], axis=1)
-    return np.concatenate([points[:-1], points[1:]], axis=1)
-
-
-def coverage(distance: np.ndarray, half_width: float, pixel_size: float) -> np.ndarray:
-    """Anti-aliased coverage in [0, 1] of a pixel at `distance` from a shape's centre line."""
-    return np.clip((half_width - distance) / pixel_size + 0.5, 0.0, 1.0)
 
 
 def _blend(image: np.ndarray, cover: np.ndarray, rgb) -> None:
@@ -122,7 +81,7 @@ def line_coverage(resolution: int, segments: np.ndarray, half_width: float) -> t
 
 def upright_points(points: np.ndarray, angle: float) -> np.ndarray:
     """(..., 2) canvas points turned about the board's centre so that a board at `angle` stands upright
-    (:func:`~bpp.benchmarks.draw.geometry.canvas_to_upright`'s map), written out per coordinate: a point maps to
+    (:func:`~bpp.drawing.geometry.canvas_to_upright`'s map), written out per coordinate: a point maps to
     the same bits whatever array it comes in, so the env's board view and :func:`render_frames`' agree bit for bit
     (a matrix product may round differently for arrays of different lengths)."""
     p = np.asarray(points, dtype=np.float64)

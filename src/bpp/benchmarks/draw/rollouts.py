@@ -11,11 +11,11 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult, frames_to_record
 from bpp.benchmarks.draw.dataset import episode_paths
 from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
-from bpp.benchmarks.draw.geometry import canvas_to_upright
+from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore
+from bpp.drawing.geometry import canvas_to_upright
 from bpp.errors import UserError
 
 

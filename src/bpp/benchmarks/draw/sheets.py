@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.draw.dataset import task_drawing
 from bpp.benchmarks.draw.viz import contact_sheet, group_strokes, render_drawing, render_strokes
 from bpp.data.store import EpisodeStore
+from bpp.drawing.drawing import task_drawing
 from bpp.errors import UserError
 
 

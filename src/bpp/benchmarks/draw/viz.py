@@ -6,9 +6,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from bpp.benchmarks.draw.geometry import BOARD_CENTER, CANVAS_SIZE, rotation, unit_to_canvas
-from bpp.benchmarks.draw.render import INK_WIDTH, SceneRenderer, coverage, pixel_centers, polyline_segments
-from bpp.benchmarks.draw.render import segment_distance as _segment_distance
+from bpp.benchmarks.draw.physics import PEN_THRESHOLD, control_step
+from bpp.benchmarks.draw.render import SceneRenderer
+from bpp.drawing.geometry import BOARD_CENTER, CANVAS_SIZE, rotation, unit_to_canvas
+from bpp.drawing.raster import INK_WIDTH, coverage, pixel_centers, polyline_segments
+from bpp.drawing.raster import segment_distance as _segment_distance
 from bpp.media import contact_sheet, save_animation  # noqa: F401 - part of this module's interface
 
 TARGET_RGB = (255, 80, 80)
@@ -29,6 +31,7 @@ def _paint_paths(image: np.ndarray, paths: Sequence[np.ndarray], rgb, alpha: flo
 
 def stroke_colors(n: int) -> np.ndarray:
     """(n, 3) RGB colours in drawing order (early strokes purple, late ones yellow)."""
+    # matplotlib: half a second to import, for pictures only
     from matplotlib import colormaps
 
     return (np.asarray(colormaps["plasma"](np.linspace(0.0, 0.85, max(n, 1))))[:, :3] * 255)[:n]
@@ -49,8 +52,6 @@ def render_drawing(drawing, angle: float = 0.0, size: int = 256) -> np.ndarray:
 
 def group_strokes(states: np.ndarray, actions: np.ndarray) -> list[np.ndarray]:
     """Split a recorded episode's inked path into strokes (maximal runs of pen-down steps)."""
-    from bpp.benchmarks.draw.physics import PEN_THRESHOLD, control_step
-
     strokes, current = [], []
     for state, action in zip(states, actions, strict=True):
         if action[2] > PEN_THRESHOLD:
@@ -75,8 +76,6 @@ def target_coverage(target_paths: Sequence[np.ndarray], angle: float, size: int)
 
 def episode_frames(states: np.ndarray, actions: np.ndarray, angle: float, size: int = 256) -> list[np.ndarray]:
     """Replay an episode into (size, size, 3) frames, one per observation, plus the final one."""
-    from bpp.benchmarks.draw.physics import PEN_THRESHOLD, control_step
-
     renderer = SceneRenderer(size, angle)
     frames = []
     for state, action in zip(states, actions, strict=True):

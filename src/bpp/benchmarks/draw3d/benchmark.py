@@ -1,4 +1,4 @@
-"""DrawAnything-Real on a simulated arm as a benchmark (the contract of :mod:`bpp.benchmarks.contract`).
+"""DrawAnything-Real on a simulated arm as a benchmark (the contract of :mod:`bpp.core.contract`).
 
 The paper's real drawing benchmark: a square canvas with four red corner markers anywhere on a whiteboard at any
 rotation within ±45 degrees, its pose measured from a photo; a 6-DoF arm drawing with a pen; the policy acting with
@@ -9,17 +9,27 @@ its driver. Drawings, the human-made set, drawing files and the Chamfer metric a
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
-from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
 from bpp.benchmarks.draw3d.dataset import BENCHMARK as NAME
-from bpp.benchmarks.draw3d.dataset import PLACEMENT, PRESETS, Draw3DConfig, random_placement
+from bpp.benchmarks.draw3d.dataset import GOAL_KEY, PLACEMENT, PRESETS, Draw3DConfig, generate, random_placement
+from bpp.benchmarks.draw3d.demonstrator import canvas_to_drawing
+from bpp.benchmarks.draw3d.rollouts import run_rollouts
+from bpp.benchmarks.draw3d.scene import CONTROL_HZ, canvas_transform
+from bpp.core.contract import Metric, RolloutResult, TaskSet
+from bpp.core.poses import invert
+from bpp.data.frames import stored_frames
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore
+from bpp.data.store import EpisodeStore, stored_with
+from bpp.drawing.geometry import unit_to_canvas
+from bpp.drawing.metric import ink_mask
 from bpp.errors import UserError
+from bpp.media import resize_frames
 
 OBSERVATIONS: Mapping[str, ObservationPreset] = {
     "state": ObservationPreset(
@@ -45,6 +55,8 @@ class DrawAnythingReal:
 
     name = NAME
     command = "draw3d"
+    control_hz = CONTROL_HZ
+    """Actions per second of its robot (a policy server tells its clients)."""
     command_table = "bpp.benchmarks.draw3d.commands:COMMANDS"
     description = (
         "DrawAnything-Real on a simulated Panda: a canvas with red corner markers anywhere on a whiteboard (±45 "
@@ -71,8 +83,6 @@ class DrawAnythingReal:
         return "wrist" if size == "paper" else "state"
 
     def generate(self, cfg, out: Path, *, workers: int = 0, overwrite: bool = False, progress: bool = True):
-        from bpp.benchmarks.draw3d.dataset import generate
-
         return generate(cfg, out, workers=workers, overwrite=overwrite, progress=progress)
 
     def frames(
@@ -80,12 +90,7 @@ class DrawAnythingReal:
     ) -> np.ndarray:
         """The camera frames generated with the store (resized if another size is asked for); camera ``scene`` has one
         frame per demonstration, its final photo of the board (:data:`~bpp.benchmarks.draw3d.dataset.GOAL_KEY`)."""
-        from bpp.benchmarks.lerobot.benchmark import stored_frames
-
         if key == "scene" and last_only:
-            from bpp.benchmarks.draw3d.dataset import GOAL_KEY
-            from bpp.media import resize_frames
-
             try:
                 return resize_frames(store.column(GOAL_KEY)[episode][None], size)
             except KeyError:
@@ -102,15 +107,11 @@ class DrawAnythingReal:
         return self._generated(Draw3DConfig(num_tasks=50, source="human"), Path(data_dir) / "human.zarr", name, workers)
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
-        import hashlib
-
         key = hashlib.sha256("\0".join(str(Path(f).resolve()) for f in files).encode()).hexdigest()[:12]
         cfg = Draw3DConfig(source="files", drawings=tuple(Path(f) for f in files), demos_per_task=2)
         return self._generated(cfg, Path(data_dir) / f"files-{key}.zarr", "your drawings", workers)
 
     def _generated(self, cfg: Draw3DConfig, path: Path, label: str, workers: int) -> TaskSet:
-        from bpp.data.store import stored_with
-
         store = stored_with(path, cfg) if path.exists() else None
         if store is None:
             store = self.generate(cfg, path, workers=workers, overwrite=path.exists())
@@ -120,18 +121,10 @@ class DrawAnythingReal:
         return {f"canvas_{k}": v for k, v in random_placement(rng).items()}
 
     def run_rollouts(self, agent, store, rollouts, max_steps, record_frames) -> list[RolloutResult]:
-        from bpp.benchmarks.draw3d.rollouts import run_rollouts
-
         return run_rollouts(agent, store, rollouts, max_steps, record_frames)
 
     def prompt_picture(self, store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
         """The demonstration's ink on the canvas (from its pen poses where the pen touched), upright."""
-        from bpp.benchmarks.draw.geometry import unit_to_canvas
-        from bpp.benchmarks.draw.metric import ink_mask
-        from bpp.benchmarks.draw3d.demonstrator import canvas_to_drawing
-        from bpp.benchmarks.draw3d.scene import canvas_transform
-        from bpp.benchmarks.poses import invert
-
         data = store.episode(episode, ["tip_pose", "pen_down"])
         columns = {k: float(store.column(f"canvas_{k}")[episode]) for k in PLACEMENT}
         canvas = canvas_transform(columns["u"], columns["v"], columns["angle"])
@@ -142,7 +135,6 @@ class DrawAnythingReal:
                    if down[run[0]] and len(run) > 1]  # fmt: skip
         mask = ink_mask([unit_to_canvas(canvas_to_drawing(s), 0.0) for s in strokes])
         picture = np.where(mask[..., None], np.uint8(20), np.uint8(245)).repeat(3, axis=2)
-        from PIL import Image
 
         return np.asarray(Image.fromarray(picture).resize((size, size), Image.BILINEAR))
 

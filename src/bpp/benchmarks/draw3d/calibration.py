@@ -30,6 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from bpp.benchmarks.draw3d.canvas import MARKER_NAMES, CanvasLayout, canvas_in_base, canvas_pose
+from bpp.benchmarks.draw3d.dataset import ASIDE, PHOTO_SIZE, random_placement
+from bpp.benchmarks.draw3d.scene import BOARD, Scene, canvas_transform
 from bpp.errors import UserError
 from bpp.utils import read_json, write_json_atomic
 
@@ -125,14 +128,13 @@ class CameraCalibration:
     def canvas_in_base(self, photo: np.ndarray) -> np.ndarray:
         """T_base_canvas from a photo taken by this camera (undistorted first);
         :class:`~bpp.benchmarks.draw3d.canvas.CanvasNotFound` when the markers do not give a trustworthy pose."""
-        from bpp.benchmarks.draw3d.canvas import canvas_in_base, canvas_pose
-
         photo = np.asarray(photo)
         if photo.shape[:2] != (self.height, self.width):
             raise UserError(
                 f"the photo is {photo.shape[1]}x{photo.shape[0]} px; the calibration is for {self.width}x{self.height}"
             )
         if self.distortion.size and np.any(self.distortion):
+            # OpenCV: the iphumi extra
             import cv2
 
             photo = cv2.undistort(photo, self.intrinsics, self.distortion)
@@ -152,8 +154,6 @@ class CalibrationCheck:
         return bool(np.all(self.errors_mm <= self.tolerance_mm))
 
     def report(self) -> str:
-        from bpp.benchmarks.draw3d.canvas import MARKER_NAMES
-
         lines = [f"{name}: {error:.1f} mm" for name, error in zip(MARKER_NAMES, self.errors_mm, strict=True)]
         verdict = "passed" if self.passed else "FAILED: recalibrate (the intrinsics, then the hand-eye extrinsic)"
         return "\n".join([*lines, f"check {verdict} (tolerance {self.tolerance_mm:g} mm)"])
@@ -164,8 +164,6 @@ def check_calibration(
 ) -> CalibrationCheck:
     """Compare the canvas pose from `photo` with `touched`, the (4, 3) base-frame positions of the four markers'
     centres (top-left, top-right, bottom-right, bottom-left of the canvas upright) touched with the pen tip."""
-    from bpp.benchmarks.draw3d.canvas import CanvasLayout
-
     touched = np.asarray(touched, dtype=np.float64)
     if touched.shape != (4, 3) or not np.all(np.isfinite(touched)):
         raise UserError(f"touched points must be 4 finite [x, y, z] positions in metres, got shape {touched.shape}")
@@ -189,11 +187,8 @@ def simulated_lab(folder: str | Path, seed: int = 0, touch_noise_mm: float = 0.5
     """The simulator standing in for a lab: write the scene camera's calibration, a photo of a canvas at a random
     placement (the arm swung aside) and the markers' centres as a pen would touch them (with `touch_noise_mm` of
     noise) into `folder`. Returns the three paths."""
+    # imageio: for video and GIF files only
     import imageio.v3 as iio
-
-    from bpp.benchmarks.draw3d.canvas import CanvasLayout
-    from bpp.benchmarks.draw3d.dataset import ASIDE, PHOTO_SIZE, random_placement
-    from bpp.benchmarks.draw3d.scene import BOARD, Scene, canvas_transform
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

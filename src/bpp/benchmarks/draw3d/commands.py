@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from bpp.benchmarks.draw3d.calibration import CameraCalibration, check_calibration, read_touched, simulated_lab
 from bpp.errors import UserError, require_extra
 
 
@@ -39,9 +40,8 @@ class Draw3DCalibration:
 
 
 def draw3d_calibration(args: Draw3DCalibration) -> None:
+    # imageio: for video and GIF files only
     import imageio.v3 as iio
-
-    from bpp.benchmarks.draw3d.calibration import CameraCalibration, check_calibration, read_touched, simulated_lab
 
     require_extra("cv2", "iphumi")
     if args.simulate is not None:

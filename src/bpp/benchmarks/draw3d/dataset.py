@@ -18,10 +18,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
-from bpp.benchmarks.draw.procedural import ProceduralConfig
-from bpp.benchmarks.draw3d.demonstrator import ScriptConfig
+from bpp.benchmarks.draw3d.canvas import CanvasNotFound, canvas_in_base, canvas_pose
+from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, plan_drawing
+from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
+from bpp.core.poses import pose_to_vector
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.drawing.drawing import strokes_array
+from bpp.drawing.files import load_drawings
+from bpp.drawing.human import human_drawings
+from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
 from bpp.utils import check_fields
@@ -100,7 +107,6 @@ _SCENE = None
 def _scene(image_size: int):
     """The process's scene, built once (a second of MuJoCo compilation)."""
     global _SCENE
-    from bpp.benchmarks.draw3d.scene import Scene
 
     if _SCENE is None or _SCENE.image_size != image_size:
         _SCENE = Scene(image_size=image_size)
@@ -110,9 +116,6 @@ def _scene(image_size: int):
 def measure_canvas(scene, truth: np.ndarray) -> np.ndarray:
     """Place the canvas at `truth` with the arm swung aside, photograph it with the scene camera and return the
     canvas pose the photo gives in the base frame (:class:`bpp.benchmarks.draw3d.canvas.CanvasNotFound` if none)."""
-    from bpp.benchmarks.draw3d.canvas import canvas_in_base, canvas_pose
-    from bpp.benchmarks.draw3d.scene import BOARD
-
     scene.reset(truth, ASIDE)
     camera = scene.camera_pose("scene")
     photo = scene.render("scene", PHOTO_SIZE)
@@ -122,11 +125,6 @@ def measure_canvas(scene, truth: np.ndarray) -> np.ndarray:
 
 def demonstrate_task(job: tuple) -> tuple[list, dict]:
     """Worker: one task's demonstrations -> ([(steps, columns)], counts). A pure function of the job."""
-    from bpp.benchmarks.draw3d.canvas import CanvasNotFound
-    from bpp.benchmarks.draw3d.demonstrator import execute, ink_chamfer, plan_drawing
-    from bpp.benchmarks.draw3d.scene import CONTROL_HZ, HOME_QPOS, canvas_transform
-    from bpp.benchmarks.poses import pose_to_vector
-
     drawing, seed_seq, cfg = job
     rng = np.random.default_rng(seed_seq)
     scene = _scene(cfg.image_size)
@@ -165,15 +163,9 @@ def demonstrate_task(job: tuple) -> tuple[list, dict]:
 
 
 def _drawings(cfg: Draw3DConfig) -> list:
-    from bpp.benchmarks.draw.procedural import generate_drawing
-
     if cfg.source == "human":
-        from bpp.benchmarks.draw.human import human_drawings
-
         return list(human_drawings())
     if cfg.source == "files":
-        from bpp.benchmarks.draw.files import load_drawings
-
         if not cfg.drawings:  # a preset of this source leaves them to the command line
             raise UserError("source files: give the drawing files (JSON or SVG) with --drawings")
         return list(load_drawings(cfg.drawings))
@@ -187,10 +179,6 @@ def generate(
 ) -> EpisodeStore:
     """Demonstrate every task of `cfg` into the store at `out` (atomically), over `workers` processes (0: all cores)
     or an :class:`~bpp.executor.Executor`."""
-    from tqdm import tqdm
-
-    from bpp.benchmarks.draw.dataset import strokes_array
-
     drawings = _drawings(cfg)  # drawing files are validated before anything is written
     seeds = np.random.SeedSequence(cfg.seed).spawn(len(drawings))
     jobs = [(d, s, cfg) for d, s in zip(drawings, seeds, strict=True)]

@@ -13,9 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from bpp.benchmarks.draw3d.scene import CANVAS_SIDE, MARKER_SIDE, Scene
-from bpp.benchmarks.poses import invert, make_pose, pose_to_vector
+from bpp.core.poses import invert, make_pose, pose_to_vector
+from bpp.drawing.geometry import BOARD_SIZE, unit_to_canvas
+from bpp.drawing.metric import chamfer_distance, ink_mask
 from bpp.utils import check_fields
 
 DRAW_SIDE = CANVAS_SIDE - 2 * (MARKER_SIDE + 0.01)
@@ -76,8 +79,6 @@ class Plan:
 
     def to(self, goal: np.ndarray, speed: float, turn_speed_deg: float, hz: float) -> None:
         """Append poses moving straight to `goal` at `speed` (positions) and at most the turn speed (rotations)."""
-        from scipy.spatial.transform import Rotation, Slerp
-
         start = self.poses[-1]
         distance = float(np.linalg.norm(goal[:3, 3] - start[:3, 3]))
         turn = float(np.rad2deg(Rotation.from_matrix(start[:3, :3].T @ goal[:3, :3]).magnitude()))
@@ -101,8 +102,6 @@ class Plan:
 
 def random_pose(rng: np.random.Generator, cfg: ScriptConfig) -> np.ndarray:
     """A random pen pose in front of the canvas (canvas frame): tilted from the drawing orientation, offset along it."""
-    from scipy.spatial.transform import Rotation
-
     axis = rng.normal(size=3)
     tilt = Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.deg2rad(rng.uniform(0, cfg.start_tilt_deg)))
     position = [*rng.uniform(-cfg.start_offset, cfg.start_offset, 2), rng.uniform(*cfg.start_distance)]
@@ -183,8 +182,6 @@ def execute(
 def execute_approach(scene: Scene, start: np.ndarray, steps: int = 0) -> None:
     """Move the pen, unrecorded, straight to `start` (``T_base_pen``) at about 10 cm/s (or in `steps` control
     steps), then hold still for half a second."""
-    from scipy.spatial.transform import Rotation, Slerp
-
     steps = steps or max(10, int(np.linalg.norm(start[:3, 3] - scene.target[:3, 3]) / 0.1 * 20))
     origin = scene.target.copy()
     spin = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([origin[:3, :3], start[:3, :3]])))
@@ -199,9 +196,6 @@ def execute_approach(scene: Scene, start: np.ndarray, steps: int = 0) -> None:
 def ink_chamfer(strokes_m, drawing_strokes) -> float:
     """The Chamfer distance (DrawAnything's metric and pixels: the drawing's unit square is its 350-px board) between
     ink in the canvas frame (metres) and a drawing's unit-square strokes."""
-    from bpp.benchmarks.draw.geometry import unit_to_canvas
-    from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
-
     ink = [unit_to_canvas(canvas_to_drawing(s), 0.0) for s in strokes_m if len(s)]
     target = [unit_to_canvas(np.asarray(s), 0.0) for s in drawing_strokes]
     return chamfer_distance(ink_mask(target), ink_mask(ink))
@@ -209,6 +203,4 @@ def ink_chamfer(strokes_m, drawing_strokes) -> float:
 
 def pixels_to_mm(pixels: float) -> float:
     """A distance in DrawAnything's pixels as millimetres on this canvas."""
-    from bpp.benchmarks.draw.geometry import BOARD_SIZE
-
     return pixels * DRAW_SIDE / BOARD_SIZE * 1000.0

@@ -16,6 +16,13 @@ import functools
 import numpy as np
 from scipy import ndimage
 
+from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE, canvas_pose
+from bpp.benchmarks.draw3d.dataset import ASIDE
+from bpp.benchmarks.draw3d.demonstrator import drawing_to_canvas
+from bpp.benchmarks.draw3d.scene import BOARD
+from bpp.drawing.geometry import CANVAS_SIZE, canvas_to_unit, unit_to_canvas
+from bpp.drawing.metric import chamfer_distance, ink_mask
+
 INK_THRESHOLD = 128
 """A resampled pixel whose brightest channel is under this is ink: the paper is about 235, the pen's ink about 27 and
 a red marker's red channel about 200."""
@@ -30,9 +37,6 @@ covers about the 12 px DrawAnything's pen inks."""
 def _canvas_plane() -> np.ndarray:
     """(512, 512, 2) the canvas-frame point (m) under each of DrawAnything's canvas pixel centres (computed once;
     read-only)."""
-    from bpp.benchmarks.draw.geometry import CANVAS_SIZE, canvas_to_unit
-    from bpp.benchmarks.draw3d.demonstrator import drawing_to_canvas
-
     rows, cols = np.mgrid[0:CANVAS_SIZE, 0:CANVAS_SIZE].astype(np.float64)
     unit = canvas_to_unit(np.stack([cols, rows], axis=-1).reshape(-1, 2), 0.0)
     plane = drawing_to_canvas(unit).reshape(CANVAS_SIZE, CANVAS_SIZE, 2)
@@ -43,6 +47,7 @@ def _canvas_plane() -> np.ndarray:
 def rectify(photo: np.ndarray, intrinsics: np.ndarray, T_camera_canvas: np.ndarray) -> np.ndarray:
     """(512, 512, 3) uint8: the photo resampled onto DrawAnything's canvas (its unit drawing square on the 350-px board
     at the centre), through the canvas pose `T_camera_canvas` and the camera's pinhole `intrinsics`."""
+    # OpenCV: the iphumi extra
     import cv2
 
     plane = _canvas_plane()
@@ -56,8 +61,6 @@ def rectify(photo: np.ndarray, intrinsics: np.ndarray, T_camera_canvas: np.ndarr
 def photo_ink_mask(rectified: np.ndarray) -> np.ndarray:
     """Boolean (512, 512): the rectified photo's ink on the canvas's paper (not its edge, not its red markers),
     widened to DrawAnything's pen."""
-    from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE
-
     plane = np.abs(_canvas_plane())
     paper = (plane.max(axis=-1) < CANVAS_SIDE / 2 - EDGE_MARGIN) & (
         plane.min(axis=-1) < CANVAS_SIDE / 2 - MARKER_SIDE - EDGE_MARGIN
@@ -73,12 +76,6 @@ def photo_chamfer(scene, drawing_strokes, photo_size: int = 640) -> float:
     from a scene-camera photo with the arm folded away, as a lab would
     (:class:`bpp.benchmarks.draw3d.canvas.CanvasNotFound` if the markers do not give the canvas pose). The arm stays
     folded: call it once a rollout has ended."""
-    from bpp.benchmarks.draw.geometry import unit_to_canvas
-    from bpp.benchmarks.draw.metric import chamfer_distance, ink_mask
-    from bpp.benchmarks.draw3d.canvas import canvas_pose
-    from bpp.benchmarks.draw3d.dataset import ASIDE
-    from bpp.benchmarks.draw3d.scene import BOARD
-
     scene.fold(ASIDE)
     photo = scene.render("scene", photo_size)
     intrinsics = scene.camera_intrinsics("scene", photo_size)

@@ -12,8 +12,15 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult, frames_to_record
+from bpp.benchmarks.draw3d.canvas import CanvasNotFound, pose_error
+from bpp.benchmarks.draw3d.dataset import measure_canvas
+from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, ink_chamfer, random_pose
+from bpp.benchmarks.draw3d.photo import photo_chamfer
+from bpp.benchmarks.draw3d.scene import HOME_QPOS, Scene, canvas_transform
+from bpp.core.contract import RolloutResult, frames_to_record
+from bpp.core.poses import pose_to_vector
 from bpp.data.store import EpisodeStore
+from bpp.drawing.drawing import task_drawing
 
 FRAME_EVERY = 10
 """A recorded rollout keeps one scene-camera frame every this many steps (and the last)."""
@@ -24,8 +31,6 @@ _SCENES: list = []
 
 def _scenes(count: int, image_size: int) -> list:
     """`count` scenes of this process, built once and reused across batches."""
-    from bpp.benchmarks.draw3d.scene import Scene
-
     while len(_SCENES) < count:
         _SCENES.append(Scene(image_size=image_size))
     for scene in _SCENES[:count]:
@@ -34,8 +39,6 @@ def _scenes(count: int, image_size: int) -> list:
 
 
 def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    from bpp.benchmarks.poses import pose_to_vector
-
     values = {
         "tip_pose": lambda: pose_to_vector(scene.tip_pose()).astype(np.float32),
         "canvas_pose": lambda: canvas_vector,
@@ -49,9 +52,6 @@ def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str,
 def _from_photo(scene, strokes) -> dict:
     """The score a lab would measure (:func:`bpp.benchmarks.draw3d.photo.photo_chamfer`), once the rollout is over;
     ``chamfer_from_photo`` is absent when the photo does not give the canvas pose."""
-    from bpp.benchmarks.draw3d.canvas import CanvasNotFound
-    from bpp.benchmarks.draw3d.photo import photo_chamfer
-
     try:
         return {"chamfer_from_photo": float(photo_chamfer(scene, strokes)), "photo_found_canvas": 1.0}
     except CanvasNotFound:
@@ -61,13 +61,7 @@ def _from_photo(scene, strokes) -> dict:
 def run_rollouts(
     agent, store: EpisodeStore, rollouts: Sequence[Mapping], max_steps: int, record_frames: Sequence[bool | str]
 ) -> list[RolloutResult]:
-    """See :meth:`bpp.benchmarks.contract.Benchmark.run_rollouts`."""
-    from bpp.benchmarks.draw.dataset import task_drawing
-    from bpp.benchmarks.draw3d.canvas import CanvasNotFound, pose_error
-    from bpp.benchmarks.draw3d.dataset import measure_canvas
-    from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, ink_chamfer, random_pose
-    from bpp.benchmarks.draw3d.scene import HOME_QPOS, canvas_transform
-    from bpp.benchmarks.poses import pose_to_vector
+    """See :meth:`bpp.core.contract.Benchmark.run_rollouts`."""
 
     spec = agent.data_spec
     keys = list(agent.obs_keys)

@@ -4,7 +4,7 @@ red corner markers placed anywhere on the board at any rotation within ±45 degr
 The arm is robosuite's Panda model (its meshes ship in the ``libero`` extra's robosuite), driven by torques from an
 operational-space controller: the pen tip is pulled toward its commanded pose by a critically damped 6-D spring
 through the arm's task-space inertia, with gravity and Coriolis compensated. Commands are 6-DoF: each action moves
-the commanded pen pose by a relative step in its own frame (:func:`bpp.benchmarks.poses.vector_to_pose`), as a robot
+the commanded pen pose by a relative step in its own frame (:func:`bpp.core.poses.vector_to_pose`), as a robot
 driver composes relative actions with its current target. The pen is compliant, like the paper's spring-loaded
 marker: it inks where its tip is within :data:`PEN_REACH` of the board surface (ink as polylines in the canvas frame),
 and the ink is painted into the canvas's texture so that the cameras see it.
@@ -15,14 +15,17 @@ x right and y up as the robot sees the upright canvas, z out of the board toward
 
 from __future__ import annotations
 
+import logging
 import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE
-from bpp.benchmarks.poses import invert, make_pose
+from bpp.core.poses import invert, make_pose, vector_to_pose
+from bpp.errors import require_extra
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL (Mesa); MuJoCo reads it when first imported
 
@@ -71,12 +74,10 @@ def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> str:
 
 def scene_xml() -> str:
     """The scene's MJCF: robosuite's Panda (no gripper: a pen on the flange), the board, the canvas, the cameras."""
-    from bpp.errors import require_extra
-
     require_extra("robosuite", "libero")
-    import logging
 
     logging.getLogger("robosuite").setLevel(logging.ERROR)
+    # robosuite: the libero extra
     from robosuite.models.robots import Panda
     from robosuite.models.world import MujocoWorldBase
 
@@ -165,6 +166,7 @@ class Scene:
     """The simulated arm, board and canvas. ``reset`` places the canvas, ``step`` takes a relative pen action."""
 
     def __init__(self, image_size: int = 96):
+        # MuJoCo: the libero extra
         import mujoco
 
         self.mujoco = mujoco
@@ -221,8 +223,6 @@ class Scene:
     def step(self, action: np.ndarray) -> None:
         """Move the commanded pen pose by `action` (9: position + 6-D rotation, in the commanded pose's frame; a tenth
         entry, the gripper's, is ignored: the pen is held), then simulate one control period."""
-        from bpp.benchmarks.poses import vector_to_pose
-
         previous = self.target
         self.target = self.target @ vector_to_pose(np.asarray(action, dtype=np.float64)[:9])
         # the commanded pose's velocity over the control period, fed forward so that a moving target is followed
@@ -270,6 +270,7 @@ class Scene:
         previous = self.ink.strokes[-1][-1] if self.ink.down and self.ink.strokes else None
         self.ink.add(point[:2], touching)
         if touching and previous is not None:
+            # OpenCV: the iphumi extra
             import cv2
 
             a, b = (_texture_px(p) for p in (previous, point[:2]))
@@ -323,8 +324,6 @@ class Scene:
 
 
 def _rotation_vector(rotation: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(rotation).as_rotvec()
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from bpp.benchmarks.iphumi.recording import Demonstration, Recording, RecordingError
-from bpp.benchmarks.poses import interpolate_poses, invert, make_pose, rotation_angle
+from bpp.core.poses import interpolate_poses, invert, make_pose, rotation_angle
 from bpp.utils import read_json
 
 GRID_HZ = 60.0

@@ -1,6 +1,7 @@
-"""iPhUMI recordings as a benchmark (the contract of :mod:`bpp.benchmarks.contract`): stores made by
+"""iPhUMI recordings as a benchmark (the contract of :mod:`bpp.core.contract`): stores made by
 ``bpp iphumi process`` from phone recordings, their observation presets, and open-loop evaluation on held-out
-episodes (there is no simulator of a person's table), exactly as for imported LeRobot datasets.
+episodes (there is no simulator of a person's table), as for every benchmark of recorded demonstrations
+(:class:`bpp.recorded.benchmark.RecordedDemonstrations`).
 
 Nothing here imports OpenCV: only processing recordings needs the ``iphumi`` extra.
 """
@@ -12,9 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from bpp.benchmarks.iphumi.pipeline import BENCHMARK as NAME
-from bpp.benchmarks.lerobot.benchmark import LeRobotDatasets
 from bpp.data.spec import ObservationPreset
 from bpp.errors import UserError
+from bpp.recorded.benchmark import RecordedDemonstrations
 
 IMAGE_SIZE = 96
 """The presets' camera size (``bpp iphumi process``'s default: frames are used as stored)."""
@@ -48,7 +49,7 @@ class NoGeneration:
     """iPhUMI stores are processed from recordings, not generated: this configuration has nothing to set."""
 
 
-class IPhUMIRecordings(LeRobotDatasets):
+class IPhUMIRecordings(RecordedDemonstrations):
     """Demonstrations recorded with iPhUMI phones: train on them, evaluate open loop on held-out episodes, prompt a
     served policy with one recording."""
 
@@ -81,9 +82,6 @@ class IPhUMIRecordings(LeRobotDatasets):
 
     def task_set_from_files(self, files, data_dir: Path, workers: int = 0):
         raise UserError("iPhUMI stores take no task files; evaluate on a store (--tasks STORE)")
-
-    def describe_rollout(self, row: Mapping) -> str:
-        return f"episode {row.get('replayed_episode', '?')}, open loop"
 
 
 BENCHMARK = IPhUMIRecordings()

@@ -10,8 +10,12 @@ from typing import Annotated
 
 import tyro
 
+from bpp.benchmarks.iphumi.pipeline import describe_rejections, process_export
 from bpp.benchmarks.iphumi.process import ProcessSettings
-from bpp.benchmarks.iphumi.synthetic import SyntheticSettings
+from bpp.benchmarks.iphumi.prompt import hand_off
+from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export
+from bpp.benchmarks.iphumi.viz import plot_episodes
+from bpp.data.store import EpisodeStore
 from bpp.errors import require_extra
 from bpp.utils import check_fields
 
@@ -52,8 +56,6 @@ class IphumiProcess(ProcessSettings):
 
 
 def iphumi_process(args: IphumiProcess) -> None:
-    from bpp.benchmarks.iphumi.pipeline import describe_rejections, process_export
-
     require_extra("cv2", "iphumi")
     t0 = time.perf_counter()
     settings = ProcessSettings(**{f.name: getattr(args, f.name) for f in fields(ProcessSettings)})
@@ -103,8 +105,6 @@ class IphumiPrompt:
 
 
 def iphumi_prompt(args: IphumiPrompt) -> None:
-    from bpp.benchmarks.iphumi.prompt import hand_off
-
     require_extra("cv2", "iphumi")
     require_extra("websockets", "serve")
     token = args.token or os.environ.get("BPP_SERVE_TOKEN") or None
@@ -132,8 +132,6 @@ class IphumiSynth(SyntheticSettings):
 
 
 def iphumi_synth(args: IphumiSynth) -> None:
-    from bpp.benchmarks.iphumi.synthetic import write_export
-
     require_extra("cv2", "iphumi")
     t0 = time.perf_counter()
     settings = SyntheticSettings(**{f.name: getattr(args, f.name) for f in fields(SyntheticSettings)})
@@ -160,9 +158,6 @@ class IphumiPlot:
 
 
 def iphumi_plot(args: IphumiPlot) -> None:
-    from bpp.benchmarks.iphumi.viz import plot_episodes
-    from bpp.data.store import EpisodeStore
-
     store = EpisodeStore(args.store)
     plot_episodes(store, list(args.episodes), args.out)
     print(f"wrote {args.out}")

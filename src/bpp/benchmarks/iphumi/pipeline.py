@@ -18,12 +18,20 @@ from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from bpp.benchmarks.iphumi.align import load_mounts
 from bpp.benchmarks.iphumi.process import ProcessSettings, episodes_of
-from bpp.benchmarks.iphumi.recording import RecordingError, find_recordings, group_demonstrations, read_recording
+from bpp.benchmarks.iphumi.recording import (
+    Demonstration,
+    RecordingError,
+    find_recordings,
+    group_demonstrations,
+    read_recording,
+)
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
+from bpp.recorded.heldout import heldout_path, split_episodes
 from bpp.utils import usable_cores, worker_pool, write_json_atomic
 
 BENCHMARK = "iphumi"
@@ -43,10 +51,10 @@ def _part_name(group: str) -> str:
 
 def _process(group: str, folders: dict[str, str], index: dict[str, str], settings: ProcessSettings, parts: str):
     """Worker: one demonstration -> its part file (or its rejection file). Returns (group, episodes, notes, error)."""
+    # OpenCV: the iphumi extra
     import cv2
 
     cv2.setNumThreads(1)  # one process per core already
-    from bpp.benchmarks.iphumi.recording import Demonstration
 
     target = Path(parts) / _part_name(group)
     try:
@@ -85,10 +93,6 @@ def process_export(
     """Process every demonstration under `export` into the store `out` (and, with `holdout_episodes`, each task's
     last episodes into ``<out>-heldout.zarr``). Returns (store, held-out store or None, [(demonstration, why it was
     left out)])."""
-    from tqdm import tqdm
-
-    from bpp.benchmarks.lerobot.importer import heldout_path, split_episodes
-
     out = Path(out)
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")
@@ -199,8 +203,6 @@ def _task_id(index: int, name: str) -> str:
 def process_one(folder: Path, settings: ProcessSettings, export: Path | None = None) -> dict:
     """One demonstration recording (any phone of it) -> one episode of the whole demonstration: {"task", "steps"}.
     Its other phones and its calibration recording are looked up beside it (or under `export`)."""
-    from bpp.benchmarks.iphumi.recording import Demonstration
-
     recording = read_recording(folder)
     if recording.kind != "demonstration":
         raise RecordingError(f"{folder}: a {recording.kind} recording, not a demonstration")

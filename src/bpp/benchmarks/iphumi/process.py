@@ -15,7 +15,7 @@ demonstration:
 * ``rgb`` / ``arm1_rgb`` / ``head_rgb``: the main cameras, letterboxed to a square and resized; optionally
   ``ultrawide`` / ``arm1_ultrawide`` and ``depth`` / ``arm1_depth`` ((S, S, 1) float16 metres, 0 outside the image);
 * ``action`` (10 per arm): the step to the next pose in the current pose's frame (position + 6-D rotation,
-  :func:`bpp.benchmarks.poses.relative_actions`) and the next step's width.
+  :func:`bpp.core.poses.relative_actions`) and the next step's width.
 """
 
 from __future__ import annotations
@@ -28,7 +28,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
+from bpp.benchmarks.iphumi import gripper
 from bpp.benchmarks.iphumi.align import GRID_HZ, Aligned, Limits, align, check_demonstration, load_mounts
 from bpp.benchmarks.iphumi.recording import (
     Demonstration,
@@ -37,7 +39,8 @@ from bpp.benchmarks.iphumi.recording import (
     TaskLabel,
     read_recording,
 )
-from bpp.benchmarks.poses import invert, pose_to_vector, relative_actions
+from bpp.benchmarks.iphumi.video import read_frames
+from bpp.core.poses import invert, pose_to_vector, relative_actions
 from bpp.errors import UserError
 from bpp.utils import check_fields, write_json_atomic
 
@@ -97,8 +100,6 @@ def gripper_tags(demonstration: Demonstration, side: str) -> str:
 def ultrawide_frames(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
     """(the ultrawide frames (K, H, W, 3) uint8, their times (K,)): the video holds one frame per non-empty entry of
     ``ultrawideRGBTimes``."""
-    from bpp.benchmarks.iphumi.video import read_frames
-
     times = recording.ultrawide_times[~np.isnan(recording.ultrawide_times)]
     frames, _ = read_frames(recording.ultrawide_path, np.arange(len(times)), len(times))
     return frames, times
@@ -106,8 +107,6 @@ def ultrawide_frames(recording: Recording) -> tuple[np.ndarray, np.ndarray]:
 
 def calibration_for(recording: Recording, tags: str, export_index: Mapping[str, Path], cache: dict):
     """The gripper calibration a demonstration recording names, computed from its calibration recording (cached)."""
-    from bpp.benchmarks.iphumi import gripper
-
     name = recording.calibration_name
     if not name:
         raise RecordingError(f"{recording.name}: names no gripper calibration run (gripperCalibrationRunName)")
@@ -156,8 +155,6 @@ def calibration_cache() -> Path:
 
 def measure_widths(demonstration: Demonstration, export_index: Mapping[str, Path], cache: dict) -> dict:
     """Side -> (times (K,), widths (K,) metres, 0 closed) of each gripper, from its ultrawide video."""
-    from bpp.benchmarks.iphumi import gripper
-
     widths = {}
     for side in demonstration.grippers:
         recording = demonstration.phones[side]
@@ -215,11 +212,8 @@ def fitted_size(width: int, height: int, size: int) -> tuple[int, int]:
 
 
 def _camera_frames(recording: Recording, camera: str, indices: np.ndarray, size: int) -> np.ndarray:
-    from bpp.benchmarks.iphumi.video import read_frames
-
     if camera == "depth":
         depth = recording.depth_frames()[indices].astype(np.float32)
-        from PIL import Image
 
         h, w = depth.shape[1:]
         fw, fh = fitted_size(w, h, size)

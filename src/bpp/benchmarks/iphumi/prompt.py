@@ -17,6 +17,8 @@ import numpy as np
 from bpp.benchmarks.iphumi.pipeline import process_one
 from bpp.benchmarks.iphumi.process import ProcessSettings
 from bpp.errors import UserError
+from bpp.serve.client import PolicyClient, ServerError
+from bpp.serve.wire import pack
 
 
 @dataclass
@@ -59,9 +61,6 @@ def hand_off(
 ) -> HandOff:
     """Process `recording` for the policy served at `server` and upload it as a prompt; with `check`, start one
     episode with it on this connection (one observation: the recording's first step) to time the first action."""
-    from bpp.serve.client import PolicyClient, ServerError
-    from bpp.serve.wire import pack
-
     try:
         client = PolicyClient(server, api_key=token)
     except OSError as err:
@@ -85,7 +84,7 @@ def hand_off(
             raise UserError(
                 f"{recording}: the prompt is {_size(len(message))}, over the {_size(limit)} a message to this "
                 "server may have; record a shorter demonstration, or serve with a larger "
-                "--limits.max-message-bytes"
+                "--max-message-mb"
             )
         t1 = time.perf_counter()
         try:

@@ -16,10 +16,14 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from bpp.benchmarks.iphumi import gripper
 from bpp.benchmarks.iphumi.align import MOUNTS
 from bpp.benchmarks.iphumi.recording import DEPTH_SHAPE
-from bpp.benchmarks.poses import invert, make_pose
+from bpp.benchmarks.iphumi.video import write_video
+from bpp.core.poses import invert, make_pose
+from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 from bpp.utils import check_fields
 
 DEVICE = "iPhone16,1"
@@ -98,8 +102,6 @@ def _rotation_y(angle: float) -> np.ndarray:
 def _task_path(task: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A task's drawing as (positions (M, 3) in the canvas frame: x, y on the table, z up; pen down (M,) bool;
     the strokes for the camera picture)."""
-    from bpp.benchmarks.draw.procedural import ProceduralConfig, generate_drawing
-
     drawing, _ = generate_drawing(np.random.default_rng([seed, task]), ProceduralConfig(max_parts=3), f"task{task}")
     points, down = [np.array([0.5, 0.5, HOVER / CANVAS])], [False]
     for stroke in drawing.strokes:
@@ -223,8 +225,6 @@ def _tcp_poses(times, positions, local, place, offset, side) -> np.ndarray:
 
 
 def _axis_angle(axis, angle: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_rotvec(np.asarray(axis) / np.linalg.norm(axis) * angle).as_matrix()
 
 
@@ -256,9 +256,6 @@ def _main_k(settings: SyntheticSettings) -> np.ndarray:
 
 def _write_calibration(folder: Path, start: float, side: str, settings: SyntheticSettings, rng) -> None:
     """About 10 s of the gripper opening and closing five times, seen by the ultrawide camera alone."""
-    from bpp.benchmarks.iphumi import gripper
-    from bpp.benchmarks.iphumi.video import write_video
-
     folder.mkdir(parents=True, exist_ok=True)
     count = 600
     times = start + np.arange(count) / 60
@@ -285,9 +282,6 @@ def _write_calibration(folder: Path, start: float, side: str, settings: Syntheti
 
 
 def _write_demonstration(folder, times, tcp, width, labels, clock, side, present, calibration, tasks, settings, rng):
-    from bpp.benchmarks.iphumi import gripper
-    from bpp.benchmarks.iphumi.video import write_video
-
     folder.mkdir(parents=True, exist_ok=True)
     mount = MOUNTS[DEVICE] if side != "head" else make_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 0])
     camera = tcp @ invert(mount)
@@ -335,6 +329,7 @@ def _write_demonstration(folder, times, tcp, width, labels, clock, side, present
 def _main_frames(tcp, width, settings, tasks):
     """The main camera's frames: the ink drawn so far (where the pen touched the table) and the pen, seen from above,
     on a background whose colour names the demonstration's first task."""
+    # OpenCV: the iphumi extra
     import cv2
 
     w, h = settings.main_size

@@ -24,6 +24,7 @@ def read_frames(path: Path, indices: Sequence[int], logged: int, fit: int | None
     """Frames `indices` (any order, repeats allowed) of the video `path` whose time list has `logged` entries ->
     ((len(indices), H, W, 3) uint8 RGB, how many indices were past the decoded frames). With `fit`, frames are
     scaled while decoding to fit inside a fit x fit square, keeping their aspect ratio."""
+    # imageio-ffmpeg: for video files only
     import imageio_ffmpeg
 
     indices = np.asarray(indices, dtype=np.int64)
@@ -70,6 +71,7 @@ def read_frames(path: Path, indices: Sequence[int], logged: int, fit: int | None
 
 def write_video(path: Path, frames, fps: float, size: tuple[int, int]) -> None:
     """Write (H, W, 3) uint8 frames as H.264 in a QuickTime container, as the phone app does. `size` = (W, H)."""
+    # imageio-ffmpeg: for video files only
     import imageio_ffmpeg
 
     writer = imageio_ffmpeg.write_frames(

@@ -9,6 +9,7 @@ import numpy as np
 
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.media import pyplot
 
 FRAMES = 5
 """Main-camera frames shown per episode."""
@@ -17,14 +18,10 @@ FRAMES = 5
 def plot_episodes(store: EpisodeStore, episodes: Sequence[int], out: Path) -> None:
     """One row per episode: the gripper's path in 3-D (colour: time; thick where the gripper is nearly closed), its
     width over time, and main-camera frames along the way (if the store has them)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     for episode in episodes:
         if not 0 <= episode < store.num_episodes:
             raise UserError(f"{store.path} has episodes 0 to {store.num_episodes - 1}, got {episode}")
+    plt = pyplot()
     cameras = "rgb" in store.keys
     columns = 2 + (FRAMES if cameras else 0)
     fig = plt.figure(figsize=(7.6 + (1.3 * FRAMES if cameras else 0), 3.0 * len(episodes)))

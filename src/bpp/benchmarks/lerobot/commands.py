@@ -11,7 +11,7 @@ import tyro
 
 from bpp.benchmarks.lerobot.export import VCODECS, export_store
 from bpp.benchmarks.lerobot.importer import ImportSettings, import_dataset, parse_episodes
-from bpp.data.store import EpisodeStore
+from bpp.core.registry import open_store
 from bpp.utils import check_fields
 
 
@@ -99,7 +99,7 @@ class LeRobotExport:
 
 def lerobot_export(args: LeRobotExport) -> None:
     t0 = time.perf_counter()
-    store = EpisodeStore(args.store)
+    store = open_store(args.store)  # any benchmark's, with its derived keys
     out = export_store(
         store,
         args.out,

@@ -29,11 +29,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from bpp.benchmarks.lerobot.features import Mapped
 from bpp.benchmarks.lerobot.importer import BENCHMARK as IMPORTED
 from bpp.benchmarks.lerobot.library import dataset_library, offline_and_quiet
-from bpp.benchmarks.registry import get_benchmark
+from bpp.core.registry import get_benchmark
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 
@@ -100,8 +101,6 @@ def export_store(
     progress: bool = True,
 ) -> Path:
     """Write `store` (or its `episodes`) as a LeRobot v3 dataset at `out`; see the module docstring. Returns `out`."""
-    from tqdm import tqdm
-
     lib = dataset_library()  # a missing extra is named before anything else
     out = Path(out)
     if out.exists() and not overwrite:

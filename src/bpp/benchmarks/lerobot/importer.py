@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+from tqdm import tqdm
 
 from bpp.benchmarks.lerobot.features import FeatureMap, Mapped, map_features
 from bpp.benchmarks.lerobot.library import (
@@ -33,6 +34,7 @@ from bpp.benchmarks.lerobot.library import (
 )
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
+from bpp.recorded.heldout import heldout_path, split_episodes
 from bpp.utils import check_fields, read_json
 
 BENCHMARK = "lerobot_dataset"
@@ -76,6 +78,7 @@ def lerobot_home() -> Path:
     """LeRobot's own dataset cache: ``$HF_LEROBOT_HOME``, else ``$HF_HOME/lerobot``."""
     if os.environ.get("HF_LEROBOT_HOME"):
         return Path(os.environ["HF_LEROBOT_HOME"]).expanduser()
+    # the Hugging Face Hub's client: the lerobot extra
     from huggingface_hub.constants import HF_HOME
 
     return Path(HF_HOME) / "lerobot"
@@ -83,6 +86,7 @@ def lerobot_home() -> Path:
 
 def _hub_snapshot(repo_id: str) -> Path | None:
     """The dataset `repo_id` in the Hugging Face Hub's cache: the snapshot ``refs/main`` names, else the newest."""
+    # the Hugging Face Hub's client: the lerobot extra
     from huggingface_hub.constants import HF_HUB_CACHE
 
     folder = Path(HF_HUB_CACHE) / ("datasets--" + repo_id.replace("/", "--"))
@@ -153,34 +157,10 @@ def parse_episodes(text: str, total: int) -> list[int]:
     return chosen
 
 
-def split_episodes(by_task: dict[int, list[int]], holdout_episodes: int, holdout_tasks: int):
-    """(training episodes, held-out episodes, tasks too small to hold episodes out of) for episodes grouped by task."""
-    tasks = sorted(by_task)
-    if holdout_tasks >= len(tasks) and holdout_tasks:
-        raise UserError(f"--holdout-tasks {holdout_tasks} leaves no task to train on (the selection has {len(tasks)})")
-    held_tasks = set(tasks[len(tasks) - holdout_tasks :]) if holdout_tasks else set()
-    train, held, whole = [], [], []
-    for task in tasks:
-        episodes = sorted(by_task[task])
-        if task in held_tasks:
-            held += episodes
-        elif holdout_episodes and len(episodes) > holdout_episodes:
-            train += episodes[:-holdout_episodes]
-            held += episodes[-holdout_episodes:]
-        else:
-            train += episodes
-            whole += [task] if holdout_episodes else []
-    return sorted(train), sorted(held), whole
-
-
-def heldout_path(out: Path) -> Path:
-    """``data/x.zarr`` -> ``data/x-heldout.zarr``."""
-    return out.with_name(f"{out.stem}-heldout{out.suffix}")
-
-
 # ------------------------------------------------------------------------------------------------ reading
 def _as_numpy(column, rows: int, item: Mapped) -> np.ndarray:
     """An Arrow column of a numeric feature -> (rows, width) in the store's dtype."""
+    # pyarrow: the lerobot extra
     import pyarrow as pa
 
     array = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
@@ -215,6 +195,7 @@ class _Reader:
     def open(self, episodes: Sequence[int]) -> None:
         """Load the episodes' per-frame table, once every file the library reads for them is known to be on disk
         (it would try to download a missing one: a file of a dataset it takes to be incomplete)."""
+        # the Hugging Face Hub's client: the lerobot extra
         from huggingface_hub.errors import OfflineModeIsEnabled
 
         for episode in episodes:
@@ -307,8 +288,6 @@ def import_dataset(
     """Import the LeRobot dataset at `source` (a folder or a cached repo id) into the store `out`, and its held-out
     episodes (if the settings hold any out) into `heldout_out` (default: ``<out>-heldout.zarr``). Both are written
     atomically. Returns (the training store, the held-out store or None)."""
-    from tqdm import tqdm
-
     dataset_library()  # a missing extra is named before anything else
     out = Path(out)
     root = locate(source)

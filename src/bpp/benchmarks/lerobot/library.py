@@ -13,6 +13,8 @@ current torchvision no longer has; the frames are picked by the timestamps the l
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import glob
 import importlib
 import io
 import os
@@ -20,6 +22,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from bpp.errors import UserError, require_extra
 
@@ -45,6 +48,7 @@ def dataset_library():
 def offline_and_quiet() -> Iterator[None]:
     """While the library runs: no network (a file it cannot find locally is an error rather than a download from the
     Hugging Face Hub), and no progress bars or encoder banners in the output."""
+    # PyAV: the lerobot extra
     import av
     import huggingface_hub.constants as hub
     from datasets.utils import logging as datasets_logging
@@ -75,9 +79,8 @@ def _ffmpeg_log_level(level: int | None) -> int | None:
     a line per video written); PyAV has no call for that level, so it is set in FFmpeg's library directly."""
     if level is None:
         return None
-    import ctypes
-    import glob
 
+    # PyAV: the lerobot extra
     import av
 
     found = glob.glob(os.path.join(os.path.dirname(av.__file__), os.pardir, "av.libs", "libavutil*"))
@@ -95,8 +98,6 @@ FITS = ("stretch", "pad")
 
 def fit_image(image, size: int, fit: str = "stretch") -> np.ndarray:
     """A PIL image -> (size, size, 3) uint8 RGB, resized (antialiased) as `fit` says (:data:`FITS`)."""
-    from PIL import Image
-
     image = image.convert("RGB")
     if fit == "stretch" or image.width == image.height:
         return np.asarray(image.resize((size, size), Image.BILINEAR))
@@ -109,8 +110,6 @@ def fit_image(image, size: int, fit: str = "stretch") -> np.ndarray:
 
 def decode_png(data: bytes | None, path: str | None, root: Path):
     """An image stored in a parquet column (``{"bytes", "path"}``) as a PIL image."""
-    from PIL import Image
-
     if data is not None:
         return Image.open(io.BytesIO(data))
     if path:
@@ -124,6 +123,7 @@ class VideoFile:
     """One video file of a LeRobot dataset (several episodes one after another), decoded in order with PyAV."""
 
     def __init__(self, path: Path):
+        # PyAV: the lerobot extra
         import av
 
         self.path = path
@@ -136,6 +136,7 @@ class VideoFile:
     def frames_at(self, times: Sequence[float], tolerance: float) -> list:
         """PIL images of the frames shown at `times` (seconds into the file, ascending): for each, the first frame
         at or after ``time - tolerance``, which must lie within `tolerance` of it."""
+        # PyAV: the lerobot extra
         import av
 
         times = np.asarray(times, dtype=np.float64)

@@ -1,4 +1,4 @@
-"""LIBERO-Gen as a benchmark (the contract of :mod:`bpp.benchmarks.contract`): its data, observation settings, task
+"""LIBERO-Gen as a benchmark (the contract of :mod:`bpp.core.contract`): its data, observation settings, task
 sets, rollouts scored by LIBERO's predicates, and pictures.
 
 Everything that touches LIBERO itself is imported when used, so the registry can list this benchmark (and
@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.contract import Metric, RolloutResult, TaskSet
 from bpp.benchmarks.libero import dataset
+from bpp.benchmarks.libero.rollouts import run_rollouts, task_problem
+from bpp.benchmarks.libero.sim import CAMERAS, make_env, render_states, reset_scene
+from bpp.core.contract import Metric, RolloutResult, TaskSet
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
@@ -53,6 +55,8 @@ class LiberoGen:
 
     name = dataset.BENCHMARK
     command = "libero"
+    control_hz = 20
+    """Actions per second of its robot: LIBERO's control_freq, which :func:`make_env` leaves at its default."""
     command_table = "bpp.benchmarks.libero.commands:COMMANDS"
     description = (
         "LIBERO-Gen: pick-and-place tasks (Combination) and two-step chains (Chain) in LIBERO from one demonstration "
@@ -61,7 +65,7 @@ class LiberoGen:
     data_config = dataset.LiberoDataConfig
     data_presets = dataset.PRESETS
     default_data_dir = Path("data/libero")
-    derived_keys = {"eef": ("proprio", dataset.EEF_FEATURES)}
+    derived_keys = dataset.DERIVED_KEYS
     """``eef``: the gripper's pose and opening out of the robot's proprioception (the ``state-eef`` observations)."""
     observations: Mapping[str, ObservationPreset] = {"state": STATE, "state-eef": STATE_EEF, "image": IMAGE}
     metric = Metric(
@@ -107,8 +111,6 @@ class LiberoGen:
         self, store: EpisodeStore, episode: int, key: str, size: int, last_only: bool = False, steps=None
     ) -> np.ndarray:
         """Stored frames if generation rendered them (resized if need be), else rendered from the stored states."""
-        from bpp.benchmarks.libero.sim import CAMERAS
-
         if key not in CAMERAS:
             raise UserError(f"LIBERO-Gen has the cameras {', '.join(CAMERAS)}; got {key!r}")
         if last_only and key == "agentview":
@@ -146,8 +148,6 @@ class LiberoGen:
         return {"init_seed": int(rng.integers(0, 2**31 - 1))}
 
     def run_rollouts(self, agent, store, rollouts, max_steps, record_frames) -> list[RolloutResult]:
-        from bpp.benchmarks.libero.rollouts import run_rollouts
-
         return run_rollouts(agent, store, rollouts, max_steps, record_frames)
 
     def prompt_picture(self, store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
@@ -165,9 +165,6 @@ def _render(store: EpisodeStore, episode: int, states: np.ndarray, camera: str, 
     """Frames of stored states of `episode`. The env is reset with the episode's own seed and its fixtures are put
     where the episode had them: their placement (cabinet, stove: about 1.5 cm between resets) is part of the model,
     not of the stored state."""
-    from bpp.benchmarks.libero.rollouts import task_problem
-    from bpp.benchmarks.libero.sim import make_env, render_states, reset_scene
-
     problem = task_problem(store, episode)
     if _RENDER_ENV.get("problem") != problem:
         if "env" in _RENDER_ENV:

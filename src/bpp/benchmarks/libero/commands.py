@@ -37,7 +37,7 @@ class LiberoTasks:
     overwrite: bool = False
     init_states: int = 0
     """With --out, also write this many initial states per task (LIBERO's placement sampler, seeds 0, 1, ...) as
-    ``problems/<id>.init.npz``, for LIBERO's own evaluation tools (about 8 s per task here; LIBERO uses 50)."""
+    ``problems/<id>.init.npz``, for LIBERO's own evaluation tools (seconds per task on a CPU; LIBERO uses 50)."""
 
     def __post_init__(self):
         check_fields(
@@ -112,8 +112,8 @@ class LiberoImport:
     """Import LIBERO dataset files (robomimic-style HDF5, e.g. LIBERO's own demonstrations of its four suites, or
     files `bpp libero export` wrote) into a store: one task per file.
 
-    Each demonstration is replayed in the scene of its file's model, so its observations are what a rollout observes
-    (about 10 s per demonstration); LIBERO's own problems are evaluated from LIBERO's initial states."""
+    Each demonstration is replayed in the scene of its file's model (seconds each on a CPU), so its observations are
+    what a rollout observes; LIBERO's own problems are evaluated from LIBERO's initial states."""
 
     files: tyro.conf.Positional[tuple[Path, ...]]
     out: Path = Path("data/libero/imported.zarr")

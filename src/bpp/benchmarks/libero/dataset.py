@@ -20,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import json
 import shutil
+import tempfile
 import time
 from collections import Counter
 from dataclasses import dataclass, field
@@ -30,8 +31,18 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp.benchmarks.libero.chain import ChainTask
-from bpp.benchmarks.libero.demonstrator import DemoConfig
-from bpp.benchmarks.libero.sim import CAMERAS
+from bpp.benchmarks.libero.demonstrator import DemoConfig, demonstrate_task
+from bpp.benchmarks.libero.sim import (
+    CAMERAS,
+    GOAL_BASE,
+    fixture_row,
+    libero_problem,
+    make_env,
+    render_now,
+    render_states,
+    replay,
+    spatial_problem,
+)
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches, parse_where
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, StoreKeyError, destination_lock
 from bpp.errors import UserError
@@ -62,6 +73,9 @@ EEF = ("eef_pos", "eef_quat", "gripper_qpos")
 robomimic's low-dimensional policies observe of the robot; the joints' angles and velocities are left out."""
 EEF_FEATURES = tuple(i for part in EEF for i in PROPRIO_LAYOUT[part])
 """The feature indices of ``eef`` in ``proprio``."""
+DERIVED_KEYS = {"eef": ("proprio", EEF_FEATURES)}
+"""The benchmark's derived per-step keys (:attr:`bpp.core.contract.Benchmark.derived_keys`): ``eef``, the gripper's
+pose and opening out of the robot's proprioception (the ``state-eef`` observations)."""
 
 
 @dataclass(frozen=True)
@@ -179,8 +193,6 @@ def replay_episode(env, store: EpisodeStore, episode: int) -> tuple[np.ndarray, 
     """Replay stored `episode` open-loop in `env` (made from its task's problem) from its first simulator state,
     with its fixtures and the actions its controller received: (the simulator states before each action and after
     the last, whether LIBERO's goal holds at the end); see :func:`bpp.benchmarks.libero.sim.replay`."""
-    from bpp.benchmarks.libero.sim import replay
-
     actions = "executed_action" if "executed_action" in store.keys else "action"
     steps = store.episode(episode, ["sim_state", actions])
     seed = int(store.column("seed")[episode])
@@ -193,8 +205,6 @@ def task_id(split: str, index: int, task: PickPlace | ChainTask) -> str:
 
 def problem_text(task: PickPlace | ChainTask, original: bool = False) -> str:
     """The BDDL problem of a task: its scene's LIBERO problem, edited (or as LIBERO ships it, for `original` tasks)."""
-    from bpp.benchmarks.libero.sim import GOAL_BASE, libero_problem, spatial_problem
-
     if original:
         return libero_problem(*task.libero_source)
     if isinstance(task, ChainTask):
@@ -207,10 +217,6 @@ def _task_job(job) -> tuple[dict, dict[str, np.ndarray]]:
     """Worker: demonstrate one task. Returns a summary (tries, demonstrations kept) and the demonstrations' arrays
     (``"<i>/<key>"``), which the generating process journals: a worker may run on another machine."""
     index, task, cfg = job
-    import tempfile
-
-    from bpp.benchmarks.libero.demonstrator import demonstrate_task
-    from bpp.benchmarks.libero.sim import fixture_row, make_env, render_now, render_states
 
     summary = {"index": index, "kept": 0, "tries": 0}
     with tempfile.TemporaryDirectory(prefix="libero-task-") as folder:

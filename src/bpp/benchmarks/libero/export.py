@@ -42,13 +42,15 @@ from __future__ import annotations
 
 import json
 import tempfile
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 
 from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT, episode_fixtures
+from bpp.benchmarks.libero.sim import CAMERAS, make_env, reset_scene
 from bpp.data.store import EpisodeStore
-from bpp.errors import UserError
+from bpp.errors import UserError, require_extra
 from bpp.utils import atomic_path, file_stem, write_text_atomic
 
 LIBERO_TAG = "libero-v1"
@@ -91,11 +93,7 @@ CAMERA_NAMES = {"agentview": "agentview_rgb", "eye_in_hand": "eye_in_hand_rgb"}
 def export_store(store: EpisodeStore, out: Path, overwrite: bool = False) -> list[Path]:
     """Write one HDF5 file (and its BDDL) per task of `store` into the folder `out`; returns the HDF5 paths. Each
     task's LIBERO env is made (physics only) to write every demonstration's scene."""
-    from bpp.errors import require_extra
-
     h5py = require_extra("h5py", "libero")
-
-    from bpp.benchmarks.libero.sim import make_env
 
     out = Path(out)
     if out.exists() and any(out.iterdir()) and not overwrite:
@@ -136,6 +134,7 @@ def libero_file_name(task: dict, name: str) -> str:
 
 def _write_task(f, store: EpisodeStore, task: dict, episodes: list[int], env, bddl_file_name: str) -> None:
     """Write `task`'s `episodes` into the open HDF5 file `f`; `env` is the task's LIBERO env."""
+    # robosuite: the libero extra
     import robosuite.macros
 
     cameras = [key for key in CAMERA_NAMES if key in store.keys]
@@ -199,9 +198,8 @@ def env_kwargs(env, bddl_file_name: str, size: int) -> dict:
     """The ``env_kwargs`` of ``env_args`` as LIBERO's files keep them: the arguments of LIBERO's env that recorded
     the observations (robomimic makes its env from them), for `env` (made by
     :func:`~bpp.benchmarks.libero.sim.make_env`), with both cameras at `size`."""
+    # robosuite: the libero extra
     from robosuite import load_controller_config
-
-    from bpp.benchmarks.libero.sim import CAMERAS
 
     inner = env.env
     return {
@@ -226,6 +224,7 @@ def libero_observations(proprio: np.ndarray) -> dict[str, np.ndarray]:
     """LIBERO's observation datasets (and ``robot_states``), float64, from stored 39-D proprioception
     (:data:`~bpp.benchmarks.libero.dataset.PROPRIO_LAYOUT`): the orientation as LIBERO's ``create_dataset.py``
     computes it, robosuite's ``quat2axisangle`` of the hand's quaternion."""
+    # robosuite: the libero extra
     from robosuite.utils.transform_utils import quat2axisangle
 
     proprio = np.asarray(proprio, dtype=np.float64)
@@ -252,10 +251,6 @@ def scene_xml(env, seed: int, fixtures: tuple[list[str], np.ndarray] | None) -> 
     precision: LIBERO places the fixtures in the compiled model, and MuJoCo's own saved XML (what LIBERO's files
     keep) rounds every number to 6 digits, which moved them by up to 4e-7 m and the robot's armature by 3e-6, and a
     replay of the demonstration in it diverged by centimetres."""
-    import xml.etree.ElementTree as ET
-
-    from bpp.benchmarks.libero.sim import reset_scene
-
     reset_scene(env, seed, fixtures)
     inner = env.env
     model = inner.sim.model

@@ -27,6 +27,7 @@ from __future__ import annotations
 import json
 import re
 import tempfile
+import xml.etree.ElementTree as ET
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
@@ -34,9 +35,22 @@ from typing import NamedTuple
 import numpy as np
 from tqdm import tqdm
 
+from bpp.benchmarks.libero.bddl import parse, section
 from bpp.benchmarks.libero.dataset import BENCHMARK, FIXTURE_KEY, GOAL_KEY
+from bpp.benchmarks.libero.rollouts import observe
+from bpp.benchmarks.libero.sim import (
+    CAMERAS,
+    fixture_row,
+    has_initial_states,
+    libero_problem,
+    make_env,
+    problems_folder,
+    render_now,
+    reset_scene,
+    seat,
+)
 from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
-from bpp.errors import UserError
+from bpp.errors import UserError, require_extra
 
 
 class Demo(NamedTuple):
@@ -58,8 +72,6 @@ class Demo(NamedTuple):
 def libero_problem_name(bddl_file_name: str) -> tuple[str, str] | None:
     """(suite folder, problem stem) if `bddl_file_name` (a path as LIBERO's files store it) is one of LIBERO's own
     problems, else None."""
-    from bpp.benchmarks.libero.sim import problems_folder
-
     path = Path(str(bddl_file_name))
     if len(path.parts) < 2 or path.suffix != ".bddl":
         return None
@@ -70,8 +82,6 @@ def libero_problem_name(bddl_file_name: str) -> tuple[str, str] | None:
 def read_task(f, path: Path) -> tuple[str, str, str, dict]:
     """(task id, problem text, instruction, task info) of an open LIBERO dataset file: the id and information an
     export of bpp keeps (``bpp_task``), else the file's name without ``_demo``."""
-    from bpp.benchmarks.libero.sim import has_initial_states, libero_problem
-
     if "data" not in f or not hasattr(f["data"], "keys"):
         raise UserError(f"{path}: not a LIBERO dataset file (no 'data' group)")
     attrs = f["data"].attrs
@@ -87,8 +97,6 @@ def read_task(f, path: Path) -> tuple[str, str, str, dict]:
     try:
         instruction = json.loads(attrs["problem_info"])["language_instruction"]
     except (KeyError, ValueError, TypeError):
-        from bpp.benchmarks.libero.bddl import parse, section
-
         instruction = " ".join(map(str, section(parse(problem), ":language")[1:]))
     if isinstance(instruction, list):  # LIBERO's collection scripts have stored it as its words
         instruction = " ".join(map(str, instruction))
@@ -187,11 +195,7 @@ def import_files(
 ) -> EpisodeStore:
     """One task per file of `paths`; every demonstration's observations made again as a rollout receives them; the
     agent-view frame after its last action rendered at `goal_size` (0: none) as the Goal-Image baseline's goal."""
-    from bpp.errors import require_extra
-
     h5py = require_extra("h5py", "libero")
-
-    from bpp.benchmarks.libero.sim import CAMERAS, fixture_row, make_env, render_now
 
     if not paths:
         raise UserError("no files to import")
@@ -248,8 +252,6 @@ def rebuild_scene(env, demo: Demo, where: str) -> None:
     the asset files it names found in this installation, else the reset with its seed. The env is reset first, as
     LIBERO's own replay does: loading a model keeps the robot's gripper as the last episode left it (robosuite's
     gripper integrates its commands), and the first demonstration's grip then changed the next one's steps."""
-    from bpp.benchmarks.libero.sim import reset_scene
-
     reset_scene(env, demo.seed)
     if demo.model is None:
         return
@@ -264,8 +266,8 @@ def local_assets(xml: str) -> str:
     own replay does for robosuite's files (``postprocess_model_xml``), and for LIBERO's (files recorded elsewhere
     name the recording machine's folders): a path through a ``robosuite`` folder in robosuite's package, else one
     through an ``assets`` folder in LIBERO's assets. Files found neither way are left for MuJoCo to name."""
-    import xml.etree.ElementTree as ET
 
+    # robosuite: the libero extra
     import robosuite
     from libero.libero import get_libero_path
 
@@ -290,9 +292,6 @@ def observe_demo(env, states: np.ndarray, actions: np.ndarray, where: str) -> tu
     along a demonstration in `env`, which holds its scene: the first from its first state, seated as a replay starts;
     each next one returned by the step that executes the action before it, from the stored state before that action.
     The env is left after the last action."""
-    from bpp.benchmarks.libero.rollouts import observe
-    from bpp.benchmarks.libero.sim import seat
-
     size = len(env.env.sim.get_state().flatten())
     if states.shape[1] != size:
         raise StoreError(

@@ -21,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult, frames_to_record
-from bpp.benchmarks.libero.dataset import BENCHMARK
+from bpp.benchmarks.libero.bddl import objects, parse, section
+from bpp.benchmarks.libero.dataset import DERIVED_KEYS
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now, reset_env
+from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore, with_derived
 from bpp.errors import UserError
 
@@ -40,7 +41,7 @@ def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, n
     """The policy's observation keys (as stored by generation, and the derived ones) from an env's observation
     dictionary."""
     obs = with_derived(
-        BENCHMARK,
+        DERIVED_KEYS,
         {
             "proprio": np.asarray(raw["robot0_proprio-state"], dtype=np.float32),
             "object_state": np.asarray(raw["object-state"], dtype=np.float32),
@@ -54,16 +55,12 @@ def observe(env, raw: Mapping, cameras: Sequence[str], size: int) -> dict[str, n
 def goal_terms(problem: str | list) -> list[list]:
     """The terms of the problem's goal (its text, or parsed), in order (a conjunction's parts), e.g.
     ``[["Open", "..."], ["In", ...]]``."""
-    from bpp.benchmarks.libero.bddl import parse, section
-
     goal = section(parse(problem) if isinstance(problem, str) else problem, ":goal")[1:]
     return [t for g in goal for t in (g[1:] if g and g[0] == "And" else [g])]
 
 
 def goal_objects(problem: str) -> tuple[list[str], list[str]]:
     """(objects the problem's goal puts somewhere, its other movable objects), by name."""
-    from bpp.benchmarks.libero.bddl import objects, parse
-
     parsed = parse(problem)
     movable = set(objects(parsed)) - set(objects(parsed, (":fixtures",)))
     terms = goal_terms(parsed)

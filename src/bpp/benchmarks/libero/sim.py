@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import ctypes.util
+import hashlib
 import os
 import weakref
 from dataclasses import dataclass
@@ -38,8 +40,6 @@ RENDERER_LIBRARIES = {
 
 
 def _check_renderer() -> None:
-    import ctypes.util
-
     backend = os.environ["MUJOCO_GL"]
     if backend not in RENDERER_LIBRARIES:
         raise LiberoUnavailable(f"MUJOCO_GL={backend!r} is not a renderer; use one of {', '.join(RENDERER_LIBRARIES)}")
@@ -57,8 +57,10 @@ def _libero():
     # Mesa's software renderer links its own LLVM, and so does triton (which torch loads lazily, e.g. on its first
     # optimizer step): loading triton after a GL context exists crashes the process, loading it first is safe.
     with contextlib.suppress(ImportError):
+        # triton: before LIBERO, see above
         import triton._C.libtriton  # noqa: F401
     try:
+        # LIBERO: the libero extra
         import libero.libero as libero
     except ImportError:
         raise LiberoUnavailable(
@@ -123,6 +125,7 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
     compiles the scene). Reset it with :func:`reset_env`: its own ``env.reset()`` is LIBERO's, which builds and
     compiles the model again."""
     _libero()
+    # LIBERO: the libero extra
     from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
 
     _install_fast_step()
@@ -242,6 +245,7 @@ class _SoftReset:
         return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), initializers)
 
     def reset(self, inner) -> dict:
+        # robosuite: the libero extra
         from robosuite.utils.errors import RandomizationError
 
         hard = inner.hard_reset
@@ -288,6 +292,7 @@ def _install_fast_step() -> None:
     global _ROBOSUITE_STEP
     if _ROBOSUITE_STEP is not None:
         return
+    # MuJoCo: the libero extra
     import mujoco
     from robosuite.environments.base import MujocoEnv
 
@@ -334,6 +339,7 @@ def _install_free_without_collection() -> None:
     process's heap: 0.1-0.3 s once torch is loaded, paid per task in generation and per rollout in evaluation. The
     references it drops free the model, its data and the renderer by reference counting, and Python's own collector
     takes any cycle left: closing ten envs in a row leaves the process's memory as flat as with the collection."""
+    # robosuite: the libero extra
     from robosuite.utils.binding_utils import MjSim
 
     def free(self):
@@ -420,6 +426,7 @@ class SharedRenderer:
     _kept: dict[str, SharedRenderer] = {}
 
     def __init__(self, model):
+        # robosuite: the libero extra
         from robosuite.utils.binding_utils import GLContext  # the class robosuite picks for MUJOCO_GL
 
         self.gl = GLContext(max_width=640, max_height=480, device_id=-1)
@@ -429,6 +436,7 @@ class SharedRenderer:
 
     def _upload(self, model) -> None:
         """MuJoCo's render context for `model` (its assets and offscreen buffer), as robosuite's renderer makes it."""
+        # MuJoCo: the libero extra
         import mujoco
 
         self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150)
@@ -447,6 +455,7 @@ class SharedRenderer:
     def render(self, sim, camera: str, size: int, groups: dict[int, bool]) -> np.ndarray:
         """(size, size, 3) uint8, as MuJoCo's offscreen buffer holds it (upside down): `sim`'s state from `camera`,
         with the geom groups `groups` (group -> shown) shown or hidden."""
+        # MuJoCo: the libero extra
         import mujoco
 
         model = sim.model._model
@@ -487,6 +496,7 @@ class _View:
     the digest of its model's rendering assets (which shared renderer draws it), and the data it is drawn from."""
 
     def __init__(self, model):
+        # MuJoCo: the libero extra
         import mujoco
 
         self.assets = render_assets_digest(model)
@@ -502,6 +512,7 @@ class _View:
 
     def drawn(self, model, data):
         """A copy of `data` with everything computed for its current state (what is drawn): the view's own, kept."""
+        # MuJoCo: the libero extra
         import mujoco
 
         if self._drawn is None:
@@ -529,8 +540,6 @@ _RENDER_ASSETS = ("tex_", "mesh_", "hfield_", "skin_", "flex_")
 def render_assets_digest(model) -> str:
     """A digest of what MuJoCo's render context takes from `model` (textures, meshes, height fields, skins, flexes and
     the visual settings): two models with the same one render the same with the same render context."""
-    import hashlib
-
     digest = hashlib.sha1(usedforsecurity=False)
     for name in sorted(n for n in dir(model) if n.startswith(_RENDER_ASSETS)):
         value = getattr(model, name)

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from bpp.benchmarks.libero.dataset import problem_text, task_id
+from bpp.benchmarks.libero.sim import make_env, reset_env
 from bpp.benchmarks.libero.suites import Suite
 from bpp.errors import UserError
 
@@ -24,8 +26,6 @@ def sample_initial_states(problem: Path, count: int) -> np.ndarray:
     """(count, S) flattened simulator states of LIBERO's placement sampler for seeds 0 .. count-1 of the BDDL problem
     file `problem`: the states LIBERO's own evaluation loads with ``env.set_init_state`` (its ``.pruned_init``
     files hold the same kind of array). Takes an env creation (seconds) plus about 0.3 s per state."""
-    from bpp.benchmarks.libero.sim import make_env, reset_env
-
     env = make_env(problem)
     try:
         states = []
@@ -42,8 +42,6 @@ def write_suite(suite: Suite, out: Path, overwrite: bool = False, init_states: i
     ``problems/<id>.init.npz`` (``states``: that many initial states per task; not for LIBERO's own suites, whose
     initial states LIBERO ships). Returns the index path. The folder is built beside `out` and renamed into place,
     so an interrupted run leaves nothing half-written."""
-    from bpp.benchmarks.libero.dataset import problem_text, task_id
-
     out = Path(out)
     if out.exists() and not overwrite:
         raise UserError(f"{out} exists; pass --overwrite to replace it")

@@ -2,19 +2,21 @@
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import ipaddress
+import gc
 import os
 import secrets
 import signal
 import socket
 import tempfile
 import threading
+import tracemalloc
 import webbrowser
 from dataclasses import dataclass
 from pathlib import Path
 
+from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints, make_memory_releasable
+from bpp.errors import require_extra
+from bpp.network import TOKEN_RULE, is_loopback, listen, strong_token, urls
 from bpp.utils import check_fields
 
 
@@ -47,22 +49,20 @@ class StudioCommand:
         check_fields(
             self,
             ("port", 0 <= self.port <= 65535, "in [0, 65535]"),
-            ("token", not self.token or len(self.token) >= 16, "at least 16 characters (or empty: a random one)"),
+            ("token", not self.token or strong_token(self.token), f"{TOKEN_RULE} (or empty: a random one)"),
             ("threads", self.threads >= 1, ">= 1"),
             ("max_rollouts", 1 <= self.max_rollouts <= 256, "in [1, 256]"),
         )
 
 
 def studio(args: StudioCommand) -> None:
-    from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints, make_memory_releasable
-
     make_memory_releasable()  # before the studio's threads allocate
+    # torch: imported when the command runs, not when the command line starts
     import torch
-
-    from bpp.errors import require_extra
 
     uvicorn = require_extra("uvicorn", "studio")
     require_extra("fastapi", "studio")
+    # FastAPI: the studio extra
     from bpp.benchmarks.draw.studio.server import create_app
 
     main_thread = threading.current_thread() is threading.main_thread()
@@ -93,7 +93,7 @@ def studio(args: StudioCommand) -> None:
                 )
             else:
                 print(f"[studio] {len(checkpoints)} checkpoint(s): " + "; ".join(c.label for c in checkpoints[:5]))
-            if not _loopback(args.host):
+            if not is_loopback(args.host):
                 print(
                     f"[studio] listening on {args.host}: anyone who can reach this machine and has the token can use "
                     "it; the page is plain HTTP, so the token crosses the network readable by anyone on the way: use "
@@ -120,8 +120,6 @@ def _trace_allocations(path: str) -> None:
     tracemalloc snapshot of Python's live allocations to FILE. The first signal starts tracing (10 frames; the
     studio runs several times slower from then on), so a snapshot holds what was allocated since then and is still
     alive (``bench/studio_abuse.py --tracemalloc`` compares them between rounds of abuse)."""
-    import gc
-    import tracemalloc
 
     def dump(_signum, _frame) -> None:
         if not tracemalloc.is_tracing():
@@ -138,57 +136,7 @@ def _interrupt(signum: int, _frame) -> None:
     raise KeyboardInterrupt(signal.Signals(signum).name)
 
 
-def listen(host: str, port: int) -> socket.socket:
-    """A socket listening on `host`:`port` (0: a free port), or a UserError saying why there is none."""
-    from bpp.errors import UserError
-
-    try:
-        family, kind, proto, _, address = socket.getaddrinfo(
-            host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE
-        )[0]
-    except (socket.gaierror, UnicodeError) as err:
-        raise UserError(f"--host {host!r}: not an address of this machine ({err})") from None
-    sock = socket.socket(family, kind, proto)
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # a restart reuses the port at once
-        sock.bind(address)
-        sock.listen(128)
-    except OSError as err:
-        sock.close()
-        hint = "another program (another `bpp studio`?) uses it: choose another --port, or --port 0 for any free one"
-        reason = hint if err.errno == errno.EADDRINUSE else err.strerror
-        raise UserError(f"cannot listen on {host} port {port}: {reason}") from None
-    return sock
-
-
 def page_urls(host: str, port: int) -> list[str]:
     """Addresses of the page (without the token): for a wildcard host, this machine's network addresses (what a
     phone opens) and then loopback (what this machine opens); else the host itself."""
-    if host in ("0.0.0.0", "::", ""):
-        found = _network_addresses()
-        loopback = "[::1]" if host == "::" and not found else "127.0.0.1"
-        return [*(f"http://{_bracket(a)}:{port}/" for a in found), f"http://{loopback}:{port}/"]
-    return [f"http://{_bracket(host)}:{port}/"]
-
-
-def _network_addresses() -> list[str]:
-    """This machine's non-loopback IPv4 addresses, the default route's first (no packet is sent to find it)."""
-    found = []
-    with contextlib.suppress(OSError), socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.connect(("192.0.2.1", 9))  # TEST-NET-1: connecting a UDP socket only picks the outgoing interface
-        found.append(probe.getsockname()[0])
-    with contextlib.suppress(OSError):
-        for info in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET):
-            found.append(info[4][0])
-    return [a for i, a in enumerate(found) if a not in found[:i] and not ipaddress.ip_address(a).is_loopback]
-
-
-def _bracket(host: str) -> str:
-    return f"[{host}]" if ":" in host else host
-
-
-def _loopback(host: str) -> bool:
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return host == "localhost"
+    return urls("http", host, port, "/")

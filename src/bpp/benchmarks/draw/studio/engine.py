@@ -21,9 +21,11 @@ goes back to the system within ``RELEASE_EVERY_S`` (:func:`make_memory_releasabl
 
 from __future__ import annotations
 
+import base64
 import ctypes
 import ctypes.util
 import hashlib
+import io
 import json
 import secrets
 import shutil
@@ -34,12 +36,28 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from bpp.benchmarks.draw import physics
+from bpp.benchmarks.draw.dataset import episode_steps
 from bpp.benchmarks.draw.demonstrator import LAST_TRY_FACTOR, DemoConfig, Demonstration, demonstrate, replay_paths
-from bpp.benchmarks.draw.drawing import Drawing, DrawingError
-from bpp.benchmarks.draw.geometry import BOARD_SIZE, CANVAS_SIZE, MAX_BOARD_ANGLE, canvas_to_unit
+from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
+from bpp.benchmarks.draw.rollouts import prompt_target
+from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
+from bpp.core.registry import get_benchmark
+from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.drawing.drawing import Drawing, DrawingError, strokes_array, task_drawing
+from bpp.drawing.files import MAX_POINTS, bounded, load_drawings
+from bpp.drawing.geometry import BOARD_SIZE, CANVAS_SIZE, MAX_BOARD_ANGLE, canvas_to_unit
+
+try:
+    from numpy._core.multiarray import _set_madvise_hugepage
+except ImportError:  # NumPy 1.x
+    try:
+        from numpy.core.multiarray import _set_madvise_hugepage
+    except ImportError:
+        _set_madvise_hugepage = None
 
 BENCHMARK = "drawanything"
 END_REST_STEPS = DemoConfig().end_rest_steps
@@ -229,6 +247,7 @@ class Session:
 
 def find_checkpoints(roots) -> list[CheckpointInfo]:
     """DrawAnything runs (folders with ``checkpoints/last``, or checkpoint folders) under `roots`, newest first."""
+    # torch: imported when the command runs, not when the command line starts
     from bpp.checkpoint import read_state, resolve_checkpoint
 
     found: dict[Path, CheckpointInfo] = {}
@@ -384,8 +403,6 @@ class Studio:
         """The 50 unseen human-made drawings (generated on first use)."""
         with self._human_lock:  # two first calls must not generate it twice into one folder
             if self._human is None:
-                from bpp.benchmarks.registry import get_benchmark
-
                 benchmark = get_benchmark(BENCHMARK)
                 self._human = benchmark.task_set("human", self.data_dir or benchmark.default_data_dir).store
         return self._human
@@ -431,9 +448,6 @@ class Studio:
         self, sid: str, source: str, label: str, drawing: Drawing, demo: Demonstration, field: str
     ) -> Prompt:
         """Store `demo` as a prompt of session `sid`; `field` names the input it came from (for errors)."""
-        from bpp.benchmarks.draw.dataset import episode_steps, strokes_array
-        from bpp.benchmarks.draw.rollouts import prompt_target
-
         session = self.session(sid)
         if len(demo) > self.limits.max_prompt_steps:
             raise StudioError(
@@ -498,8 +512,6 @@ class Studio:
 
     def add_strokes_prompt(self, sid: str, strokes, board_angle: float, seed: int = 0, label: str = "") -> Prompt:
         """A drawing (unit-square strokes, y up) demonstrated by the built-in demonstrator at `board_angle`."""
-        from bpp.benchmarks.draw.files import MAX_POINTS, bounded
-
         points = sum(len(s) for s in strokes)
         if points > 4 * MAX_POINTS:  # before any work: merging close points could not bring it under MAX_POINTS
             raise StudioError(
@@ -514,8 +526,6 @@ class Studio:
     def add_file_prompt(self, sid: str, name: str, text: str, board_angle: float, seed: int = 0) -> Prompt:
         """The first drawing of an uploaded JSON stroke or SVG file's content (`name` only chooses the format
         and labels the prompt)."""
-        from bpp.benchmarks.draw.files import load_drawings
-
         suffix = Path(name).suffix.lower()
         if suffix not in (".json", ".svg"):
             raise StudioError(f"file name {name!r}: expected a .json or .svg drawing file", "name", 422)
@@ -541,8 +551,6 @@ class Studio:
 
     def add_stored_prompt(self, sid: str, task: int, demo: int = 0) -> Prompt:
         """Demonstration `demo` of unseen drawing `task` (as ``bpp eval`` prompts it)."""
-        from bpp.benchmarks.draw.dataset import task_drawing
-
         store = self.human_store()
         if not 0 <= task < store.num_tasks:
             raise StudioError(f"task must be in [0, {store.num_tasks}), got {task}", "task", 422)
@@ -598,8 +606,6 @@ class Studio:
 
     def prompt_task_file(self, sid: str, pid: str) -> dict:
         """The prompt's drawing in the JSON stroke format, for ``bpp eval --files``."""
-        from bpp.benchmarks.draw.dataset import task_drawing
-
         drawing = task_drawing(self.prompt(sid, pid).store, 0)
         return {"drawings": [{**drawing.to_json(), "id": f"studio-{pid}"}]}
 
@@ -657,6 +663,7 @@ class Studio:
             loading = self._model_locks.setdefault(checkpoint.id, threading.Lock())
         with loading:
             if checkpoint.id not in self.models:
+                # torch: imported when the command runs, not when the command line starts
                 from bpp.checkpoint import Checkpoint
 
                 self.models[checkpoint.id] = Checkpoint.load(checkpoint.path, use_ema=True).build_model()
@@ -687,11 +694,9 @@ class Studio:
             time.sleep(0.02)
 
     def _steps(self, rollout: Rollout) -> None:
+        # torch: imported when the command runs, not when the command line starts
         import torch
 
-        from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
-        from bpp.benchmarks.registry import get_benchmark
-        from bpp.data.contexts import task_context
         from bpp.policies.agent import PolicyAgent
 
         if rollout.stop.is_set():  # stopped, or its reader left, before it began: no model to load for nobody
@@ -808,8 +813,6 @@ class Studio:
         return path
 
     def _action_frame(self, checkpoint: CheckpointInfo) -> str:
-        from bpp.benchmarks.draw.env import ACTION_FRAMES
-
         return ACTION_FRAMES[self._model(checkpoint).data_spec().action_key]
 
 
@@ -821,11 +824,6 @@ def _render_animation(
     rollout: Rollout, action_frame: str, path: Path, fmt: str, size: int, max_frames: int, cancel
 ) -> None:
     """Replay `rollout` into `path`, frame by frame into the encoder (never all frames in memory at once)."""
-    from PIL import Image
-
-    from bpp.benchmarks.draw.env import DrawEnv
-    from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
-
     actions = np.asarray(rollout.actions, dtype=np.float64).reshape(-1, 3)
     every = max(1, int(np.ceil(len(actions) / max(1, max_frames - 1))))
     # Without a target the env skips the per-step Chamfer update; the target is blended in here instead.
@@ -851,6 +849,7 @@ def _render_animation(
                 yield np.rint(env.render() * (1.0 - cover) + tint).astype(np.uint8)
 
     if fmt == "mp4":
+        # imageio: for video and GIF files only
         import imageio.v2 as iio2
 
         with iio2.get_writer(path, format="FFMPEG", fps=10 / every, codec="libx264", macro_block_size=16) as out:
@@ -865,8 +864,6 @@ def _render_animation(
 
 def _palette():
     """A fixed GIF palette: a 6x6x6 colour cube plus 40 greys, so every frame shares it."""
-    from PIL import Image
-
     levels = [0, 51, 102, 153, 204, 255]
     colours = [(r, g, b) for r in levels for g in levels for b in levels]
     colours += [(v, v, v) for v in np.linspace(0, 255, 40).astype(int)]
@@ -901,14 +898,8 @@ def make_memory_releasable() -> None:
       MiB at a time, seen every 10 s) until the next release."""
     if _LIBC is not None and hasattr(_LIBC, "mallopt"):
         _LIBC.mallopt(ctypes.c_int(M_ARENA_MAX), ctypes.c_int(1))
-    try:
-        from numpy._core.multiarray import _set_madvise_hugepage
-    except ImportError:  # NumPy 1.x
-        try:
-            from numpy.core.multiarray import _set_madvise_hugepage
-        except ImportError:
-            return
-    _set_madvise_hugepage(False)
+    if _set_madvise_hugepage is not None:
+        _set_madvise_hugepage(False)
 
 
 def _load_libc():
@@ -936,11 +927,6 @@ def _polylines(paths: list[np.ndarray]) -> list[list[list[float]]]:
 
 
 def _png_base64(frame: np.ndarray) -> str:
-    import base64
-    import io
-
-    from PIL import Image
-
     buffer = io.BytesIO()
     Image.fromarray(frame).save(buffer, format="PNG")
     return base64.b64encode(buffer.getvalue()).decode()

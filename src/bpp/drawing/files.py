@@ -32,12 +32,13 @@ import json
 import math
 import re
 import warnings
+import xml.etree.ElementTree as ET
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.draw.drawing import Drawing, DrawingError
+from bpp.drawing.drawing import Drawing, DrawingError
 
 SVG_SAMPLE_SPACING = 0.004
 """Arc length between samples of SVG curves, as a fraction of the drawing's longest side."""
@@ -303,8 +304,8 @@ def _drawn_shape(elem, tag: str, where: str) -> bool:
 def _svg_elements(path: Path):
     """(name, path d-string, 3x3 transform to document coordinates) for every drawn element, in document order;
     the name is how messages refer to the element (``<path> #3``, or ``<path id='wing'>``)."""
-    import xml.etree.ElementTree as ET
 
+    # svgpathtools: half a second to import, for SVG files only
     from svgpathtools.parser import parse_transform
     from svgpathtools.svg_to_paths import (
         ellipse2pathd,
@@ -368,6 +369,7 @@ def _svg_elements(path: Path):
 
 def load_svg(path: str | Path, margin: float = 0.1) -> Drawing:
     """Parse an SVG file into one drawing named after the file (see the module docstring for what is read)."""
+    # svgpathtools: half a second to import, for SVG files only
     from svgpathtools import Line, parse_path
 
     path = Path(path)

@@ -1,4 +1,5 @@
-"""A drawing task: ordered pen-down strokes in the board's unit square (y up)."""
+"""A drawing task: ordered pen-down strokes in the board's unit square (y up), and how a store keeps it (one ragged
+per-task row, ``strokes``)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 
 
@@ -79,3 +81,19 @@ class Drawing:
         scale = (1.0 - 2.0 * margin) / extent
         offset = 0.5 - (lo + hi) / 2.0 * scale
         return Drawing(self.id, tuple(s * scale + offset for s in self.strokes), self.source)
+
+
+def strokes_array(drawing: Drawing) -> np.ndarray:
+    """(P, 3) float64 [u, v, stroke_index]: a drawing as one ragged-store row."""
+    return np.concatenate([np.c_[s, np.full(len(s), i, dtype=np.float64)] for i, s in enumerate(drawing.strokes)])
+
+
+def drawing_from_array(drawing_id: str, arr: np.ndarray) -> Drawing:
+    """Inverse of :func:`strokes_array`."""
+    idx = arr[:, 2].astype(int)
+    return Drawing.from_strokes(drawing_id, [arr[idx == i, :2] for i in np.unique(idx)], source="store")
+
+
+def task_drawing(store: EpisodeStore, task_index: int) -> Drawing:
+    """The drawing of task `task_index` of `store`, as its ``strokes`` row keeps it."""
+    return drawing_from_array(store.tasks[task_index]["id"], store.task_array("strokes", task_index))

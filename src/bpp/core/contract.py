@@ -2,8 +2,8 @@
 evaluation, the command line) can use it without importing it.
 
 A benchmark is one folder ``bpp/benchmarks/<name>/`` whose module-level object satisfies :class:`Benchmark`, plus
-one line in :data:`bpp.benchmarks.registry.BENCHMARKS` (or a ``bpp.benchmarks`` entry point, or
-:func:`bpp.benchmarks.registry.register_benchmark` at run time). Everything else reaches it through the registry: a
+one line in :data:`bpp.core.registry.BENCHMARKS` (or a ``bpp.benchmarks`` entry point, or
+:func:`bpp.core.registry.register_benchmark` at run time). Everything else reaches it through the registry: a
 store names its benchmark, and a checkpoint names the store it was trained on.
 
 The generic evaluation protocol (:mod:`bpp.evaluation.evaluate`) calls, for each task of a task set:
@@ -21,15 +21,13 @@ from __future__ import annotations
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from bpp.data.spec import ObservationPreset
+from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
-
-if TYPE_CHECKING:  # annotations only: the store looks benchmarks up through the registry, which imports this module
-    from bpp.data.store import EpisodeStore
 
 
 @dataclass(frozen=True)
@@ -140,10 +138,10 @@ class Benchmark(Protocol):
     derived_keys: Mapping[str, tuple[str, tuple[int, ...]]]
     """Per-step keys the benchmark's stores present without storing them: key -> (stored key, feature indices), each
     some features of a stored key in the order given (e.g. the gripper's pose out of a robot's whole proprioception;
-    ``{}`` for none). A store reads and normalises them like stored keys (:attr:`bpp.data.store.EpisodeStore.derived`,
-    looked up through the registry by the store's benchmark name, in whichever process opens it), so stores
-    written before a key was declared have it too; :func:`bpp.data.store.with_derived` adds them to a rollout's
-    observations the same way."""
+    ``{}`` for none). A store opened with them reads and normalises them like stored keys
+    (:attr:`bpp.data.store.EpisodeStore.derived`; :func:`bpp.core.registry.open_store` opens a store with those of
+    the benchmark it names), so stores written before a key was declared have it too;
+    :func:`bpp.data.store.with_derived` adds them to a rollout's observations the same way."""
 
     # ---------------------------------------------------------- observations
     observations: Mapping[str, ObservationPreset]
@@ -206,7 +204,7 @@ class Benchmark(Protocol):
     command_table: str
     """Where the benchmark's own commands besides ``generate`` are (e.g. pictures of a store, a demo job): the
     ``module:attribute`` of a :data:`CommandTable` ("" for none), which
-    :func:`bpp.benchmarks.registry.benchmark_commands` imports. Named rather than held, so that the commands module
+    :func:`bpp.core.registry.benchmark_commands` imports. Named rather than held, so that the commands module
     may import the benchmark object and not the other way round."""
 
 

@@ -12,8 +12,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
+from HersheyFonts import HersheyFonts
 
-from bpp.benchmarks.draw.drawing import Drawing
+from bpp.drawing.drawing import Drawing
 
 # (font, character, name). Names are the task ids.
 HUMAN_GLYPHS: tuple[tuple[str, str, str], ...] = (
@@ -72,8 +73,6 @@ HUMAN_GLYPHS: tuple[tuple[str, str, str], ...] = (
 
 @functools.cache
 def _font(name: str):
-    from HersheyFonts import HersheyFonts
-
     font = HersheyFonts()
     font.load_default_font(name)
     return font

@@ -1,4 +1,4 @@
-"""Prompted rollouts: steps 2 and 3 of the evaluation protocol (:mod:`bpp.benchmarks.contract`), shared by the
+"""Prompted rollouts: steps 2 and 3 of the evaluation protocol (:mod:`bpp.core.contract`), shared by the
 evaluator and the commands that run a single rollout."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import Benchmark, RolloutResult
+from bpp.core.contract import Benchmark, RolloutResult
 from bpp.data.contexts import prompt_steps, task_context
 from bpp.data.store import EpisodeStore
 

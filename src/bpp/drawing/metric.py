@@ -23,8 +23,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from bpp.benchmarks.draw.geometry import CANVAS_SIZE
-from bpp.benchmarks.draw.render import INK_WIDTH, pixel_centers, polyline_segments
+from bpp.drawing.geometry import CANVAS_SIZE
+from bpp.drawing.raster import INK_WIDTH, pixel_centers, polyline_segments
 
 EMPTY_DISTANCE = float(np.hypot(CANVAS_SIZE, CANVAS_SIZE))
 

@@ -1,6 +1,6 @@
 """Benchmarks by name. Adding a benchmark is a new folder under ``bpp/benchmarks/`` plus one line in :data:`BENCHMARKS`.
 
-The contract a benchmark satisfies is :class:`bpp.benchmarks.contract.Benchmark`. Packages outside bpp can add
+The contract a benchmark satisfies is :class:`bpp.core.contract.Benchmark`. Packages outside bpp can add
 benchmarks through the ``bpp.benchmarks`` entry-point group (``name = "package.module:OBJECT"``), and code (e.g. a
 test) through :func:`register_benchmark`.
 """
@@ -10,8 +10,10 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping
 from importlib.metadata import entry_points
+from pathlib import Path
 
-from bpp.benchmarks.contract import Benchmark, CommandTable
+from bpp.core.contract import Benchmark, CommandTable
+from bpp.data.store import EpisodeStore, read_header
 from bpp.errors import UserError
 
 BENCHMARKS: dict[str, str] = {
@@ -25,11 +27,6 @@ BENCHMARKS: dict[str, str] = {
 
 DEFAULT_BENCHMARK = "drawanything"
 """The benchmark of the main job (``bpp demo``)."""
-
-GYM_ENVS: dict[str, str] = {
-    "bpp/DrawAnything-v0": "bpp.benchmarks.draw.env:DrawEnv",
-}
-"""Gymnasium ids registered by ``import bpp.benchmarks`` (entry points are imported lazily, on ``gym.make``)."""
 
 RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio", "serve", "robot-client")
 """The generic command-line groups a benchmark's `command` may not take."""
@@ -78,6 +75,12 @@ def derived_keys(name: str) -> Mapping[str, tuple[str, tuple[int, ...]]]:
     return get_benchmark(name).derived_keys
 
 
+def open_store(path: str | Path) -> EpisodeStore:
+    """The store at `path` as its benchmark presents it: with the derived keys of the benchmark its header names
+    (:func:`derived_keys`), so that every process that opens a store this way sees the same per-step keys."""
+    return EpisodeStore(path, derived_keys(str(read_header(path).get("benchmark", ""))))
+
+
 def benchmark_commands(benchmark: Benchmark) -> CommandTable:
     """`benchmark`'s own commands (``bpp <its command> <name> ...``): the table its ``command_table`` names."""
     if not benchmark.command_table:
@@ -98,7 +101,7 @@ def _check(name: str, benchmark) -> None:
     if not isinstance(benchmark, Benchmark):
         members = {*Benchmark.__annotations__, *(k for k, v in vars(Benchmark).items() if callable(v) and k[0] != "_")}
         missing = sorted(a for a in members if not hasattr(benchmark, a))
-        raise TypeError(f"benchmark {name!r} does not satisfy bpp.benchmarks.contract.Benchmark; missing {missing}")
+        raise TypeError(f"benchmark {name!r} does not satisfy bpp.core.contract.Benchmark; missing {missing}")
     if benchmark.name != name:
         raise ValueError(f"benchmark registered as {name!r} calls itself {benchmark.name!r}")
     for key, (source, features) in benchmark.derived_keys.items():
@@ -113,11 +116,3 @@ def _check(name: str, benchmark) -> None:
         )
     if benchmark.command in RESERVED_COMMANDS:
         raise ValueError(f"benchmark {name!r} takes the command {benchmark.command!r}, which bpp reserves")
-
-
-def register_gym_envs() -> None:
-    import gymnasium as gym
-
-    for env_id, entry_point in GYM_ENVS.items():
-        if env_id not in gym.registry:
-            gym.register(env_id, entry_point=entry_point)

@@ -10,6 +10,7 @@ or quaternions' sign.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 POSE_DIM = 9
 """Position (3) + 6-D rotation (6)."""
@@ -87,7 +88,6 @@ def interpolate_poses(times: np.ndarray, poses: np.ndarray, at: np.ndarray) -> n
     """Poses (N, 4, 4) sampled at increasing `times` (N,) -> poses at `at` (M,) inside [times[0], times[-1]]: positions
     linearly, rotations by spherical linear interpolation on the rotation group (never per matrix entry, which leaves
     the group)."""
-    from scipy.spatial.transform import Rotation, Slerp
 
     times, at = np.asarray(times, dtype=np.float64), np.asarray(at, dtype=np.float64)
     assert np.all(np.diff(times) > 0), "interpolation times must increase"

@@ -1,4 +1,5 @@
-"""Coordinate frames of DrawAnything-Sim.
+"""Coordinate frames of DrawAnything's canvas and board: DrawAnything-Sim's screen, and the canvas DrawAnything-Real's
+ink is scored on.
 
 Three frames are used throughout:
 

@@ -17,9 +17,10 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-from bpp.benchmarks.contract import RolloutResult, frames_to_record
+from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.media import pyplot
 
 CHART_SIZE = 256
 
@@ -95,11 +96,7 @@ def run_rollouts(
 def action_chart(recorded: np.ndarray, predicted: np.ndarray | None = None, title: str = "", size: int = CHART_SIZE):
     """A (size, size, 3) uint8 picture of an episode's actions over time, one colour per dimension (the first 8):
     recorded solid, predicted dashed."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(size / 100, size / 100), dpi=100)
     colours = plt.get_cmap("tab10").colors
     for d in range(min(recorded.shape[1], 8)):

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bpp.benchmarks.draw.drawing import Drawing
-from bpp.benchmarks.draw.geometry import BOARD_SIZE
+from bpp.drawing.drawing import Drawing
+from bpp.drawing.geometry import BOARD_SIZE
 from bpp.utils import check_fields
 
 PART_TYPES = ("line", "curve", "oval", "move")
