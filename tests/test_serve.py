@@ -1,16 +1,19 @@
 """The policy server (bpp serve): openpi's wire format, prompts by id and by upload, validation, tokens, isolation
 between clients, batching, and the robot-side client reproducing the in-process evaluator."""
 
+import json
+import logging
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
 import torch
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
-from bpp.benchmarks.prompting import run_prompted
+from bpp.core.prompting import run_prompted
 from bpp.data.contexts import task_context
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
@@ -22,6 +25,7 @@ import_optional("msgpack", "serve")
 
 from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
 
+from bpp.network import urls  # noqa: E402
 from bpp.serve.client import PolicyClient, ServerError  # noqa: E402
 from bpp.serve.prompts import PromptLibrary  # noqa: E402
 from bpp.serve.robot import RemoteAgent  # noqa: E402
@@ -52,6 +56,20 @@ def _trained_run(store, tmp_path, steps: int):
 def _obs(store, episode, step, keys):
     sl = store.episode_slice(episode)
     return {k: store.array(k)[sl.start + step] for k in keys}
+
+
+def _demo(store, episode, keys):
+    """Episode `episode` of `store` as an upload: its observations of `keys` and its actions."""
+    sl = store.episode_slice(episode)
+    return {"obs": {k: store.array(k)[sl] for k in keys}, "action": store.array("action")[sl]}
+
+
+def _wait_for(condition, what: str, timeout: float = 10.0) -> None:
+    """Wait until `condition()` holds (something the server does after a client leaves)."""
+    deadline = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.02)
 
 
 # ----------------------------------------------------------------------------------------------- the wire
@@ -92,7 +110,7 @@ def test_the_wire_format_is_openpis_and_round_trips_every_array():
 def test_the_robot_client_reproduces_bpp_eval_exactly_rollout_for_rollout(debug_store, tmp_path):
     """A served checkpoint, driven through the socket one rollout per task (as `bpp eval` then runs each task as a
     batch of one), gives every rollout `bpp eval` gives, to the last bit."""
-    from bpp.benchmarks.contract import TaskSet
+    from bpp.core.contract import TaskSet
     from bpp.evaluation.evaluate import Protocol, evaluate
     from bpp.serve.command import build_server
     from bpp.serve.robot import RobotClient, robot_client
@@ -126,7 +144,7 @@ def test_concurrent_clients_are_batched_and_act_as_in_process(debug_store):
             served = BENCHMARK.run_rollouts(remote, debug_store, plan, 24, [False] * 4)
         finally:
             remote.close()
-    assert max(server.worker.batches) > 1  # requests that arrived together shared one inference call
+    assert max(server.worker.batch_sizes) > 1  # requests that arrived together shared one inference call
     for a, b in zip(local, served, strict=True):  # float sums differ with the batch's composition, nothing else
         assert a.steps == b.steps and abs(a.score - b.score) < 1e-2
 
@@ -192,6 +210,68 @@ def test_an_uploaded_demonstration_prompts_like_the_same_stored_one(debug_store)
         client.close()
 
 
+def test_the_prompt_field_takes_openpis_instruction_text_where_the_method_reads_text(debug_store, described_store):
+    """openpi's servers read an observation's 'prompt' as the instruction: a Language policy takes it so (a known id
+    still names its prompt), and any other policy's refusal says what bpp reads there instead."""
+    text = "draw a wide spiral"  # no task's id
+    model = _model("language", described_store)
+    keys = list(model.obs_keys())
+    with ServerThread(_server(model, described_store)) as url:
+        client = PolicyClient(url)
+        first = client.infer({**_obs(described_store, 0, 0, keys), "prompt": text, "seed": 1})
+        # openpi's robot scripts send the same prompt with every observation: the episode goes on
+        second = client.infer({**_obs(described_store, 0, 1, keys), "prompt": text})
+        assert first["prompt"] == second["prompt"] == text and second["episode_step"] == 1
+        task = described_store.tasks[2]["id"]
+        assert client.infer({**_obs(described_store, 0, 0, keys), "prompt": task})["prompt"].startswith("episode:")
+        client.close()
+    agent = PolicyAgent(model)
+    agent.reset({"text": text}, seed=1)
+    expected = [agent.act(_obs(described_store, 0, 0, keys)), *(q[0] for q in agent.queue)]
+    np.testing.assert_array_equal(first["actions"][: len(expected)], np.stack(expected))
+
+    bpp = _model("bpp", debug_store)
+    keys = list(bpp.obs_keys())
+    with ServerThread(_server(bpp, debug_store)) as url, pytest.raises(ServerError) as refused:
+        PolicyClient(url).infer({**_obs(debug_store, 0, 0, keys), "prompt": text})
+    for says in ("no such task", "bpp reads 'prompt' as the id of a demonstration", "openpi's servers read it as"):
+        assert says in str(refused.value)
+
+
+def test_uploads_are_held_by_connections_and_bounded(debug_store):
+    """An upload lives while its connection is open, while an episode runs it, or while it is the newest; each
+    connection holds a few, all of them together a bounded size."""
+    model = _model("bpp", debug_store)
+    keys = list(model.obs_keys())
+    demos = [_demo(debug_store, e, keys) for e in range(5)]
+    size = [sum(v.nbytes for v in d["obs"].values()) + d["action"].nbytes for d in demos]  # all float32 already
+    limit = size[1] + size[2] + size[3] + 16
+    library = PromptLibrary(
+        model.data_spec(), model.validate_context, debug_store, BENCHMARK.frames, 2, max_upload_bytes=limit
+    )
+    good = {**_obs(debug_store, 0, 0, keys), "seed": 0}
+    with ServerThread(PolicyServer(model, library, {"method": "bpp"})) as url:
+        a, b, c = PolicyClient(url), PolicyClient(url), PolicyClient(url)
+        handles = [a.infer({"upload": demos[e]})["prompt"] for e in range(3)]
+        assert library.upload_bytes == size[1] + size[2]  # a holds its newest two
+        with pytest.raises(ServerError, match="no such upload"):
+            a.infer({**good, "prompt": handles[0]})
+        newest = b.infer({"upload": demos[3]})["prompt"]
+        with pytest.raises(ServerError, match=r"over its limit of .* MiB; uploads are let go as the connections"):
+            b.infer({"upload": demos[4]})
+        c.infer({**good, "prompt": handles[1]})  # c's episode runs one of a's uploads
+        a.close()
+        _wait_for(lambda: library.upload_bytes == size[1] + size[3], "a's uploads to be let go")
+        c.close()
+        _wait_for(lambda: library.upload_bytes == size[3], "c's episode to let go of a's upload")
+        b.close()
+        # the newest stays after its connection closed: the hand-off of `bpp iphumi prompt` to a robot
+        robot = PolicyClient(url)
+        assert robot.infer({**good, "prompt": "upload:latest"})["prompt"] == newest
+        assert library.upload_bytes == size[3]
+        robot.close()
+
+
 # ----------------------------------------------------------------------------------------------- refusals
 def test_bad_requests_are_answered_with_the_reason_and_change_nothing(debug_store):
     model = _model("bpp", debug_store)
@@ -234,6 +314,82 @@ def test_bad_requests_are_answered_with_the_reason_and_change_nothing(debug_stor
             alone._ws.recv(5)
 
 
+def test_malformed_requests_are_refused_by_name_and_log_no_traceback(debug_store, caplog):
+    """Ragged observations, prompt ids the parser cannot read, malformed uploads and a client that vanishes without a
+    close frame: each gets a reply naming the field (the vanished one a quiet log line), no traceback is logged, and
+    the server goes on serving."""
+    caplog.set_level(logging.INFO)
+    model = _model("bpp", debug_store)
+    keys = list(model.obs_keys())
+    good = _obs(debug_store, 1, 0, keys)
+    demo = _demo(debug_store, 4, keys)
+    task = debug_store.tasks[0]["id"]
+    cases = [
+        ({**good, "prompt": 1, "agent_pos": [[1.0, 2.0], [3.0]]}, "'agent_pos' must be an array or equally long lists"),
+        ({**good, "prompt": "episode:" + "9" * 5000}, "\\(5008 characters\\) has over 2000 characters"),
+        ({**good, "prompt": "episode:" + "9" * 100}, "'episode:' takes an episode number, 0..35 in digits 0-9"),
+        ({**good, "prompt": "episode:\u00b2"}, "'episode:' takes an episode number"),
+        ({**good, "prompt": "episode:\u0663"}, "'episode:' takes an episode number"),
+        ({**good, "prompt": f"{task}#\u0663"}, "has demonstrations #0..#2"),
+        ({**good, "prompt": 1, 7: 1, b"x": 2}, "unknown request fields"),
+        ({"upload": {**demo, "obs": {**demo["obs"], "agent_pos": [[1.0], [2.0, 3.0]]}}}, "upload obs 'agent_pos'"),
+        ({"upload": {**demo, "action": "x"}}, "upload 'action' must be an array, got str"),
+        ({"upload": {**demo, "action": np.full(demo["action"].shape, "x")}}, "upload 'action' must be floating"),
+        ({"upload": {**demo, "obs": [1, 2]}}, "upload lacks 'obs'"),
+        ({"upload": {**demo, "actions": demo["action"]}}, "upload fields \\['actions'\\] are unknown"),
+    ]
+    with ServerThread(_server(model, debug_store)) as url:
+        client, other = PolicyClient(url), PolicyClient(url)
+        for request, reason in cases:
+            with pytest.raises(ServerError, match=reason):
+                client.infer(request)
+        vanishing = PolicyClient(url)
+        vanishing._ws.send(pack({**good, "prompt": 1}))
+        vanishing._ws.socket.close()  # gone without a close frame, before its reply
+        _wait_for(lambda: "vanished" in caplog.text, "the server to notice the vanished client")
+        for c in (client, other):  # both connections serve on
+            assert c.infer({**good, "prompt": 1})["actions"].ndim == 2
+        client.close(), other.close()
+    assert not [r for r in caplog.records if r.exc_info or r.levelno >= logging.ERROR], caplog.text
+    assert "Traceback" not in caplog.text
+
+
+def test_observations_of_the_wrong_kind_or_far_outside_the_training_range_are_refused(debug_store):
+    """Booleans, integers, values beyond float32 or beyond any training range (3e38 makes every action NaN) are
+    refused at the door, by key and problem, in requests and uploads alike; a value a little outside the training
+    range is a reading and is served."""
+    model = _model("bpp", debug_store)
+    keys = list(model.obs_keys())
+    good = {**_obs(debug_store, 1, 0, keys), "prompt": 1}
+    demo = _demo(debug_store, 4, keys)
+    steps = len(demo["action"])
+    far = demo["obs"]["agent_pos"].copy()
+    far[3] = 3e38
+    cases = [
+        ({**good, "agent_pos": np.array([True, False])}, "'agent_pos' must be floating point \\(float32\\), got bool"),
+        ({**good, "agent_pos": [True, False]}, "'agent_pos' must be floating point \\(float32\\), got bool"),
+        ({**good, "agent_pos": np.array([100, 200])}, "'agent_pos' must be floating point \\(float32\\), got int64"),
+        ({**good, "pen_down": np.array(["1"])}, "'pen_down' must be floating point \\(float32\\), got <U1"),
+        ({**good, "agent_pos": np.array([3e38, 1.0], np.float32)}, "'agent_pos' holds 3e\\+38 at index \\(0, 0\\)"),
+        ({**good, "agent_pos": np.array([1.0, 1e300])}, "'agent_pos' holds 1e\\+300 at index \\(0, 1\\)"),
+        ({**good, "agent_pos": np.array([1.0, -np.inf])}, "'agent_pos' contains NaN or infinite values"),
+        ({"upload": {**demo, "action": np.ones((steps, 3), bool)}}, "upload 'action' must be floating point"),
+        (
+            {"upload": {**demo, "obs": {**demo["obs"], "agent_pos": far}}},
+            "'agent_pos' holds 3e\\+38 at index \\(3, 0\\)",
+        ),
+    ]
+    with ServerThread(_server(model, debug_store)) as url:
+        client = PolicyClient(url)
+        for request, reason in cases:
+            with pytest.raises(ServerError, match=reason):
+                client.infer(request)
+        low, high = debug_store.stats["agent_pos"]["min"], debug_store.stats["agent_pos"]["max"]
+        outside = np.array([2 * high[0] - low[0], low[1]])  # one range beyond the training data, as float64
+        assert np.isfinite(client.infer({**good, "agent_pos": outside})["actions"]).all()
+        client.close()
+
+
 def test_oversized_messages_close_only_their_connection(debug_store):
     model = _model("bpp", debug_store)
     keys = list(model.obs_keys())
@@ -257,6 +413,14 @@ def test_a_token_is_required_and_loopback_is_the_default(debug_store):
         PolicyClient(url, api_key="s3cret").close()
     with pytest.raises(SystemExit, match="exposes the policy beyond this machine: set a token"):
         main(["serve", "runs/none", "--host", "0.0.0.0"])
+    # beyond loopback a token must resist guessing, as the studio's must
+    for weak in ("abc", "fifteen-chars-x", "sixteen chars  x", "sixteen-chärs-xx"):
+        with pytest.raises(SystemExit, match="must be at least 16 visible ASCII characters"):
+            main(["serve", "runs/none", "--host", "0.0.0.0", "--token", weak])
+    with pytest.raises(SystemExit, match="runs/none: no such checkpoint"):  # past the token check
+        main(["serve", "runs/none", "--host", "0.0.0.0", "--token", "sixteen-chars-xx"])
+    assert urls("ws", "0.0.0.0", 8000)[-1] == "ws://127.0.0.1:8000"
+    assert not any("0.0.0.0" in url for url in urls("ws", "0.0.0.0", 8000))
 
 
 def test_a_client_that_leaves_mid_request_costs_others_nothing(debug_store):
@@ -312,7 +476,7 @@ def test_openpis_own_client_drives_a_served_checkpoint_to_bpp_evals_scores(debug
     batches nothing either, every rollout matches `bpp eval`'s."""
     import json
 
-    from bpp.benchmarks.contract import TaskSet
+    from bpp.core.contract import TaskSet
     from bpp.evaluation.evaluate import Protocol, evaluate
     from bpp.serve.command import build_server
 
@@ -341,25 +505,38 @@ def test_openpis_own_client_drives_a_served_checkpoint_to_bpp_evals_scores(debug
     assert served["summary"]["score_mean"] == pytest.approx(local["summary"]["score_mean"], rel=1e-9)
 
 
-def test_bpp_serve_starts_serves_and_stops_on_ctrl_c(debug_store, tmp_path):
+def test_bpp_serve_on_every_interface_prints_its_addresses_serves_and_stops_on_ctrl_c(debug_store, tmp_path):
+    """`bpp serve --host 0.0.0.0` prints addresses a client can open (not 0.0.0.0), tells its clients the control
+    rate and names (no path of the server's), and names its own flags in its errors."""
     import re
     import signal
 
+    from bpp.cli import main
+
     run = _trained_run(debug_store, tmp_path, steps=1)
+    with pytest.raises(SystemExit, match="--prompts 'nope': not a task set of drawanything"):
+        main(["serve", str(run), "--prompts", "nope"])
+    token = "a-token-of-24-characters"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "bpp.cli", "serve", str(run), "--prompts", str(debug_store.path), "--port", "0"],
+        [sys.executable, "-m", "bpp.cli", "serve", str(run), "--prompts", str(debug_store.path), "--port", "0"]
+        + ["--host", "0.0.0.0"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env={**os.environ, "BPP_SERVE_TOKEN": token},
     )
     try:
         line = proc.stdout.readline()
-        found = re.search(r"on (ws://127\.0\.0\.1:\d+) \(no token: loopback only\); prompts: 36 demonstrations", line)
-        assert found, line + proc.stderr.read() if proc.poll() is not None else line
-        client = PolicyClient(found.group(1))
-        assert client.get_server_metadata()["train_step"] == 1
-        keys = list(client.get_server_metadata()["observation"])
-        assert client.infer({**_obs(debug_store, 0, 0, keys), "prompt": 0})["actions"].ndim == 2
+        found = re.search(
+            r"on (?:ws://[\d.]+:\d+, )*(ws://127\.0\.0\.1:\d+) \(all interfaces; token required\); prompts: 36", line
+        )
+        assert found and "0.0.0.0" not in line, line + proc.stderr.read() if proc.poll() is not None else line
+        client = PolicyClient(found.group(1), api_key=token)
+        meta = client.get_server_metadata()
+        assert meta["train_step"] == 1 and meta["control_hz"] == 10  # DrawAnything's robot
+        assert meta["checkpoint"] == "run/step_00000001" and meta["prompts"]["store"] == "debug.zarr"
+        assert str(tmp_path) not in json.dumps(meta) and str(debug_store.path.parent) not in json.dumps(meta)
+        assert client.infer({**_obs(debug_store, 0, 0, list(meta["observation"])), "prompt": 0})["actions"].ndim == 2
         client.close()
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)

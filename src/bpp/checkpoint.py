@@ -27,6 +27,7 @@ import torch
 from safetensors.torch import load, save_file
 
 from bpp.errors import UserError
+from bpp.policies.registry import get_method
 from bpp.utils import (
     atomic_path,
     from_dict,
@@ -261,14 +262,10 @@ class Checkpoint:
         return self.state["dataset"]["benchmark"]
 
     def model_config(self):
-        from bpp.policies.registry import get_method
-
         return from_dict(get_method(self.method).config_cls, self.state["model_config"])
 
     def build_model(self, device: str | torch.device = "cpu"):
         """The trained model (config, normalisation statistics and the loaded weights), in eval mode."""
-        from bpp.policies.registry import get_method
-
         model = get_method(self.method).model_cls(self.model_config(), self.state["stats"])
         model.load_state_dict(self.weights)
         return model.to(device).eval()

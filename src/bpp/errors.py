@@ -8,7 +8,9 @@ A command stopped by Ctrl-C (SIGINT) or SIGTERM ends with one line and the statu
 :class:`Interrupted`, a KeyboardInterrupt, so that SIGTERM runs the same clean-up as Ctrl-C.
 """
 
+import importlib
 import signal
+import threading
 
 
 class UserError(ValueError):
@@ -29,8 +31,6 @@ def raise_interrupted(signum: int, frame) -> None:
     """The signal handler that turns SIGINT and SIGTERM into :class:`Interrupted`. The program is stopping: a
     library's background thread that fails on the way down (torch's file-descriptor sharing, when a loader process it
     talks to is stopped) must not print a traceback after the one-line message."""
-    import threading
-
     threading.excepthook = lambda args: None
     raise Interrupted(signum)
 
@@ -38,8 +38,6 @@ def raise_interrupted(signum: int, frame) -> None:
 def require_extra(module: str, extra: str):
     """Import `module`, which only optional extra `extra` installs; a missing one is a UserError saying what to
     install (``pip install 'bpp[extra]'``) rather than an ImportError from deep inside a command."""
-    import importlib
-
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as err:

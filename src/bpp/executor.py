@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from tqdm import tqdm
+
 from bpp.errors import UserError
 from bpp.utils import usable_cores, worker_pool
 
@@ -173,8 +175,6 @@ class Ray(Executor):
                     with contextlib.suppress(Exception):
                         ray.cancel(ref, force=True)
             if self.progress and self.done:
-                from tqdm import tqdm
-
                 tqdm.write(self.summary())
 
     def summary(self) -> str:
@@ -208,6 +208,7 @@ RAY_MISSING = "--executor ray needs Ray: pip install 'bpp[ray]'"
 
 def _import_ray():
     try:
+        # Ray: the ray extra
         import ray
     except ImportError:
         raise UserError(RAY_MISSING) from None
@@ -237,6 +238,7 @@ def _run_on_node(fn, job, setup) -> tuple[Any, str, float]:
         _SETUP["key"] = key
     t0 = time.perf_counter()
     result = fn(job)
+    # Ray: the ray extra
     import ray
 
     node = f"node {ray.get_runtime_context().get_node_id()[:8]} ({socket.gethostname()})"

@@ -20,6 +20,7 @@ def main() -> None:
     if signal.getsignal(signal.SIGTERM) is signal.SIG_DFL:
         signal.signal(signal.SIGTERM, raise_interrupted)
     try:
+        # here, not at the top: the command line loads with the handlers above already in place
         from bpp.cli import main as run
 
         run()  # takes the handlers over, and reports a signal itself from here on

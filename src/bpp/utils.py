@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import dataclasses
 import functools
 import hashlib
@@ -18,6 +19,7 @@ import typing
 import uuid
 from collections.abc import Iterator
 from multiprocessing import context as mp_context
+from multiprocessing import resource_tracker
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,7 +118,6 @@ def _die_with(parent: int) -> None:
     """Have Linux kill this process (SIGKILL) when `parent`, which started it, ends; elsewhere, nothing."""
     if not sys.platform.startswith("linux"):
         return
-    import ctypes
 
     pr_set_pdeathsig = 1
     with contextlib.suppress(OSError, AttributeError):
@@ -161,7 +162,6 @@ def _held_for_workers() -> Iterator[None]:
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         yield
         return
-    from multiprocessing import resource_tracker
 
     # Started later, by the first spawned worker, the tracker would release the mask (it holds these signals back
     # only while it starts itself).
@@ -360,6 +360,7 @@ def file_stem(text: str) -> str:
 
 def to_torch(batch: Any, device: torch.device | str) -> Any:
     """Nested dicts of numpy arrays / tensors -> tensors on `device` (floats as float32, images kept uint8)."""
+    # torch: imported when the command runs, not when the command line starts
     import torch
 
     if isinstance(batch, dict):

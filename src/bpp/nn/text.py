@@ -129,6 +129,7 @@ class PretrainedTextEncoder(nn.Module):
     def __init__(self, folder: Path):
         super().__init__()
         AutoModel = require_extra("transformers", "language").AutoModel
+        # transformers: the language extra
         from transformers.utils import logging as hf_logging
 
         # Quietly: the report of the pooler weights left out below and a per-load progress bar are noise here.

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bpp.checkpoint import load_policy
 from bpp.data.contexts import collate_contexts
 from bpp.data.spec import DataSpec
 from bpp.policies.diffusion import DiffusionHead
@@ -37,7 +38,7 @@ class PolicyAgent:
         record_attention: keep the prompt attention of every inference in :attr:`attention_log`
             (models that have none ignore it).
         cuda_graphs: on a GPU, replay a diffusion decoder's DDIM sampling loop from a CUDA graph (the same
-            numbers, 2.7x faster per inference call for the paper preset on an H100: BENCHMARKS.md).
+            numbers; 35.9 against 95.7 ms per inference call for the paper preset on an H100: BENCHMARKS.md).
     """
 
     def __init__(
@@ -69,8 +70,6 @@ class PolicyAgent:
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str = "cpu", use_ema: bool = True, **kw) -> PolicyAgent:
-        from bpp.checkpoint import load_policy
-
         return cls(load_policy(path, device, use_ema), device, **kw)
 
     # ------------------------------------------------------------ one rollout

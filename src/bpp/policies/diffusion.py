@@ -20,6 +20,7 @@ class DiffusionHead(nn.Module):
 
     def __init__(self, cfg: DiffusionConfig, action_dim: int, cond_dim: int):
         super().__init__()
+        # diffusers: seconds to import, for the diffusion decoder only
         from diffusers import DDIMScheduler, DDPMScheduler
 
         self.cfg = cfg
@@ -85,6 +86,7 @@ class DiffusionHead(nn.Module):
         `generator`: one for the batch, or a list of B, one per sample, so that a sample's result (including the
         DDPM sampler's per-step noise) does not depend on which other samples share its batch. With
         :attr:`cuda_graphs` set, a DDIM loop on a GPU is recorded once per shape as a CUDA graph and replayed."""
+        # diffusers: seconds to import, for the diffusion decoder only
         from diffusers.utils.torch_utils import randn_tensor
 
         if noise is None:

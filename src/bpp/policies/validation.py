@@ -1,5 +1,6 @@
-"""Checks of raw task contexts: the errors a model raises for a context it cannot use, and the check of a
-demonstration prompt shared by the methods that take one."""
+"""Checks of raw task contexts: the errors a model raises for a context it cannot use, the check of a
+demonstration prompt shared by the methods that take one, and the values a feature may take
+(:func:`feature_bounds`), which every array from outside is checked against (:func:`bpp.data.arrays.check_array`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from bpp.data.arrays import Bounds, check_array
 from bpp.errors import UserError
 from bpp.policies.config import ObsConfig
 from bpp.policies.normalizer import Normalizer
@@ -21,6 +23,20 @@ class ContextError(UserError):
 
 class PromptError(ContextError):
     """A demonstration prompt that a model cannot use; the message says what was expected."""
+
+
+MAX_NORMALIZED = 1000.0
+"""How far a feature may lie outside its training range, in the normalized units where that range is [-1, 1]: much
+further than any sensor or demonstration worth acting on, and close enough that the networks' float32 arithmetic
+stays finite (3e38 in a position makes every action NaN)."""
+
+
+def feature_bounds(normalizer: Normalizer, key: str) -> Bounds:
+    """The raw values that feature `key` may take, (width,) each: :data:`MAX_NORMALIZED` either side."""
+    scale = normalizer.scale(key).double().cpu().numpy()
+    offset = getattr(normalizer, f"{key}__offset").double().cpu().numpy()
+    low, high = (-MAX_NORMALIZED - offset) / scale, (MAX_NORMALIZED - offset) / scale
+    return Bounds(low, high, f"its training range widened {MAX_NORMALIZED:g}-fold")
 
 
 def validate_demo_context(
@@ -41,33 +57,39 @@ def validate_demo_context(
     """
     if not isinstance(prompt, Mapping) or "obs" not in prompt or "action" not in prompt:
         raise PromptError("a prompt must be a dict with 'obs' (a dict of per-step arrays) and 'action'")
+    if not isinstance(prompt["obs"], Mapping):
+        raise PromptError(f"a prompt's 'obs' must be a dict of per-step arrays, got {type(prompt['obs']).__name__}")
     action_dim = normalizer.width(action_key)
-    actions = np.asarray(prompt["action"], dtype=np.float32)
-    if actions.ndim != 2 or actions.shape[1] != action_dim:
-        raise PromptError(f"prompt actions must have shape (steps, {action_dim}) as in training, got {actions.shape}")
+    actions = check_array(
+        "prompt actions",
+        prompt["action"],
+        (None, action_dim),
+        np.float32,
+        kinds="fiub",
+        bounds=feature_bounds(normalizer, action_key),
+        expected=f"(steps, {action_dim}) as in training",
+        error=PromptError,
+    )
     steps = len(actions)
     if steps < chunk_len:
         raise PromptError(f"prompt has {steps} steps; at least one chunk of {chunk_len} steps is needed")
     if steps > max_steps:
         raise PromptError(f"prompt has {steps} steps; this model accepts at most {max_steps}{limit_note}")
-    if not np.all(np.isfinite(actions)):
-        raise PromptError("prompt actions contain NaN or infinite values")
     obs = {}
     for key in obs_cfg.entries:
         if key not in prompt["obs"]:
             raise PromptError(f"prompt obs lacks {key!r}; expected keys {obs_cfg.entries}")
-        value = np.asarray(prompt["obs"][key])
-        if len(value) != steps:
-            raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
+        name = f"prompt obs {key!r}"
         if key in obs_cfg.image_keys:
             size = obs_cfg.image_size
-            if value.shape[1:] != (size, size, 3):
-                raise PromptError(f"prompt images {key!r} must be (steps, {size}, {size}, 3), got {value.shape}")
+            value = check_array(name, prompt["obs"][key], (None, size, size, 3), np.uint8, error=PromptError)
         else:
-            width = normalizer.width(key)
-            if value.ndim != 2 or value.shape[1] != width:
-                raise PromptError(f"prompt obs {key!r} must be (steps, {width}), got {value.shape}")
-            if not np.all(np.isfinite(value)):
-                raise PromptError(f"prompt obs {key!r} contains NaN or infinite values")
+            bounds = feature_bounds(normalizer, key)
+            value = check_array(
+                name, prompt["obs"][key], (None, normalizer.width(key)), np.float32, kinds="fiub", bounds=bounds,
+                error=PromptError,
+            )  # fmt: skip
+        if len(value) != steps:
+            raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
         obs[key] = value[None]
     return {"obs": obs, "action": actions[None], "valid": np.ones((1, steps), dtype=bool)}

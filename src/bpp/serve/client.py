@@ -22,6 +22,7 @@ class PolicyClient:
     openpi's ``WebsocketClientPolicy`` (``infer``, ``get_server_metadata``, ``reset``), plus ``close``."""
 
     def __init__(self, url: str, api_key: str | None = None, timeout: float = 60.0):
+        # websockets: the serve extra
         from websockets.sync.client import connect as ws_connect
 
         headers = {"Authorization": f"Api-Key {api_key}"} if api_key else None
@@ -65,6 +66,7 @@ def connect(url: str, api_key: str | None = None, use_openpi: bool | None = None
     if use_openpi is None:
         use_openpi = openpi_available()
     if use_openpi:
+        # openpi's client: the robot-side environment only
         from openpi_client.websocket_client_policy import WebsocketClientPolicy
 
         return WebsocketClientPolicy(url if url.startswith("ws") else f"ws://{url}", api_key=api_key)

@@ -11,6 +11,7 @@ actions and scores (up to float sums, which differ with the batch size; BENCHMAR
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -19,9 +20,13 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import tyro
+from tqdm import tqdm
 
+from bpp.core.registry import get_benchmark, open_store
 from bpp.data.spec import DataSpec
 from bpp.errors import UserError
+from bpp.evaluation.protocol import Protocol, TaskResult, results_json, rollout_rows
 from bpp.serve.client import close, connect
 
 
@@ -117,10 +122,6 @@ def check_same_tasks(meta: dict, store) -> None:
 def run_remote(agent: RemoteAgent, benchmark, store, tasks: list[int], protocol, progress: bool = True) -> list:
     """The evaluation protocol's rollouts of `tasks`, each task's rollouts in lockstep against the server; returns
     :class:`bpp.evaluation.protocol.TaskResult` per task."""
-    from tqdm import tqdm
-
-    from bpp.evaluation.protocol import TaskResult, rollout_rows
-
     results = []
     bar = tqdm(total=len(tasks) * protocol.rollouts, desc="robot", unit="rollout", disable=not progress)
     for task in tasks:
@@ -161,13 +162,7 @@ class RobotClient:
 
 
 def robot_client(args: RobotClient) -> dict:
-    import os
-
-    from bpp.benchmarks.registry import get_benchmark
-    from bpp.data.store import EpisodeStore
-    from bpp.evaluation.protocol import Protocol, results_json
-
-    store = EpisodeStore(args.tasks)
+    store = open_store(args.tasks)
     benchmark = get_benchmark(store.benchmark)
     protocol = Protocol(rollouts=args.rollouts, seed=args.seed, prompts=args.prompts)
     protocol = replace(protocol, max_steps=args.max_steps or benchmark.max_steps)
@@ -210,8 +205,6 @@ def robot_client(args: RobotClient) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import tyro
-
     args = tyro.cli(RobotClient, args=argv)
     try:
         robot_client(args)

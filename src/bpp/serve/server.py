@@ -7,32 +7,35 @@ The protocol (binary msgpack frames, :mod:`bpp.serve.wire`):
   offers.
 * ``infer(obs)``: ``obs`` holds every key the policy observes, either one step (the shape in the metadata) or the
   k steps since the last request with a leading time axis (oldest first), and optionally ``"prompt"`` (a prompt
-  id, see :class:`bpp.serve.prompts.PromptLibrary`), ``"reset"`` (True: a new episode) and ``"seed"`` (the new
-  episode's noise seed, default 0). The first request of a connection names a prompt; naming a different one, or
-  ``reset``, starts a new episode: the prompt is encoded once, the observation history and the noise generator
-  start over. The reply is ``{"actions": (T - To + 1, A), ...}``: the predicted chunk from the current step on,
-  of which ``bpp eval`` executes the first ``n_action_steps`` before asking again. A client that sends every
-  step's observation and replans after ``n_action_steps`` gets exactly the actions ``bpp eval`` computes.
+  id, see :class:`bpp.serve.prompts.PromptLibrary`; for a Language policy also instruction text, as openpi's
+  servers read it), ``"reset"`` (True: a new episode) and ``"seed"`` (the new episode's noise seed, default 0).
+  The first request of a connection names a prompt; naming a different one, or ``reset``, starts a new episode:
+  the prompt is encoded once, the observation history and the noise generator start over. The reply is
+  ``{"actions": (T - To + 1, A), ...}``: the predicted chunk from the current step on, of which ``bpp eval``
+  executes the first ``n_action_steps`` before asking again. A client that sends every step's observation and
+  replans after ``n_action_steps`` gets exactly the actions ``bpp eval`` computes.
 * ``infer({"upload": demonstration})`` stores a demonstration (``{"obs": ..., "action": ..., "instruction": ...}``)
-  and replies ``{"prompt": handle}``, an id any client may then use.
+  and replies ``{"prompt": handle}``, an id any client may then use while the upload is kept (see
+  :mod:`bpp.serve.prompts`: while its connection is open, an episode runs it, or it is the newest).
 
-A request the server cannot use gets a text frame naming what was wrong (openpi's client raises it as a
-RuntimeError) and the connection stays open with the session unchanged; a frame that is not a message of this
-protocol closes the connection. Each connection has its own episode; requests that arrive together are answered by
-one batched inference call.
+Every field of a request is checked before anything changes (observations by
+:func:`bpp.data.arrays.check_array`: shape, dtype kind, finite values within a bound of the training range).
+A request the server cannot use gets a text frame naming the field and what was wrong (openpi's client raises it as
+a RuntimeError) and the connection stays open with the session unchanged; a frame that is not a message of this
+protocol closes the connection; a client that vanishes is let go quietly. Each connection has its own episode;
+requests that arrive together are answered by one batched inference call.
 """
 
 from __future__ import annotations
 
 import asyncio
 import hmac
-import ipaddress
 import logging
 import queue
 import threading
 import time
 import traceback
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -42,8 +45,11 @@ import numpy as np
 import torch
 
 from bpp import __version__
+from bpp.data.arrays import as_array, check_array
 from bpp.errors import UserError
+from bpp.network import listen, urls
 from bpp.policies.agent import predict_chunks
+from bpp.policies.validation import feature_bounds
 from bpp.serve.prompts import PromptLibrary
 from bpp.serve.wire import WireError, pack, unpack
 from bpp.utils import to_torch
@@ -73,15 +79,6 @@ class ServerLimits:
     batch_wait_s: float = 0.0
     """How long the model waits after a request for others to join its batch (0: it takes those already
     waiting, which under load is all of them)."""
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 # ----------------------------------------------------------------------------------------------- sessions
@@ -129,7 +126,8 @@ class ModelWorker:
         self.model, self.limits = model, limits
         self.jobs: queue.Queue[_Job | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, name="bpp-model", daemon=True)
-        self.batches: list[int] = []
+        self.batch_sizes: Counter[int] = Counter()
+        """Inference calls per batch size (counts, not a log: bounded however long the server runs)."""
         self.thread.start()
 
     def call(self, fn: Callable, *args) -> asyncio.Future:
@@ -200,7 +198,7 @@ class ModelWorker:
                 _resolve(job.future, exception=err)
             return
         elapsed = time.perf_counter() - start
-        self.batches.append(len(group))
+        self.batch_sizes[len(group)] += 1
         for i, job in enumerate(group):
             timing = {"infer_ms": 1e3 * elapsed, "queue_ms": 1e3 * (start - job.submitted), "batch": len(group)}
             weights = None
@@ -265,6 +263,8 @@ class PolicyServer:
         self.widths = {k: model.normalizer.width(k) for k in self.obs_keys if k not in self.image_keys}
         self.step_shapes = {k: tuple(v["shape"]) for k, v in self.observation_shapes().items()}
         """Each observation key's per-step shape, which every request is checked against."""
+        self.bounds = {k: feature_bounds(model.normalizer, k) for k in self.widths}
+        """The values each low-dimensional key may take (beyond them a fault, not a reading)."""
         self.worker = ModelWorker(self.model, limits)
         self.clients = 0
         self.served = 0
@@ -294,16 +294,19 @@ class PolicyServer:
             "prompts": self.library.describe(),
             "max_message_bytes": self.limits.max_message_bytes,
             "max_steps_per_request": MAX_STEPS_PER_REQUEST,
+            "max_uploads_per_client": self.library.max_uploads_per_client,
+            "max_upload_bytes": self.library.max_upload_bytes,
             "request": (
                 "observation keys (one step, or k steps since the last request with a leading time axis), "
-                "'prompt' (id; required to start), 'reset' (bool), 'seed' (int); or {'upload': demonstration}"
+                "'prompt' (a prompt id, or instruction text for a Language policy; required to start), "
+                "'reset' (bool), 'seed' (int); or {'upload': demonstration}"
             ),
         }
 
     # ------------------------------------------------------------------ validation
     def parse_observations(self, message: Mapping) -> list[dict[str, np.ndarray]]:
         """A request's observation fields -> the steps they hold, oldest first; RequestError if any is wrong."""
-        unknown = sorted(set(message) - set(self.obs_keys) - set(CONTROL_KEYS))
+        unknown = sorted(map(str, set(message) - set(self.obs_keys) - set(CONTROL_KEYS)))
         if unknown:
             raise RequestError(
                 f"unknown request fields {unknown}; this policy observes {self.obs_keys} and takes {list(CONTROL_KEYS)}"
@@ -313,28 +316,7 @@ class PolicyServer:
             raise RequestError(f"observation lacks {missing}; this policy observes {self.obs_keys}")
         arrays, count = {}, None
         for key in self.obs_keys:
-            value = message[key]
-            if isinstance(value, list | tuple | int | float):
-                value = np.asarray(value)
-            if not isinstance(value, np.ndarray):
-                raise RequestError(f"observation {key!r} must be an array, got {type(value).__name__}")
-            shape = self.step_shapes[key]
-            if value.shape == shape:
-                value = value[None]
-            elif value.shape[1:] != shape or not 1 <= len(value) <= MAX_STEPS_PER_REQUEST:
-                raise RequestError(
-                    f"observation {key!r} must have shape {shape} (one step) or (k, {', '.join(map(str, shape))}) "
-                    f"with 1 <= k <= {MAX_STEPS_PER_REQUEST}, got {value.shape}"
-                )
-            if key in self.image_keys:
-                if value.dtype != np.uint8:
-                    raise RequestError(f"observation {key!r} must be uint8 RGB, got {value.dtype}")
-            else:
-                if value.dtype.kind not in "fiub":
-                    raise RequestError(f"observation {key!r} must be numeric, got {value.dtype}")
-                value = value.astype(np.float32) if value.dtype != np.float32 else value
-                if not np.all(np.isfinite(value)):
-                    raise RequestError(f"observation {key!r} contains NaN or infinite values")
+            value = self.check_observation(key, message[key])
             if count is not None and len(value) != count:
                 raise RequestError(
                     f"observation keys carry different numbers of steps ({count} and {len(value)} for {key!r})"
@@ -343,11 +325,33 @@ class PolicyServer:
             arrays[key] = value
         return [{k: v[i] for k, v in arrays.items()} for i in range(count)]
 
+    def check_observation(self, key: str, value: Any) -> np.ndarray:
+        """Observation `key` of a request -> its steps (k, *step shape) as the model takes them: uint8 images,
+        float32 features within :attr:`bounds`; RequestError naming the key and the problem otherwise."""
+        shape, name = self.step_shapes[key], f"observation {key!r}"
+        dims = ", ".join(map(str, shape))
+        expected = f"{shape} (one step) or (k, {dims}) with 1 <= k <= {MAX_STEPS_PER_REQUEST}"
+        value = as_array(name, value, RequestError)
+        if value.shape == shape:
+            value = value[None]
+        if key in self.image_keys:
+            steps = check_array(name, value, (None, *shape), np.uint8, expected=expected, error=RequestError)
+        else:
+            steps = check_array(
+                name, value, (None, *shape), np.float32, bounds=self.bounds[key], expected=expected, error=RequestError
+            )
+        if not 1 <= len(steps) <= MAX_STEPS_PER_REQUEST:
+            raise RequestError(f"{name} must have shape {expected}, got {steps.shape}")
+        return steps
+
     @staticmethod
     def parse_control(message: Mapping) -> tuple[Any, bool, int]:
         prompt = message.get("prompt")
-        if prompt is not None and not isinstance(prompt, str | int) or isinstance(prompt, bool):
-            raise RequestError(f"'prompt' must be a prompt id (string or episode number), got {type(prompt).__name__}")
+        if prompt is not None and not isinstance(prompt, str | int | np.integer) or isinstance(prompt, bool):
+            raise RequestError(
+                f"'prompt' must be a prompt id (string or episode number) or, for a Language policy, instruction "
+                f"text, got {type(prompt).__name__}"
+            )
         reset = message.get("reset", False)
         if not isinstance(reset, bool | np.bool_):
             raise RequestError(f"'reset' must be true or false, got {reset!r}")
@@ -365,7 +369,7 @@ class PolicyServer:
         if "upload" in message:
             if len(message) != 1:
                 raise RequestError("an upload request holds only 'upload'")
-            handle = await self.worker.call(self.library.upload, message["upload"])
+            handle = await self.worker.call(self.library.upload, message["upload"], session)
             return {"prompt": handle}
         steps = self.parse_observations(message)
         prompt, reset, seed = self.parse_control(message)
@@ -376,6 +380,7 @@ class PolicyServer:
             entry = entry or await self.worker.call(self.library.get, session.prompt)
             context = await self.worker.call(self._encode, entry.context)
             session.start(entry.id, context, seed, self.n_obs_steps, self.device)
+            self.library.run(session, entry.id)
         session.push(steps)
         chunk, attention, timing = await self.worker.infer(session)
         session.requests += 1
@@ -413,6 +418,10 @@ class PolicyServer:
         return None
 
     async def connection(self, ws) -> None:
+        """One client's connection, from the metadata to its close; its uploads are let go when it ends."""
+        # websockets: the serve extra
+        from websockets.exceptions import ConnectionClosed
+
         peer = ":".join(map(str, ws.remote_address[:2])) if ws.remote_address else "?"
         session = Session(peer)
         self.clients += 1
@@ -437,22 +446,26 @@ class PolicyServer:
                     continue
                 except Exception as err:  # noqa: BLE001 - a bug: log it, tell the client, close this connection
                     log.error("request of %s failed:\n%s", peer, traceback.format_exc())
-                    await ws.send(f"bpp server: internal error ({type(err).__name__}: {err}); closing")
+                    await ws.send(f"bpp server: internal error ({type(err).__name__}, logged by the server); closing")
                     await ws.close(1011, "internal error")
                     return
                 await ws.send(pack(reply))
+        except ConnectionClosed as closed:  # the client went away without closing (or mid-reply): nothing to tell
+            log.info("client %s vanished (%s)", peer, closed)
         finally:
             self.clients -= 1
+            self.library.release(session)
             log.info("client %s left after %d requests (%d now)", peer, session.requests, self.clients)
 
     async def serve(self, host: str, port: int, ready: Callable[[int], None] | None = None, stop=None) -> None:
-        """Serve until `stop` (an asyncio.Event) is set, or forever; `ready(port)` once listening."""
+        """Serve until `stop` (an asyncio.Event) is set, or forever; `ready(port)` once listening (a UserError naming
+        --host or --port if it cannot listen)."""
+        # websockets: the serve extra
         from websockets.asyncio.server import serve
 
         async with serve(
             self.connection,
-            host,
-            port,
+            sock=listen(host, port),
             process_request=self.authorize,
             max_size=self.limits.max_message_bytes,
             compression=None,
@@ -492,7 +505,7 @@ class ServerThread:
         self._ready.wait(30)
         if self._error is not None:
             raise self._error
-        return f"ws://{self.host}:{self.port}"
+        return urls("ws", self.host, self.port)[-1]  # loopback, for a wildcard host
 
     def _bound(self, port: int) -> None:
         self.port = port

@@ -45,6 +45,8 @@ def _decode(obj: dict) -> Any:
             if dtype.kind in _REFUSED_KINDS:
                 raise WireError(f"refusing an array of dtype {dtype}")
             shape = tuple(int(n) for n in obj[b"shape"])
+            if any(n < 0 for n in shape):
+                raise ValueError(f"shape {shape} has a negative length")
             # a read-only view of the frame's bytes: checks the byte count against the shape, copies nothing
             return np.frombuffer(obj[b"data"], dtype=dtype).reshape(shape)
         except (KeyError, TypeError, ValueError) as err:
@@ -54,8 +56,11 @@ def _decode(obj: dict) -> Any:
             dtype = np.dtype(obj[b"dtype"])
             if dtype.kind in _REFUSED_KINDS:
                 raise WireError(f"refusing a scalar of dtype {dtype}")
-            return dtype.type(obj[b"data"])
-        except (KeyError, TypeError, ValueError) as err:
+            value = dtype.type(obj[b"data"])
+            if np.ndim(value):
+                raise ValueError("its data is a sequence")
+            return value
+        except (KeyError, TypeError, ValueError, OverflowError) as err:
             raise WireError(f"malformed scalar ({err})") from None
     return obj
 

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 import numpy as np
 import torch
 
+from bpp.data.arrays import check_array
 from bpp.nn.vision import ResNetGN
 from bpp.policies.goal_image.config import GoalImageConfig
 from bpp.policies.model import ContextDiffusionPolicy
@@ -50,11 +51,9 @@ class GoalImageModel(ContextDiffusionPolicy):
         expected = f"{{'image': ({size}, {size}, 3) uint8 RGB array}}"
         if not isinstance(context, Mapping) or "image" not in context:
             raise ContextError(f"a goal-image context must be a dict {expected}")
-        image = np.asarray(context["image"])
-        if image.dtype != np.uint8:
-            raise ContextError(f"the goal image must be uint8 RGB (0-255), got dtype {image.dtype}")
-        if image.shape != (size, size, 3):
-            raise ContextError(f"the goal image must have shape ({size}, {size}, 3) as in training, got {image.shape}")
+        shape = (size, size, 3)
+        name, expected = "the goal image", f"{shape} as in training"
+        image = check_array(name, context["image"], shape, np.uint8, expected=expected, error=ContextError)
         return {"image": image[None]}
 
     def encode_context(self, context: Mapping) -> torch.Tensor:
