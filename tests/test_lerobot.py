@@ -1,6 +1,7 @@
 """LeRobot datasets in and out: a dataset made here with LeRobot's own library imports into a store (tasks, keys,
 cameras, fps, held-out episodes), trains BPP and is evaluated open loop; any store exports to a LeRobot v3 dataset
-that LeRobot's loader reads back, and imports back to the same arrays. Needs the `lerobot` extra."""
+that LeRobot's loader reads back, and imports back to the same arrays. Needs LeRobot (the `lerobot` extra): `make test`
+runs this file in LeRobot's environment, .venv-lerobot."""
 
 from __future__ import annotations
 
@@ -334,10 +335,10 @@ def test_lerobots_own_loader_returns_every_exported_array(debug_store, tmp_path,
     assert index == len(dataset)
 
 
-@pytest.mark.libero
 def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(tmp_path, capsys):
     """A store of LIBERO-Gen's keys with agent-view frames stored as generation renders them (made here: generating
-    one in LIBERO takes minutes); the wrist camera, which it did not store, is left out."""
+    one in LIBERO takes minutes); the wrist camera, which it did not store, is left out, so LIBERO itself is not
+    needed."""
     rng = np.random.default_rng(0)
     path = tmp_path / "libero.zarr"
     with EpisodeWriter(path, benchmark="libero_gen", stats_keys=("action", "proprio", "object_state")) as writer:

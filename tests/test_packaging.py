@@ -15,7 +15,7 @@ EXTRA_MODULES = {
     "dev": ["pytest", "playwright", "ruff"],
     "docs": ["mkdocs", "material"],
     "serve": ["websockets", "msgpack"],
-    "lerobot": ["ledataset", "lerobot", "av", "datasets", "torchvision"],
+    "lerobot": ["lerobot", "av", "datasets", "torchvision"],
     "iphumi": ["cv2"],
     "ray": ["ray"],
 }
@@ -68,9 +68,15 @@ def test_a_command_needing_a_missing_extra_says_which_in_one_line(tmp_path, argv
     assert f"bpp[{extra}]" in result.stderr or f".[{extra}]" in result.stderr, result.stderr[-3000:]
 
 
+OWN_ENVIRONMENT = {"lerobot"}
+"""Extras left out of `all`: LeRobot pins torch < 2.11, so it has an environment of its own (.venv-lerobot)."""
+
+
 def test_the_extras_declare_what_the_tests_block():
-    """The modules blocked above are those of the extras pyproject.toml declares (so the test above means something)."""
+    """The modules blocked above are those of the extras pyproject.toml declares (so the test above means something);
+    `all` is every one of them but those with an environment of their own."""
     tomllib = pytest.importorskip("tomllib", reason="needs Python 3.11's tomllib")
     extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     assert set(EXTRA_MODULES) <= set(extras)
-    assert extras["all"] == [f"bpp[{','.join(sorted(EXTRA_MODULES, key=list(extras).index))}]"]
+    shared = sorted(set(EXTRA_MODULES) - OWN_ENVIRONMENT, key=list(extras).index)
+    assert extras["all"] == [f"bpp[{','.join(shared)}]"]

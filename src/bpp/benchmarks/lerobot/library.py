@@ -1,9 +1,9 @@
 """LeRobot's dataset library, imported when used, and what running it offline and quietly takes.
 
-The ``lerobot`` extra installs the standalone ``lerobot-dataset`` package (module ``ledataset``), LeRobot's dataset
-code released without LeRobot's pins on torch, so that it installs beside bpp's torch. An environment that has LeRobot
-itself (module ``lerobot``) and not the extra uses LeRobot's. Both read and write LeRobot's v3 format with the same
-``LeRobotDataset`` API.
+The ``lerobot`` extra installs LeRobot itself (Hugging Face's ``lerobot`` package, 0.4.3 or a later 0.4 release; 0.5
+and newer need Python 3.12), whose ``lerobot.datasets`` reads and writes the v3 format with ``LeRobotDataset``. LeRobot
+pins an older torch than bpp's lock, so its tests run in an environment of their own (``.venv-lerobot``, built LeRobot
+first and bpp on top; docs/installation.md).
 
 Camera frames are decoded here with PyAV (FFmpeg inside its wheel, a dependency of the library), not through
 ``LeRobotDataset.__getitem__``, whose decoders need torchcodec with a system FFmpeg or a torchvision video reader that
@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import glob
-import importlib
 import io
 import os
 from collections.abc import Iterator, Sequence
@@ -26,22 +25,16 @@ from PIL import Image
 
 from bpp.errors import UserError, require_extra
 
-MODULES = ("ledataset.datasets.lerobot_dataset", "lerobot.datasets.lerobot_dataset")
-"""Where ``LeRobotDataset`` is, in the order tried: the extra's standalone package, then LeRobot itself."""
+MODULE = "lerobot.datasets.lerobot_dataset"
+"""Where LeRobot keeps ``LeRobotDataset`` and ``LeRobotDatasetMetadata``."""
 READ_MAJOR = 3
 """The LeRobot dataset format this reads and writes: codebase_version v3.x."""
 
 
 def dataset_library():
-    """The module with ``LeRobotDataset`` and ``LeRobotDatasetMetadata``; a UserError naming the extra if neither
-    package is installed."""
-    for name in MODULES:
-        try:
-            return importlib.import_module(name)
-        except ModuleNotFoundError as err:
-            if err.name is None or err.name.split(".")[0] != name.split(".")[0]:
-                raise  # the package is there but one of its own imports failed: a broken install
-    return require_extra(MODULES[0], "lerobot")
+    """LeRobot's module with ``LeRobotDataset`` and ``LeRobotDatasetMetadata``; a UserError naming the extra if
+    LeRobot is not installed."""
+    return require_extra(MODULE, "lerobot")
 
 
 @contextlib.contextmanager
