@@ -176,7 +176,7 @@ class Demo:
     workers: int = 0
     """Processes for data generation and evaluation (0: one per core)."""
     threads: int = 0
-    """torch threads for training (0: auto, one fewer than the cores; see README, "CPU threads")."""
+    """torch threads for training (0: auto, one fewer than the cores; see docs/training.md, "CPU threads")."""
     loader_workers: int = -1
     """Data-loader processes for training (-1: auto, none on a CPU)."""
     seed: int = 0
@@ -280,7 +280,7 @@ def write_demo_report(args: Demo, result: dict, seconds: float) -> None:
         f"| std / s.e.m. over drawings | {s['score_std_over_tasks']:.2f} / {s['score_sem_over_tasks']:.2f} px |",
         f"| median rollout | {s['score_median_rollout']:.2f} px |",
         f"| rollouts under 5 px | {100 * s['good_rollouts']:.0f}% |",
-        "| paper (BPP, 224 px images, 27+ GPU-hours) | 3.41 ± 0.13 px |",
+        "| paper (BPP, 224 px images, 27-42 hours on 4 GPUs) | 3.41 ± 0.13 px |",
         f"| wall time of this run (this call) | {seconds / 60:.1f} min |",
         "",
         f"Per drawing: [{eval_dir}/results.md]({eval_dir}/results.md); raw numbers: "
