@@ -14,9 +14,9 @@
 # gathers the table. Evaluating while the others still trained, every process with torch's default of a thread per
 # core, oversubscribed the 16 cores: no evaluation had finished after 5 minutes (BENCHMARKS.md).
 # Budgets: STEPS (BPP and Goal-Image, batch 256) and ICRT_STEPS (batch 32 whole demonstrations).
-# The default 1,000 x 256 windows is the CPU image run's 4,000 x 64 that did not learn the task (BENCHMARKS.md,
-# "DrawAnything observation presets"): set STEPS from the throughput run's cpu-image rate (three processes share the GPU for
-# about 5 minutes; at 3,000 samples/s each, about 3,500 steps). A run the time limit cuts off is not evaluated.
+# The defaults fit one 10-minute call on an H200: side by side, 1,500 steps of BPP took 2.6 min and 1,200 of ICRT
+# about 2.5; evaluated one after another on 15 processes, BPP took 100 s and ICRT 20 s (BENCHMARKS.md, "GPU
+# throughput and latency"). A run the time limit cuts off is not evaluated.
 # Each step draws TASKS_PER_BATCH tasks, each with its own prompt (8 on the GPU, 2 in the dry run; bpp demo and the
 # CPU benchmark also use 8, the paper's recipe is 1): at a budget this small more prompts per step learn faster
 # (BENCHMARKS.md, "Design checks on the validation split": 26.6 against 30.2 px at equal steps), and BPP's 8 prompts add about 5% to a
@@ -33,10 +33,10 @@ if [ -n "$SMALL" ]; then
   EVAL=(--rollouts 1 --human-tasks 2 --train-tasks 1 --num-tasks 12); EVAL_WORKERS=1; LOADERS=0; LIMIT=600
   TRAIN_THREADS=1; EVAL_LIMIT=600
 else
-  STEPS=${STEPS:-1000}; ICRT_STEPS=${ICRT_STEPS:-1000}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
+  STEPS=${STEPS:-1500}; ICRT_STEPS=${ICRT_STEPS:-1200}; PRESET=${PRESET:-cpu}; BATCH=(bpp=256 goal_image=256 icrt=32)
   TASKS_PER_BATCH=${TASKS_PER_BATCH:-8}
   EVAL=(--rollouts 2 --train-tasks 5 --num-tasks 500); EVAL_WORKERS=${EVAL_WORKERS:-15}; LOADERS=${LOADERS:-4}
-  LIMIT=${LIMIT:-240}; TRAIN_THREADS=${TRAIN_THREADS:-1}; EVAL_LIMIT=${EVAL_LIMIT:-230}
+  LIMIT=${LIMIT:-190}; TRAIN_THREADS=${TRAIN_THREADS:-1}; EVAL_LIMIT=${EVAL_LIMIT:-330}
 fi
 common=(--preset "$PRESET" --obs image64 --seeds 0 --tasks-per-batch "$TASKS_PER_BATCH" --batch "${BATCH[@]}"
   --steps bpp=$STEPS goal_image=$STEPS icrt=$ICRT_STEPS --loader-workers $LOADERS --compile "${COMPILE:-off}"
