@@ -32,7 +32,7 @@ pytestmark = pytest.mark.iphumi
 import_optional("cv2", "iphumi")
 
 from bpp.benchmarks.iphumi import pipeline  # noqa: E402
-from bpp.benchmarks.iphumi.align import MOUNTS, Aligned, check_demonstration, load_mounts  # noqa: E402
+from bpp.benchmarks.iphumi.align import MOUNTS, Aligned, Limits, check_demonstration, load_mounts  # noqa: E402
 from bpp.benchmarks.iphumi.process import ProcessSettings  # noqa: E402
 from bpp.benchmarks.iphumi.recording import (  # noqa: E402
     Demonstration,
@@ -40,6 +40,7 @@ from bpp.benchmarks.iphumi.recording import (  # noqa: E402
     find_recordings,
     group_demonstrations,
     read_recording,
+    scan_export,
 )
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
@@ -216,6 +217,194 @@ def test_missing_sides_and_calibration_runs_are_reasons_too(export, tmp_path):
         pipeline.process_export(empty, tmp_path / "x.zarr", progress=False)
     with pytest.raises(RecordingError, match="not an iPhUMI recording folder name"):
         read_recording(empty)
+
+
+def _rename(folder: Path, name: str) -> Path:
+    """A recording folder renamed, its files with it (as the app would have named them)."""
+    target = folder.rename(folder.with_name(name))
+    for path in target.iterdir():
+        path.rename(target / path.name.replace(folder.name, name))
+    return target
+
+
+def _keep(export: Path, count: int) -> list[Path]:
+    """The first `count` demonstration recordings of a copied export, the others deleted (for speed)."""
+    demos = [f for f in find_recordings(export) if "demonstration" in f.name]
+    for folder in demos[count:]:
+        shutil.rmtree(folder)
+    return demos[:count]
+
+
+def _matches_truth(store: EpisodeStore, truths: dict, names: dict[str, str]) -> None:
+    """Every episode's poses are those of its own demonstration's ground truth (`names`: group -> truth's name)."""
+    for episode in range(store.num_episodes):
+        tcp, _ = _truth_steps(truths[names[store.config["demonstrations"][episode]]], store, episode)
+        pose = vector_to_pose(store.episode(episode, ["pose"])["pose"].astype(np.float64))
+        np.testing.assert_allclose(pose[:, :3, 3], (invert(tcp[0]) @ tcp)[:, :3, 3], atol=1e-3)
+
+
+def test_demonstrations_starting_in_the_same_second_are_both_kept(export, tmp_path):
+    copy = _copy(export[0], tmp_path)
+    first, second = _keep(copy, 2)
+    start = first.name.split("_")[0]  # e.g. 2026-01-15T09-00-25.000Z
+    renamed = _rename(second, f"{start.split('.')[0]}.500Z_" + second.name.split("_", 1)[1])
+    store, _, rejected = pipeline.process_export(copy, tmp_path / "store.zarr", workers=1, progress=False)
+    groups = {first.name.rsplit("_", 1)[0]: first.name, renamed.name.rsplit("_", 1)[0]: second.name}
+    assert rejected == [] and store.num_episodes == 4 and set(store.config["demonstrations"]) == set(groups)
+    _matches_truth(store, export[1], groups)  # each episode is its own demonstration's, none the other's
+
+
+def test_two_recordings_of_one_name_are_refused_naming_both(export, tmp_path):
+    copy = _copy(export[0], tmp_path)
+    demo = _keep(copy, 1)[0]
+    twin = copy / "2026-01-16" / demo.name
+    shutil.copytree(demo, twin)
+    _edit(twin, taskNames=["another task", "and another"])
+    with pytest.raises(UserError, match=f"two recordings are named {demo.name}") as err:
+        pipeline.process_export(copy, tmp_path / "store.zarr", workers=1, progress=False)
+    assert str(demo) in str(err.value) and str(twin) in str(err.value)
+    assert not (tmp_path / ".store.zarr.parts").exists()
+    with pytest.raises(RecordingError, match="two recordings are named"):
+        pipeline.process_one(demo, ProcessSettings(), export=copy)
+
+
+def test_folders_left_out_are_named_with_the_reason_and_counted(export, tmp_path, capsys):
+    copy = _copy(export[0], tmp_path)
+    no_json, misnamed, kept = _keep(copy, 3)
+    (no_json / f"{no_json.name}.json").unlink()
+    misnamed = misnamed.rename(misnamed.with_name("my demo"))
+    found, left_out = scan_export(copy)
+    assert kept in found and no_json not in found
+    assert [f for f, _ in left_out] == [no_json, misnamed]
+    out = tmp_path / "store.zarr"
+    main(["iphumi", "process", str(copy), "--out", str(out), "--workers", "1"])
+    printed = capsys.readouterr()
+    for folder, reason in [(no_json, f"missing {no_json.name}.json"), (misnamed, "not an iPhUMI recording folder")]:
+        name = folder.relative_to(copy).as_posix()
+        assert f"warning: leaving out {name}: {reason}" in printed.err
+        assert f"  {name}: {reason}" in printed.out
+    assert "left out 2 recording(s) or demonstration(s)" in printed.out
+    assert len(EpisodeStore(out).config["rejected"]) == 2
+
+
+def test_demonstrations_the_settings_leave_out_are_named_before_any_work(export, tmp_path, capsys):
+    copy = _copy(export[0], tmp_path)
+    demos = [f for f in find_recordings(copy) if "demonstration" in f.name]
+    _edit(demos[0], isErrorCorrection=True)
+    kept, _, rejected = pipeline.gather(copy, ProcessSettings(include_error_correction=False))
+    group = demos[0].name.rsplit("_", 1)[0]
+    assert len(kept) == 2 and rejected == [
+        (group, "marked as an error correction (left out by --no-include-error-correction)")
+    ]
+    assert f"warning: leaving out {group}: marked as an error correction" in capsys.readouterr().err
+    with pytest.raises(
+        UserError, match="no usable demonstration.*asks for depth, which its right phone did not record"
+    ):
+        pipeline.gather(copy, ProcessSettings(cameras=("rgb", "depth")))
+
+
+def test_a_changed_recording_is_processed_again_not_taken_from_the_kept_parts(export, tmp_path):
+    copy = _copy(export[0], tmp_path)
+    demo = _keep(copy, 1)[0]
+    out = tmp_path / "store.zarr"
+    before, _, _ = pipeline.process_export(copy, out, workers=1, progress=False)
+    poses = before["pose"][:]
+    meta = json.loads((demo / f"{demo.name}.json").read_text())
+    moved = np.asarray(meta["poseTransforms"]).reshape(-1, 4, 4)
+    moved[:, 0, 3] += np.linspace(0.0, 0.26, len(moved))  # a slow drift, 0.26 m in all
+    _edit(demo, taskNames=["corrected label", *meta["taskNames"][1:]], poseTransforms=moved.tolist())
+    after, _, _ = pipeline.process_export(copy, out, workers=1, overwrite=True, progress=False)
+    assert "corrected label" in {t["instruction"] for t in after.tasks}
+    assert np.abs(after["pose"][:] - poses).max() > 0.05
+    # a new calibration recording changes the key too; the same files keep it
+    demonstration = group_demonstrations([read_recording(demo)])[0][0]
+    index = {f.name: f for f in find_recordings(copy)}
+    key = pipeline.part_key(demonstration, index, ProcessSettings())
+    assert pipeline.part_key(demonstration, index, ProcessSettings()) == key
+    calibration = index[demonstration.phones["right"].calibration_name]
+    _edit(calibration, gripperID="another gripper")
+    assert pipeline.part_key(demonstration, index, ProcessSettings()) != key
+
+
+def _pair(demo: Path, side: str) -> Path:
+    """A second phone for a recorded demonstration: its recording copied as `side`, both listing both sides."""
+    phone = demo.with_name(demo.name.rsplit("_", 1)[0] + f"_{side}")
+    shutil.copytree(demo, phone)
+    for path in phone.iterdir():
+        path.rename(phone / path.name.replace(demo.name, phone.name))
+    _edit(phone, side=side, sidesPresent=["right", side])
+    _edit(demo, sidesPresent=["right", side])
+    return phone
+
+
+@pytest.mark.parametrize(
+    "side, kinds", [("left", "bimanual and single-arm"), ("head", "single-arm and single-arm with")]
+)
+def test_an_export_mixing_kinds_of_demonstration_is_refused_before_any_work(export, tmp_path, monkeypatch, side, kinds):
+    copy = _copy(export[0], tmp_path)
+    demos = _keep(copy, 2)
+    _pair(demos[0], side)
+
+    def refuse(*args):
+        raise AssertionError("a demonstration was processed before the refusal")
+
+    monkeypatch.setattr(pipeline, "_process", refuse)
+    with pytest.raises(UserError, match=f"mix {kinds}") as err:
+        pipeline.process_export(copy, tmp_path / "store.zarr", workers=1, progress=False)
+    mixed, single = (d.name.rsplit("_", 1)[0] for d in demos)
+    assert f"(1): {mixed}" in str(err.value) and f"single-arm (1): {single}" in str(err.value)
+    assert not (tmp_path / ".store.zarr.parts").exists()
+
+
+def test_an_existing_held_out_store_is_refused_before_any_work(export, tmp_path, monkeypatch):
+    monkeypatch.setattr(pipeline, "_process", lambda *args: pytest.fail("processed before the refusal"))
+    (tmp_path / "store-heldout.zarr").mkdir()
+    with pytest.raises(UserError, match="store-heldout.zarr exists; pass --overwrite"):
+        pipeline.process_export(export[0], tmp_path / "store.zarr", workers=1, holdout_episodes=1, progress=False)
+
+
+@pytest.mark.parametrize(
+    "settings, message",
+    [
+        (dict(main_size=(0, 0)), "main_size must be a width and a height, even numbers of pixels in \\[16, 4096\\]"),
+        (dict(main_size=(-4, 120)), "main_size must be"),
+        (dict(main_size=(161, 121)), "main_size must be"),
+        (dict(main_size=(8192, 8192)), "main_size must be"),
+        (dict(seed=-1), "seed must be >= 0"),
+        (dict(session="lab/one"), "session must be a name of letters"),
+        (dict(demonstrations=0), "demonstrations must be >= 1"),
+    ],
+)
+def test_synthetic_settings_it_cannot_write_are_refused(settings, message):
+    with pytest.raises(UserError, match=message):
+        SyntheticSettings(**settings)
+
+
+def test_synth_refuses_sizes_on_the_command_line_and_folders_that_hold_recordings(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["iphumi", "synth", str(tmp_path / "a"), "--main-size", "0", "0"])
+    assert "main_size must be" in capsys.readouterr().err and not (tmp_path / "a").exists()
+    earlier = tmp_path / "b" / "2026-01-15T09-00-25.000Z_12345_lab_demonstration_right"
+    earlier.mkdir(parents=True)
+    (earlier / f"{earlier.name}.json").write_text("{}")
+    with pytest.raises(UserError, match="already holds 1 iPhUMI recording"):
+        write_export(tmp_path / "b", SyntheticSettings(demonstrations=1))
+    assert (earlier / f"{earlier.name}.json").read_text() == "{}" and len(list((tmp_path / "b").iterdir())) == 1
+
+
+@pytest.mark.parametrize(
+    "limits, message",
+    [
+        (Limits(max_speed=float("nan")), "limits.max_speed must be > 0"),
+        (Limits(max_speed=-1.0), "limits.max_speed must be > 0"),
+        (Limits(max_gripper_offset=(1.0, 0.0, 0.5)), "limits.max_gripper_offset must be three distances"),
+        (Limits(max_relative_rotation_deg=0.0), "limits.max_relative_rotation_deg must be in"),
+        (Limits(max_head_distance=float("nan")), "limits.max_head_distance must be > 0"),
+    ],
+)
+def test_processing_limits_that_would_reject_everything_or_nothing_are_refused(limits, message):
+    with pytest.raises(UserError, match=message):
+        ProcessSettings(limits=limits)
 
 
 def test_dropped_frames_read_the_last_frame_and_a_truncated_video_is_refused(tmp_path):

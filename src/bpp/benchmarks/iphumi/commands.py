@@ -26,9 +26,10 @@ class IphumiProcess(ProcessSettings):
     into a store that bpp train and bpp serve use like any other: one task per task label, one episode per labelled
     segment, poses relative to the episode's start, gripper width from the finger tags, images letterboxed.
 
-    Demonstrations are processed in parallel and kept beside the store, so the same command resumes after an
-    interruption and processes only new recordings when more are exported. Every demonstration left out is listed
-    with its reason.
+    Demonstrations are processed in parallel and kept beside the store by the content of their recordings, so the
+    same command resumes after an interruption and processes only new or changed recordings when more are exported.
+    Every recording or demonstration left out is listed with its reason; an export mixing single-arm and bimanual
+    demonstrations is refused before any work.
 
     Examples:
       bpp iphumi process /media/sd/iphumi_export --out data/iphumi/cups.zarr --holdout-episodes 1
@@ -77,6 +78,9 @@ def iphumi_process(args: IphumiProcess) -> None:
     )
     if rejected:
         print(f"left out {len(rejected)} recording(s) or demonstration(s):\n{describe_rejections(rejected)}")
+    notes = store.config.get("notes") or []
+    if notes:
+        print(f"left out {len(notes)} task segment(s):\n{describe_rejections(notes)}")
 
 
 @dataclass(frozen=True)

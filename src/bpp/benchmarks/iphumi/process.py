@@ -23,7 +23,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -78,6 +78,19 @@ class ProcessSettings:
             ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
             ("cameras", set(self.cameras) <= set(CAMERAS), f"some of {', '.join(CAMERAS)}"),
             ("min_steps", self.min_steps >= 2, ">= 2"),
+            ("limits.max_speed", self.limits.max_speed > 0, "> 0 m/s"),
+            ("limits.max_gripper_distance", self.limits.max_gripper_distance > 0, "> 0 m"),
+            (
+                "limits.max_gripper_offset",
+                len(self.limits.max_gripper_offset) == 3 and all(v > 0 for v in self.limits.max_gripper_offset),
+                "three distances > 0 m",
+            ),
+            (
+                "limits.max_relative_rotation_deg",
+                0 < self.limits.max_relative_rotation_deg <= 180,
+                "in (0, 180] degrees",
+            ),
+            ("limits.max_head_distance", self.limits.max_head_distance > 0, "> 0 m"),
         )
 
     @property
@@ -116,11 +129,7 @@ def calibration_for(recording: Recording, tags: str, export_index: Mapping[str, 
             "calibration recording with the demonstrations)"
         )
     folder = Path(export_index[name])
-    fingerprint = hashlib.sha256(tags.encode())
-    for path in (folder / f"{name}.json", folder / f"{name}_ultrawidergb.mp4"):
-        if path.is_file():  # a missing video is named by read_recording below
-            fingerprint.update(path.read_bytes())
-    key = fingerprint.hexdigest()[:32]
+    key = hash_files(calibration_files(folder), tags)[:32]  # a missing video is named by read_recording below
     if key in cache:
         return cache[key]
     saved = calibration_cache() / f"{key}.json"
@@ -146,6 +155,25 @@ def calibration_for(recording: Recording, tags: str, export_index: Mapping[str, 
     return cache[key]
 
 
+def calibration_files(folder: Path) -> tuple[Path, Path]:
+    """What a gripper calibration is measured from: its recording's JSON and ultrawide video."""
+    return folder / f"{folder.name}.json", folder / f"{folder.name}_ultrawidergb.mp4"
+
+
+def hash_files(paths: Iterable[Path], seed: str = "") -> str:
+    """SHA-256 (hex) of `seed` and of each file's name, size and content, read in chunks; a missing file counts as
+    missing (it is refused where it is read)."""
+    digest = hashlib.sha256(seed.encode())
+    for path in map(Path, paths):
+        size = path.stat().st_size if path.is_file() else -1
+        digest.update(f"\0{path.name}\0{size}\0".encode())
+        if size >= 0:
+            with open(path, "rb") as f:
+                while chunk := f.read(1 << 20):
+                    digest.update(chunk)
+    return digest.hexdigest()
+
+
 def calibration_cache() -> Path:
     """Where gripper calibrations are kept once computed, by the content of their recording (so a prompt or a new
     export does not measure a calibration recording again): ``$BPP_CACHE/iphumi`` (default ``~/.cache/bpp``)."""
@@ -166,6 +194,13 @@ def measure_widths(demonstration: Demonstration, export_index: Mapping[str, Path
         except UserError as err:
             raise RecordingError(f"{recording.name}: {err}") from None
     return widths
+
+
+def layout(demonstration: Demonstration, settings: ProcessSettings) -> str:
+    """What its episodes hold, in words: one gripper or two, and a head camera or not (episodes of different layouts
+    have different keys, so they cannot share a store)."""
+    arms = "bimanual" if len(demonstration.grippers) > 1 else "single-arm"
+    return f"{arms} with a head camera" if "head" in demonstration.phones and "rgb" in settings.cameras else arms
 
 
 # ------------------------------------------------------------------------------------------------ segments

@@ -13,6 +13,7 @@ Everything a user's file can get wrong is a :class:`RecordingError` naming the r
 
 from __future__ import annotations
 
+import os
 import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -32,6 +33,7 @@ NAME = re.compile(
     r"^(?P<start>\d{4}-\d{2}-\d{2}T[\d\-.]+Z?)_(?P<number>\d{5})_(?P<session>.+)_(?P<kind>demonstration|"
     r"grippercalibration)_(?P<side>left|right|head)$"
 )
+EXPECTED_NAME = "expected <start>_<5 digits>_<session>_<demonstration|grippercalibration>_<left|right|head>"
 _TIME_LISTS = ("poseTimes", "rgbTimes", "ultrawideRGBTimes", "depthTimes")
 
 
@@ -175,10 +177,7 @@ def parse_name(folder: Path) -> dict[str, str]:
     """The parts of a recording folder's name; RecordingError if it is not an app recording's name."""
     match = NAME.match(folder.name)
     if match is None:
-        raise RecordingError(
-            f"{folder}: not an iPhUMI recording folder name (expected <start>_<5 digits>_<session>_"
-            "<demonstration|grippercalibration>_<left|right|head>)"
-        )
+        raise RecordingError(f"{folder}: not an iPhUMI recording folder name ({EXPECTED_NAME})")
     return match.groupdict()
 
 
@@ -289,12 +288,70 @@ def _labels(meta: dict, where: str) -> tuple[TaskLabel, ...]:
 
 
 # ------------------------------------------------------------------------------------------------ an export
-def find_recordings(export: str | Path) -> list[Path]:
-    """Every recording folder under `export` (its name says so), sorted by name."""
+RECORDING_FILE = re.compile(r"(_rgb\.mp4|_ultrawidergb\.mp4|_depth\.raw)$")
+"""How the app names a recording's videos and depth (the JSON is ``<name>.json``)."""
+
+
+def scan_export(export: str | Path) -> tuple[list[Path], list[tuple[Path, str]]]:
+    """Every recording folder under `export` (sorted by path) and [(folder, why it is left out)] for every folder
+    that looks like a recording but cannot be read as one: named as a recording but without its JSON, or holding a
+    recording's files under a name that is not a recording's. Hidden folders (a store's parts) are not looked in."""
     export = Path(export)
     if not export.is_dir():
         raise UserError(f"{export}: no such folder of iPhUMI recordings")
-    return sorted(p.parent for p in export.rglob("*.json") if NAME.match(p.parent.name) and p.stem == p.parent.name)
+    found, left_out = [], []
+    for folder, files in _folders(export):
+        if NAME.match(folder.name) and f"{folder.name}.json" in files:
+            found.append(folder)
+        elif (reason := _not_a_recording(folder, files)) is not None:
+            left_out.append((folder, reason))
+    return found, left_out
+
+
+def _folders(export: Path):
+    """(folder, the names of its files) of `export` and every folder under it, sorted by path; hidden folders and
+    files (a store's parts, a Mac's ``._`` files) left aside."""
+    found, seen = [], set()
+    for root, dirs, files in os.walk(export, followlinks=True):
+        real = os.path.realpath(root)
+        if real in seen:  # a linked folder is looked in once (a link to a folder above it would loop)
+            dirs.clear()
+            continue
+        seen.add(real)
+        dirs[:] = [d for d in dirs if not d.startswith(".")]
+        found.append((Path(root), sorted(f for f in files if not f.startswith("."))))
+    return sorted(found)
+
+
+def _not_a_recording(folder: Path, files: list[str]) -> str | None:
+    """Why a folder that is not a readable recording looks like one, or None if it looks like none."""
+    stems = [f[:-5] for f in files if f.endswith(".json") and NAME.match(f[:-5])]
+    shown = ", ".join(files[:4]) + (f" and {len(files) - 4} more" if len(files) > 4 else "")
+    if NAME.match(folder.name):
+        return f"missing {folder.name}.json ({'it holds ' + shown if files else 'the folder is empty'})"
+    if not stems and not any(RECORDING_FILE.search(f) for f in files):
+        return None
+    hint = f"; rename the folder {stems[0]}, as its files are named" if stems else ""
+    return f"not an iPhUMI recording folder name ({EXPECTED_NAME}) but it holds recording files ({shown}){hint}"
+
+
+def find_recordings(export: str | Path) -> list[Path]:
+    """Every recording folder under `export`, sorted by path (:func:`scan_export` also says which are left out)."""
+    return scan_export(export)[0]
+
+
+def index_recordings(folders: list[Path]) -> dict[str, Path]:
+    """Recording name -> folder. Two folders of one name (a recording exported twice, or renamed alike) are refused,
+    naming both: recordings are found by name, so either could be taken for the other."""
+    index: dict[str, Path] = {}
+    for folder in folders:
+        other = index.setdefault(folder.name, folder)
+        if other.resolve() != folder.resolve():
+            raise RecordingError(
+                f"two recordings are named {folder.name}: {other} and {folder}; a recording's name must be unique "
+                "in an export (remove or move one of them)"
+            )
+    return index
 
 
 @dataclass
@@ -316,7 +373,12 @@ def group_demonstrations(recordings: list[Recording]) -> tuple[list[Demonstratio
     groups: dict[str, dict[str, Recording]] = {}
     for recording in recordings:
         if recording.kind == "demonstration":
-            groups.setdefault(recording.group, {})[recording.side] = recording
+            other = groups.setdefault(recording.group, {}).setdefault(recording.side, recording)
+            if other is not recording:
+                raise RecordingError(
+                    f"two recordings are the {recording.side} phone of {recording.group}: {other.folder} and "
+                    f"{recording.folder}; remove or move one of them"
+                )
     valid, invalid = [], []
     for group, phones in sorted(groups.items()):
         listed = {side for r in phones.values() for side in r.sides_present}

@@ -10,6 +10,7 @@ gripper width; main-camera frames show the ink so far and the pen; depth (option
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -20,10 +21,11 @@ from scipy.spatial.transform import Rotation
 
 from bpp.benchmarks.iphumi import gripper
 from bpp.benchmarks.iphumi.align import MOUNTS
-from bpp.benchmarks.iphumi.recording import DEPTH_SHAPE
+from bpp.benchmarks.iphumi.recording import DEPTH_SHAPE, find_recordings
 from bpp.benchmarks.iphumi.video import write_video
 from bpp.core.poses import invert, make_pose
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
+from bpp.errors import UserError
 from bpp.utils import check_fields
 
 DEVICE = "iPhone16,1"
@@ -40,6 +42,8 @@ HOVER, LIFT = 0.08, 0.015
 """Heights above the table (m): approaching and leaving, and lifted between strokes."""
 SPEED = 0.12
 """Tracing speed (m/s)."""
+MAIN_SIDES = (16, 4096)
+"""The smallest and largest side of the main camera's video (px)."""
 
 
 @dataclass(frozen=True)
@@ -58,8 +62,9 @@ class SyntheticSettings:
     depth: bool = False
     """Record LiDAR depth (192x256 float16 per 60 Hz frame: 6 MB a second)."""
     main_size: tuple[int, int] = (160, 120)
-    """Main camera video (width, height); the app records 1920x1440."""
+    """Main camera video (width, height), even numbers of pixels (H.264) in [16, 4096]; the app records 1920x1440."""
     session: str = "synthetic"
+    """The data-collection session's name, part of every folder name: letters, digits, '.' and '-'."""
     seed: int = 0
 
     def __post_init__(self):
@@ -68,7 +73,18 @@ class SyntheticSettings:
             ("demonstrations", self.demonstrations >= 1, ">= 1"),
             ("tasks", self.tasks >= 1, ">= 1"),
             ("tasks_per_demonstration", self.tasks_per_demonstration >= 1, ">= 1"),
-            ("session", "_" not in self.session and bool(self.session), "a non-empty name without '_'"),
+            (
+                "main_size",
+                len(self.main_size) == 2
+                and all(MAIN_SIDES[0] <= v <= MAIN_SIDES[1] and v % 2 == 0 for v in self.main_size),
+                f"a width and a height, even numbers of pixels in [{MAIN_SIDES[0]}, {MAIN_SIDES[1]}]",
+            ),
+            (
+                "session",
+                re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9.-]*", self.session) is not None,
+                "a name of letters, digits, '.' and '-' (no '_' or '/': it is part of the folder names)",
+            ),
+            ("seed", self.seed >= 0, ">= 0"),
         )
 
 
@@ -144,6 +160,11 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
     demonstration recording, by folder name. Each gripper side gets one calibration recording."""
     rng = np.random.default_rng(settings.seed)
     out = Path(out)
+    if out.is_dir() and (earlier := find_recordings(out)):
+        raise UserError(
+            f"{out} already holds {len(earlier)} iPhUMI recording(s); synth writes into a new or empty folder, so that "
+            "no recording is overwritten"
+        )
     day = datetime(2026, 1, 15, 9, 0, 0, tzinfo=timezone.utc)
     folder = out / day.strftime("%Y-%m-%d")
     truths: dict[str, Truth] = {}
