@@ -30,7 +30,8 @@ from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
 from bpp.checkpoint import Checkpoint
-from bpp.data.store import EpisodeStore, StoreError
+from bpp.data.integrity import StoreError
+from bpp.data.store import EpisodeStore
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method

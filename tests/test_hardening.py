@@ -13,7 +13,9 @@ import pytest
 
 import bpp.train
 from bpp.benchmarks.draw.dataset import PRESETS, generate
+from bpp.checkpoint import _remove_stale_temporaries
 from bpp.errors import UserError
+from bpp.executor import _check_reachable
 from bpp.train import TrainConfig, train
 from helpers import config
 
@@ -62,7 +64,8 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
 @pytest.mark.slow
 def test_overwrite_replaces_only_a_store(tmp_path, debug_store):
     from bpp.benchmarks.draw.dataset import PRESETS, generate
-    from bpp.data.store import EpisodeStore, StoreError
+    from bpp.data.integrity import StoreError
+    from bpp.data.store import EpisodeStore
 
     precious = tmp_path / "thesis"
     precious.mkdir()
@@ -90,6 +93,20 @@ def test_interrupted_writers_leave_no_hidden_folders_behind(tmp_path):
     generate(PRESETS["debug"], store, workers=1, progress=False)
     assert not dead.exists() and alive.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([alive.name, "d.zarr"])
+
+
+def test_only_ascii_digits_are_read_as_numbers(tmp_path):
+    """A process id in a temporary's name, a port: other Unicode digits (which str.isdigit and a regex's \\d accept,
+    and int() reads or refuses) are no number, so no file is taken for a dead process's and no port is parsed."""
+    nines = "\u0669" * 9  # Arabic-Indic digits: int() reads 999999999, a process that does not run
+    stale = tmp_path / ".x.partial-999999999-0123abcd"
+    kept = [tmp_path / f".x.partial-{nines}-0123abcd", tmp_path / f".last.tmp-{nines}"]
+    for folder in [stale, *kept]:
+        folder.mkdir()
+    _remove_stale_temporaries(tmp_path)
+    assert not stale.exists() and all(folder.exists() for folder in kept)
+    for port in ("\u00b2", "\u0668\u0660"):  # superscript two (int() refuses it), Arabic-Indic 80
+        assert _check_reachable(f"127.0.0.1:{port}", timeout=1.0) is None  # not host:port: left to Ray
 
 
 @pytest.mark.slow
@@ -282,7 +299,8 @@ def test_corner_detection_matches_its_definition(rng):
 def test_damaged_stores_are_named_with_the_damaged_part(tmp_path, debug_store):
     import shutil
 
-    from bpp.data.store import EpisodeStore, StoreError
+    from bpp.data.integrity import StoreError
+    from bpp.data.store import EpisodeStore
 
     header, chunk = tmp_path / "header.zarr", tmp_path / "chunk.zarr"
     shutil.copytree(debug_store.path, header)
@@ -350,7 +368,8 @@ def test_every_config_refuses_values_out_of_range_naming_the_field(make, field):
 def test_damaged_store_tables_and_missing_episodes_name_the_store(tmp_path, debug_store):
     import shutil
 
-    from bpp.data.store import EpisodeStore, StoreError
+    from bpp.data.integrity import StoreError
+    from bpp.data.store import EpisodeStore
 
     store = tmp_path / "no-ends.zarr"
     shutil.copytree(debug_store.path, store)

@@ -157,6 +157,11 @@ def _truncated_chunk(store: Path) -> None:
     part.write_bytes(part.read_bytes()[:20])
 
 
+def _copy_chunk(source: Path, array: Path) -> None:
+    """Put chunk (0, 0) of array `source` in the place of `array`'s."""
+    shutil.copyfile(source / "c" / "0" / "0", array / "c" / "0" / "0")
+
+
 def _broken_header(store: Path) -> None:
     (store / "zarr.json").write_text('{"zarr_format": 3, "node_type": "group", "attributes": {')
 
@@ -401,6 +406,13 @@ DAMAGED = [
         "eval on a store with a flipped bit",
     ),
     _case(
+        _damaged_store(lambda s: _copy_chunk(s / "data" / "action_on_board", s / "data" / "action"), "train"),
+        "damaged.zarr: damaged store, cannot read data/action: its chunk (0, 0) (data/action/c/0/0) is not the chunk "
+        "the store recorded there",
+        "train on a store whose actions' chunk is another array's, whole and of the same shape",
+        leaves="new-run",
+    ),
+    _case(
         _damaged_store(lambda s: (s / "tasks" / "strokes" / "c" / "0" / "0").unlink(), "sheet"),
         "damaged.zarr: damaged store, cannot read tasks/strokes: its chunk (0, 0) (tasks/strokes/c/0/0) is missing",
         "sheet of a store whose drawings' chunk was deleted",
@@ -413,7 +425,7 @@ DAMAGED = [
     # Stores of another format or version, refused by it.
     _case(
         _damaged_store(lambda s: _header(s, version=1), "train"),
-        "damaged.zarr: store version 1, written by an older bpp; this bpp reads version 2",
+        "damaged.zarr: store version 1, written by an older bpp; this bpp reads versions 2 and 3",
         "train on a store of version 1",
     ),
     _case(

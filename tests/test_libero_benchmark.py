@@ -21,7 +21,8 @@ from bpp.benchmarks.libero.export import CAMERA_NAMES, EXTRA_ATTRS, LIBERO_ATTRS
 from bpp.benchmarks.libero.suites import combination
 from bpp.cli import main
 from bpp.core.registry import open_store
-from bpp.data.store import EpisodeStore, StoreError
+from bpp.data.integrity import StoreError
+from bpp.data.store import EpisodeStore
 from bpp.evaluation.evaluate import resolve_tasks
 
 pytestmark = pytest.mark.libero
@@ -183,7 +184,7 @@ def test_a_killed_generation_resumes_from_its_finished_tasks(tmp_path, monkeypat
 
 
 def test_a_second_generation_into_the_same_store_is_refused_before_it_touches_the_journal(tmp_path):
-    from bpp.data.store import destination_lock
+    from bpp.data.destination import destination_lock
 
     cfg = dataset.LiberoDataConfig(task_indices=(0,), demos_per_task=1)
     journal = tmp_path / ".s.zarr.journal"

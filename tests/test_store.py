@@ -1,12 +1,17 @@
 import json
 import multiprocessing as mp
 import pickle
+import re
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from bpp.benchmarks.draw.dataset import PRESETS, generate
 from bpp.core import registry
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, merge_stores, with_derived
+from bpp.data.integrity import StoreError
+from bpp.data.merge import merge_stores
+from bpp.data.store import EpisodeStore, EpisodeWriter, with_derived
 
 
 def _write(path, episodes=3, **kw):
@@ -223,7 +228,8 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
     ]
 
     _one_episode(tmp_path / "c.zarr", "test", "task-b", instruction="pick up the plate", points=np.ones((1, 2)))
-    with pytest.raises(StoreError, match="task 'task-b' differs between the stores"):
+    differs = "task 'task-b' of .*c.zarr is another task than 'task-b' of .*a.zarr: its instruction"
+    with pytest.raises(StoreError, match=f"{differs} \\('pick up the bowl', 'pick up the plate'\\) differs"):
         merge_stores([tmp_path / "a.zarr", tmp_path / "c.zarr"], tmp_path / "x.zarr")
     _one_episode(tmp_path / "d.zarr", "other", "t", points=np.ones((1, 2)))
     with pytest.raises(StoreError, match="a.zarr holds test data and .*d.zarr other data"):
@@ -232,3 +238,56 @@ def test_stores_merge_into_one_with_shared_tasks_joined(tmp_path):
     with pytest.raises(StoreError, match=r"e.zarr has per-task arrays \[\], .*a.zarr \['points'\]"):
         merge_stores([tmp_path / "a.zarr", tmp_path / "e.zarr"], tmp_path / "x.zarr")
     assert not (tmp_path / "x.zarr").exists()
+
+
+def test_pieces_generated_with_different_seeds_merge_into_one_store(tmp_path):
+    """The documented multi-machine workflow: each machine generates a piece with its own seed, then one merges."""
+    pieces = [replace(PRESETS["debug"], num_tasks=2, demos_per_task=1, seed=seed) for seed in (0, 1)]
+    paths = [generate(cfg, tmp_path / f"s{cfg.seed}.zarr", workers=1, progress=False).path for cfg in pieces]
+    merged = merge_stores(paths, tmp_path / "all.zarr")
+    ids = ["procedural-00000", "procedural-00001", "procedural-s1-00000", "procedural-s1-00001"]
+    assert [t["id"] for t in merged.tasks] == ids and merged.num_episodes == 4
+    assert [s["config"]["seed"] for s in merged.attrs["merged_from"]] == [0, 1]
+    from bpp.data.store import stored_with
+
+    assert stored_with(paths[0], pieces[0]) is not None
+    assert stored_with(merged.path, pieces[0]) is None  # a merge holds more than its first piece's config makes
+
+    other = replace(pieces[1], seed=0, procedural=replace(pieces[1].procedural, min_parts=5, max_parts=5))
+    generate(other, tmp_path / "other.zarr", workers=1, progress=False)  # the same ids, other drawings
+    refusal = "task 'procedural-00000' of .*other.zarr is another task than 'procedural-00000' of .*s0.zarr: its info"
+    with pytest.raises(StoreError, match=refusal):
+        merge_stores([paths[0], tmp_path / "other.zarr"], tmp_path / "x.zarr")
+    assert not (tmp_path / "x.zarr").exists()
+
+
+def _one_of_a_kind(path, obs=(2, np.float32), goal=(2, 2), config=None):
+    """A store of one episode with `_write`'s keys and columns, its observation's width and dtype, goal's shape and
+    config as given."""
+    with EpisodeWriter(path, benchmark="test", config=config or {"a": 1}, chunk_steps=4) as w:
+        w.add_task("task-z", points=np.ones((1, 2)))
+        steps = {"obs": np.full((2, obs[0]), 9, obs[1]), "action": np.zeros((2, 1))}
+        w.add_episode(steps, 0, angle=0.0, goal=np.zeros(goal, np.uint8))
+
+
+@pytest.mark.parametrize(
+    ("kind", "message"),
+    [
+        (
+            {"obs": (3, np.float32)},
+            "per-step key 'obs' differs: rows of shape (3,) and dtype float32 in {b}, of shape (2,) and dtype float32 "
+            "in {a}",
+        ),
+        ({"obs": (2, np.float64)}, "per-step key 'obs' differs: rows of shape (2,) and dtype float64 in {b}"),
+        ({"goal": (3, 3)}, "episode column 'goal' differs: rows of shape (3, 3) and dtype uint8 in {b}"),
+        ({"config": {"a": 1, "fps": 30}}, "config entry 'fps' differs: 30 in {b}, nothing in {a}"),
+    ],
+    ids=["a key's shape", "a key's dtype", "a column's shape", "the control rate"],
+)
+def test_stores_of_different_kinds_are_refused_naming_the_field(tmp_path, kind, message):
+    a, b = _write(tmp_path / "a.zarr").path, tmp_path / "b.zarr"
+    _one_of_a_kind(b, **kind)
+    with pytest.raises(StoreError, match=re.escape(message.format(a=a, b=b))):
+        merge_stores([a, b], tmp_path / "x.zarr")
+    _one_of_a_kind(tmp_path / "c.zarr", config={"a": 2, "seed": 7})  # other generation settings: one kind still
+    assert merge_stores([a, tmp_path / "c.zarr"], tmp_path / "ac.zarr").num_episodes == 4

@@ -1,5 +1,6 @@
-"""The episode store's integrity: one writer per destination, every read verified, merges that neither double
-demonstrations nor change their inputs, and stores of another format or version refused by it."""
+"""The episode store's integrity: one writer per destination, every read verified (a chunk missing, changed or
+another's), merges that neither double demonstrations nor change their inputs, stores of another format or version
+refused by it, and numbers in names read from ASCII digits alone."""
 
 import json
 import multiprocessing as mp
@@ -10,7 +11,11 @@ import shutil
 import numpy as np
 import pytest
 
-from bpp.data.store import VERSION, EpisodeStore, EpisodeWriter, StoreError, destination_lock, merge_stores
+from bpp.cli import main
+from bpp.data.destination import destination_lock
+from bpp.data.integrity import CHUNK_KEY, VERSION, StoreError, header_digest
+from bpp.data.merge import merge_stores
+from bpp.data.store import EpisodeStore, EpisodeWriter
 
 
 def _fill(writer: EpisodeWriter, episodes: int = 3, offset: float = 0.0) -> None:
@@ -102,10 +107,14 @@ def test_a_store_is_never_written_inside_another(tmp_path):
 # ----------------------------------------------------------------------------- every read verified
 
 
-def test_every_chunk_is_written_checksummed_and_verified(tmp_path):
+def test_every_chunk_is_written_checksummed_recorded_and_verified(tmp_path):
     store = _write(tmp_path / "s.zarr")
-    assert store.attrs["version"] == VERSION == 2
+    assert store.attrs["version"] == VERSION == 3 and store.chunks_recorded
     assert len(_chunks(store.path, "data/pen")) == 3  # 12 steps in chunks of 4, zeros included
+    files = [f for a in store.attrs["arrays"] for f in _chunks(store.path, a)]
+    assert {f.relative_to(store.path).as_posix(): f.read_bytes()[-4:] for f in files} == {
+        key: value.to_bytes(4, "little") for key, value in store.attrs["chunks"].items()
+    }
     codecs = json.loads((store.path / "data" / "action" / "zarr.json").read_text())["codecs"]
     assert [c["name"] for c in codecs] == ["bytes", "zstd", "crc32c"]
     assert store.verify() == sum(len(_chunks(store.path, a)) for a in store.attrs["arrays"])
@@ -150,6 +159,70 @@ def test_a_deleted_chunk_is_refused_naming_the_array_and_the_chunk(tmp_path, arr
     message = f"damaged store, cannot read {array}: its chunk {index} ({key}) is missing"
     with pytest.raises(StoreError, match=re.escape(message)):
         read(EpisodeStore(path))
+
+
+@pytest.mark.parametrize(
+    "source",
+    ["another store's", "another position's"],
+)
+def test_a_chunk_read_in_another_s_place_is_refused_naming_the_array_and_the_chunk(tmp_path, source):
+    path = _write(tmp_path / "s.zarr").path
+    other = _write(tmp_path / "other.zarr", offset=10.0).path  # the same layout, other numbers
+    chunk = path / "data" / "action" / "c" / "1" / "0"
+    donor = other / "data" / "action" / "c" / "1" / "0" if source == "another store's" else path / "data/action/c/2/0"
+    shutil.copyfile(donor, chunk)  # a whole chunk, matching the checksum it carries
+    message = (
+        "s.zarr: damaged store, cannot read data/action: its chunk (1, 0) (data/action/c/1/0) is not the chunk the "
+        "store recorded there"
+    )
+    store = EpisodeStore(path)
+    with pytest.raises(StoreError, match=re.escape(message)):
+        store.verify()
+    with pytest.raises(StoreError, match=re.escape(message)):
+        store.array("action")
+    with pytest.raises(StoreError, match=re.escape(message)):
+        store["action"][4:8]
+    np.testing.assert_array_equal(store.episode(0)["action"], np.arange(3.0)[:, None])  # chunk 0 alone: still read
+
+
+def _as_version_2(path) -> None:
+    """Make the store at `path` what bpp wrote as version 2: no record of its chunks' checksums."""
+
+    def change(doc):
+        attrs = doc["attributes"]
+        del attrs["chunks"]
+        attrs["version"] = 2
+        attrs["digest"] = header_digest(attrs)
+
+    _edit(path, "zarr.json", change)
+
+
+def test_a_version_2_store_is_read_checked_against_the_checksums_its_chunks_carry(tmp_path, capsys):
+    path = _write(tmp_path / "s.zarr").path
+    _as_version_2(path)
+    store = EpisodeStore(path)
+    assert not store.chunks_recorded
+    assert store.verify() == sum(len(_chunks(path, a)) for a in store.attrs["arrays"])
+    np.testing.assert_array_equal(store.array("action"), _write(tmp_path / "v3.zarr").array("action"))
+    main(["store", "info", str(path), "--verify"])
+    assert "a version 2 store records no checksum per chunk key" in capsys.readouterr().out
+    chunk = path / "data" / "action" / "c" / "1" / "0"
+    chunk.write_bytes(chunk.read_bytes()[:-1] + b"\0")
+    with pytest.raises(StoreError, match="its chunk \\(1, 0\\) \\(data/action/c/1/0\\) fails its checksum"):
+        EpisodeStore(path).verify()
+
+
+def test_a_header_without_a_valid_record_of_its_chunks_is_refused(tmp_path):
+    path = _write(tmp_path / "s.zarr").path
+
+    def change(doc):
+        attrs = doc["attributes"]
+        attrs["chunks"] = {**attrs["chunks"], "data/nothing/c/0/0": 1}  # an array the header does not record
+        attrs["digest"] = header_digest(attrs)
+
+    _edit(path, "zarr.json", change)
+    with pytest.raises(StoreError, match="s.zarr: damaged store header \\(no valid table of chunk checksums\\)"):
+        EpisodeStore(path)
 
 
 def _edit(path, file: str, change) -> None:
@@ -236,11 +309,16 @@ def test_a_merge_never_writes_into_or_over_its_inputs(tmp_path):
         ),
         (
             lambda d: d["attributes"].__setitem__("version", 1),
-            "store version 1, written by an older bpp; this bpp reads version 2 \\(checksummed chunks\\): generate it",
+            "store version 1, written by an older bpp; this bpp reads versions 2 and 3 \\(checksummed chunks\\)",
         ),
-        (lambda d: d["attributes"].__setitem__("version", 3), "store version 3, this bpp reads version 2"),
+        (lambda d: d["attributes"].__setitem__("version", 4), "store version 4, this bpp reads versions 2 and 3"),
+        (lambda d: d["attributes"].__setitem__("version", 3.0), "store version 3.0, this bpp reads versions 2 and 3"),
+        (
+            lambda d: d["attributes"].__setitem__("version", 2),  # a version 3 store passed off as one without records
+            "damaged store header \\(it does not match its digest\\)",
+        ),
     ],
-    ids=["zarr format 2", "a zarr array", "another format", "version 1", "a newer version"],
+    ids=["zarr format 2", "a zarr array", "another format", "version 1", "a newer version", "3.0", "version 2"],
 )
 def test_a_store_of_another_format_or_version_is_reported_by_it(tmp_path, change, message):
     path = _write(tmp_path / "s.zarr").path
@@ -255,3 +333,18 @@ def test_a_zarr_format_2_folder_is_reported_as_one(tmp_path):
     (folder / ".zgroup").write_text('{"zarr_format": 2}')
     with pytest.raises(StoreError, match="buffer.zarr: a zarr format 2 folder, not an episode store"):
         EpisodeStore(folder)
+
+
+# ----------------------------------------------------------------------------- numbers in names
+
+
+def test_only_ascii_digits_are_read_as_numbers_in_names(tmp_path):
+    path = tmp_path / "s.zarr"
+    stale = tmp_path / ".s.zarr.partial-999999999-0123abcd"  # no such process: a killed writer's
+    others = [tmp_path / f".s.zarr.partial-{pid}-0123abcd" for pid in ("\u00b2", "\u0669" * 9, "\uff19" * 9)]
+    for folder in [stale, *others]:
+        folder.mkdir()
+    _write(path)  # a writer removes what killed writers of its path left
+    assert not stale.exists() and all(folder.exists() for folder in others)  # superscript, Arabic-Indic, full-width
+    assert CHUNK_KEY.fullmatch("data/action/c/12/0")["index"] == "/12/0"
+    assert CHUNK_KEY.fullmatch("data/action/c/\u0661/0") is None

@@ -28,7 +28,8 @@ from bpp.core.registry import (
     get_benchmark,
     open_store,
 )
-from bpp.data.store import EpisodeStore, merge_stores
+from bpp.data.merge import merge_stores
+from bpp.data.store import EpisodeStore
 from bpp.errors import UserError, raise_interrupted
 from bpp.evaluation.protocol import PromptChoice
 from bpp.evaluation.report import markdown_table
@@ -98,7 +99,8 @@ class StoreInfo:
     """Summarise a store: benchmark, tasks, episodes, steps, keys, episode lengths, size.
 
     Opening a store checks its header and every array's metadata against their digests; every chunk is checked
-    (present, matching its checksum) when it is read. --verify reads them all now.
+    (present, matching its checksum, the chunk the header records under its key) when it is read. --verify reads
+    them all now.
 
     Example:
       bpp store info data/draw/train.zarr --verify
@@ -123,6 +125,11 @@ def store_info(args: StoreInfo) -> None:
         chunks = s.verify()
         seconds = time.perf_counter() - t0
         print(f"  verified: all {chunks} chunks present and matching their checksums ({seconds:.1f} s)")
+        if not s.chunks_recorded:
+            print(
+                f"  note: a version {s.attrs['version']} store records no checksum per chunk key, so a chunk of "
+                "another store in one's place goes unseen; generate it again to have them"
+            )
 
 
 # ----------------------------------------------------------------------------- bpp store merge
@@ -131,9 +138,11 @@ def store_info(args: StoreInfo) -> None:
 @dataclass(frozen=True)
 class StoreMerge:
     """Merge stores of one benchmark into one (atomically): pieces generated on several machines, or demonstrations
-    of a few tasks added later. A task in several stores keeps one entry with all its episodes. Refused: a
-    demonstration that two of the stores hold (a store given twice, a copy, a merge that includes another), and a
-    store to write (--out) that is an input, lies inside one or holds one.
+    of a few tasks added later. A task in several stores keeps one entry with all its episodes. Refused, naming the
+    field: stores of different benchmarks, keys, columns, per-task arrays, shapes or dtypes, or of different cameras or
+    rates in their configs, and a task id that names different tasks (procedural pieces need different --seed
+    values); a demonstration that two of the stores hold (a store given twice, a copy, a merge that includes
+    another); and a store to write (--out) that is an input, lies inside one or holds one.
 
     Example:
       bpp store merge data/libero/chain-train.zarr data/libero/chain-extra.zarr --out data/libero/chain-all.zarr

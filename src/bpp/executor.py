@@ -21,6 +21,7 @@ import importlib.util
 import io
 import multiprocessing as mp
 import os
+import re
 import shutil
 import socket
 import tarfile
@@ -195,7 +196,7 @@ def _check_reachable(address: str, timeout: float = 10.0) -> None:
         address = os.environ["RAY_ADDRESS"].strip()
         named = f"RAY_ADDRESS={address} (the environment's, as no --ray-address was given)"
     host, _, port = address.rpartition(":")
-    if not host or not port.isdigit() or "://" in address:
+    if not host or not re.fullmatch("[0-9]+", port) or "://" in address:
         return  # "", "auto" or a ray:// client address: left to Ray
     try:
         socket.create_connection((host, int(port)), timeout=timeout).close()

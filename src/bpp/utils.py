@@ -283,7 +283,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise
 
 
-_PARTIAL = re.compile(r"\..+\.partial-(?P<pid>\d+)-[0-9a-f]{8}(?:\.[^.]*)?")
+_PARTIAL = re.compile(r"\..+\.partial-(?P<pid>[0-9]+)-[0-9a-f]{8}(?:\.[^.]*)?")
 """The name :func:`atomic_path` (and :class:`bpp.data.store.EpisodeWriter`) gives what it writes: the writer's
 process id, then a random tag."""
 

@@ -13,7 +13,8 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from bpp.core.contract import Benchmark, CommandTable
-from bpp.data.store import EpisodeStore, read_header
+from bpp.data.integrity import read_header
+from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 
 BENCHMARKS: dict[str, str] = {

@@ -137,7 +137,7 @@ def _json_number(text: str) -> int | float | _NotFinite:
     value = float(text)
     if not math.isfinite(value):
         return _NotFinite(text)
-    return int(text) if text.lstrip("-").isdigit() else value
+    return int(text) if re.fullmatch("-?[0-9]+", text) else value
 
 
 def _read_json(path: Path):

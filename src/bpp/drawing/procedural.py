@@ -98,6 +98,13 @@ def _oval(rng: np.random.Generator, start: np.ndarray, cfg: ProceduralConfig) ->
     return None
 
 
+def procedural_id(seed: int, index: int) -> str:
+    """The task id of the `index`-th procedural drawing generated with `seed`: ``procedural-00012``, or
+    ``procedural-s7-00012`` for a seed other than 0. Drawings of different seeds are different tasks, so pieces of
+    one dataset generated with different seeds (on several machines) have different ids and merge into one store."""
+    return f"procedural-{index:05d}" if seed == 0 else f"procedural-s{seed}-{index:05d}"
+
+
 def generate_drawing(rng: np.random.Generator, cfg: ProceduralConfig, drawing_id: str) -> tuple[Drawing, list]:
     """One random drawing and its list of part types (in drawing order)."""
     current = rng.uniform(0.0, 1.0, size=2)

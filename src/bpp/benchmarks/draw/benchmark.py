@@ -15,8 +15,9 @@ from bpp.benchmarks.draw.physics import CONTROL_HZ
 from bpp.benchmarks.draw.rollouts import run_rollouts
 from bpp.benchmarks.draw.viz import group_strokes, render_strokes
 from bpp.core.contract import Metric, RolloutResult, TaskSet
+from bpp.data.integrity import StoreError
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore, StoreError
+from bpp.data.store import EpisodeStore
 from bpp.drawing.geometry import MAX_BOARD_ANGLE
 from bpp.errors import UserError
 

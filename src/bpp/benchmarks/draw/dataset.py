@@ -18,7 +18,7 @@ from bpp.drawing.drawing import Drawing, strokes_array
 from bpp.drawing.files import load_drawings
 from bpp.drawing.geometry import MAX_BOARD_ANGLE, canvas_to_unit
 from bpp.drawing.human import human_drawings
-from bpp.drawing.procedural import ProceduralConfig, describe_parts, generate_drawing
+from bpp.drawing.procedural import ProceduralConfig, describe_parts, generate_drawing, procedural_id
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
 from bpp.utils import check_fields
@@ -81,7 +81,7 @@ def _task_job(job: tuple) -> tuple[Drawing, dict, list[Demonstration]]:
     rng = np.random.default_rng(seed_seq)
     info: dict = {}
     if drawing is None:
-        drawing, kinds = generate_drawing(rng, cfg.procedural, f"procedural-{index:05d}")
+        drawing, kinds = generate_drawing(rng, cfg.procedural, procedural_id(cfg.seed, index))
         info["parts"] = kinds
     demos = []
     for angle in stratified_angles(rng, cfg.demos_per_task):

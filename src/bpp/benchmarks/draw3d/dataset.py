@@ -28,7 +28,7 @@ from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.drawing.drawing import strokes_array
 from bpp.drawing.files import load_drawings
 from bpp.drawing.human import human_drawings
-from bpp.drawing.procedural import ProceduralConfig, generate_drawing
+from bpp.drawing.procedural import ProceduralConfig, generate_drawing, procedural_id
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
 from bpp.utils import check_fields
@@ -170,7 +170,7 @@ def _drawings(cfg: Draw3DConfig) -> list:
             raise UserError("source files: give the drawing files (JSON or SVG) with --drawings")
         return list(load_drawings(cfg.drawings))
     seeds = np.random.SeedSequence([cfg.seed, 1]).spawn(cfg.num_tasks)
-    return [generate_drawing(np.random.default_rng(s), cfg.procedural, f"procedural-{i:05d}")[0]
+    return [generate_drawing(np.random.default_rng(s), cfg.procedural, procedural_id(cfg.seed, i))[0]
             for i, s in enumerate(seeds)]  # fmt: skip
 
 

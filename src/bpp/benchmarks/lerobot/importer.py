@@ -122,7 +122,7 @@ def read_info(root: Path) -> dict:
         raise UserError(f"{root}: not a LeRobot dataset (no meta/info.json)")
     info = read_json(info_path, "LeRobot dataset info")
     version = str(info.get("codebase_version", "")) if isinstance(info, dict) else ""
-    major = re.match(r"v?(\d+)\.", version)
+    major = re.match(r"v?([0-9]+)\.", version)
     if not major or int(major.group(1)) != READ_MAJOR:
         raise UserError(
             f"{info_path}: codebase_version {version or 'missing'}; bpp reads LeRobot v{READ_MAJOR} datasets "

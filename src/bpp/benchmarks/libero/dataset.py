@@ -44,7 +44,9 @@ from bpp.benchmarks.libero.sim import (
     spatial_problem,
 )
 from bpp.benchmarks.libero.suites import SUITES_BY_NAME, PickPlace, combination_problem, matches, parse_where
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError, StoreKeyError, destination_lock
+from bpp.data.destination import destination_lock
+from bpp.data.integrity import StoreError, StoreKeyError
+from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
 from bpp.utils import atomic_path, check_fields, journal_folder, to_dict

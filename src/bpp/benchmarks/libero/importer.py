@@ -49,7 +49,8 @@ from bpp.benchmarks.libero.sim import (
     reset_scene,
     seat,
 )
-from bpp.data.store import EpisodeStore, EpisodeWriter, StoreError
+from bpp.data.integrity import StoreError
+from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError, require_extra
 
 
