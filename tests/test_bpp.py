@@ -11,7 +11,7 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from bpp.checkpoint import prune_checkpoints, resolve_checkpoint
+from bpp.checkpoint import load_agent, prune_checkpoints, resolve_checkpoint
 from bpp.data.prompt_dataset import DataSpec, PromptBatchDataset
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.config import PromptConfig
@@ -231,7 +231,7 @@ def test_only_the_newest_checkpoints_stay_on_disk(debug_store, tmp_path):
 def test_checkpoint_round_trip_acts_in_the_env(debug_store, tmp_path):
     ckpt = _train(debug_store, tmp_path / "run", steps=4, save_every=4)
     assert {p.name for p in ckpt.iterdir()} >= {"model.safetensors", "ema.safetensors", "state.json"}
-    agent = PolicyAgent.from_checkpoint(tmp_path / "run", record_attention=True)
+    agent = load_agent(tmp_path / "run", record_attention=True)
     result = rollout(agent, debug_store, 2, 0.2, seed=0, max_steps=30)
     assert result.steps <= 30 and 0 < result.best_chamfer <= result.final_chamfer
     assert len(result.attention) == -(-result.steps // agent.n_action_steps)

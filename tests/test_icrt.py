@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.icrt.model import PROMPT, ROLLOUT, ICRTModel
@@ -67,7 +68,7 @@ def test_trains_saves_loads_and_draws(debug_store, tmp_path):
     )
     ckpt = train(cfg, config("icrt"), progress=False)
     assert (ckpt / "ema.safetensors").is_file()
-    agent = PolicyAgent.from_checkpoint(tmp_path / "run")
+    agent = load_agent(tmp_path / "run")
     assert isinstance(agent.model, ICRTModel) and agent.n_action_steps == N
     result = rollout(agent, debug_store, 2, 0.2, seed=0, max_steps=35)
     assert 0 < result.steps <= 35 and result.attention is None

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import torch
 
+from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset, index_contexts
-from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
@@ -114,7 +114,7 @@ def test_relative_grouped_training_saves_loads_and_acts(debug_store, tmp_path, m
         warmup_steps=1,
     )
     train(cfg, replace(config(m.name), action_relative_to=RELATIVE[method]), progress=False)
-    agent = PolicyAgent.from_checkpoint(tmp_path / "run")
+    agent = load_agent(tmp_path / "run")
     assert agent.model.relative_dims == 2
     from helpers import rollout
 

@@ -27,6 +27,7 @@ import torch
 from safetensors.torch import load, save_file
 
 from bpp.errors import UserError
+from bpp.policies.agent import PolicyAgent
 from bpp.policies.registry import get_method
 from bpp.utils import (
     atomic_path,
@@ -120,7 +121,7 @@ def _save_tensors(tensors: dict[str, torch.Tensor], path: Path) -> None:
         raise OSError(int(code[1]), os.strerror(int(code[1])), str(path)) from None
 
 
-_LEGACY_TEMPORARY = re.compile(r"\.(?:step_\d{8}|last)\.tmp-(?P<pid>\d+)")
+_LEGACY_TEMPORARY = re.compile(r"\.(?:step_[0-9]{8}|last)\.tmp-(?P<pid>[0-9]+)")
 """The temporary names of checkpoints and ``last`` before bpp removed them on failure; older runs may hold some."""
 
 
@@ -177,7 +178,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
     raise FileNotFoundError(f"{path}: no checkpoint found (expected state.json, or checkpoints/last in a run dir)")
 
 
-_STEP_NAME = re.compile(r"step_\d{8}")
+_STEP_NAME = re.compile(r"step_[0-9]{8}")
 
 
 def _step_folders(ckpt_dir: Path) -> list[Path]:
@@ -274,3 +275,9 @@ class Checkpoint:
 def load_policy(path: str | Path, device: str | torch.device = "cpu", use_ema: bool = True):
     """Rebuild a trained model from a checkpoint (config, normalisation statistics and weights)."""
     return Checkpoint.load(path, use_ema).build_model(device)
+
+
+def load_agent(path: str | Path, device: str = "cpu", use_ema: bool = True, **options) -> PolicyAgent:
+    """A :class:`~bpp.policies.agent.PolicyAgent` acting with the model of checkpoint (or run) `path`; `options`
+    are the agent's (``n_action_steps``, ``record_attention``, ...)."""
+    return PolicyAgent(load_policy(path, device, use_ema), device, **options)

@@ -13,12 +13,10 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 
 import numpy as np
 import torch
 
-from bpp.checkpoint import load_policy
 from bpp.data.contexts import collate_contexts
 from bpp.data.spec import DataSpec
 from bpp.policies.diffusion import DiffusionHead
@@ -67,10 +65,6 @@ class PolicyAgent:
         self.obs_keys = list(model.obs_keys())
         self.data_spec: DataSpec = model.data_spec()
         """What the model observes (keys, image size) and which action key it outputs."""
-
-    @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str = "cpu", use_ema: bool = True, **kw) -> PolicyAgent:
-        return cls(load_policy(path, device, use_ema), device, **kw)
 
     # ------------------------------------------------------------ one rollout
     def reset(self, context: Mapping, seed: int = 0) -> None:

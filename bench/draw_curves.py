@@ -1,0 +1,134 @@
+"""Learning curves on DrawAnything: every kept checkpoint of some training runs, scored on a procedural validation
+split, against training minutes and training samples.
+
+    bpp train --method bpp --out runs/curves/bpp-s0 --steps 32000 --save-every 4000 --keep-checkpoints 50 ...
+    bpp train --method icrt --out runs/curves/icrt-s0 --steps 16000 --save-every 2000 --keep-checkpoints 50 ...
+    python bench/draw_curves.py runs/curves/bpp-s0 runs/curves/icrt-s0 --human-final
+
+The validation split is procedural drawings generated with another seed than the training store's (`--val`, made on
+first use: 50 tasks x 5 demonstrations, seed 1), never the unseen human-made drawings, so a curve can choose a budget
+or a setting without looking at the test set. `--human-final` also scores each run's last checkpoint on the 50 unseen
+human-made drawings (the paper's protocol), once the choice is made.
+
+A checkpoint's training minutes are its `state.json`'s modification time minus the run's `config.json`'s (written
+when training starts): wall time, including any time the cores were shared. Each evaluation is kept under --out and
+reused when the script runs again; the script writes results.json, table.md and curves.png there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from bpp.benchmarks.draw.dataset import DrawDataConfig  # noqa: E402
+from bpp.checkpoint import Checkpoint  # noqa: E402
+from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks  # noqa: E402
+from bpp.evaluation.report import markdown_table  # noqa: E402
+from bpp.utils import write_json_atomic  # noqa: E402
+from common import NAMES  # noqa: E402
+from draw_cpu_benchmark import store_for  # noqa: E402
+
+VAL = DrawDataConfig(num_tasks=50, demos_per_task=5, seed=1)
+"""The validation split: procedural drawings of seed 1 (the training stores use seed 0)."""
+
+
+def checkpoints(run: Path) -> list[Path]:
+    """The run's complete checkpoint folders, oldest first."""
+    return sorted(p for p in (run / "checkpoints").glob("step_*") if (p / "state.json").is_file())
+
+
+def step_of(ckpt: Path) -> int:
+    return int(ckpt.name.split("_")[1])
+
+
+def minutes_into(run: Path, ckpt: Path) -> float:
+    """Wall minutes from the run's start (its config.json) to the checkpoint's write."""
+    return ((ckpt / "state.json").stat().st_mtime - (run / "config.json").stat().st_mtime) / 60
+
+
+def batch_size(run: Path) -> int:
+    return int(json.loads((run / "config.json").read_text())["train_config"]["batch_size"])
+
+
+def score(ckpt: Path, tasks: str, num: int, out: Path, rollouts: int, workers: int) -> dict:
+    """The checkpoint's summary on `tasks` (a store path or a named set), evaluated once and kept in `out`."""
+    kept = out / "summary.json"
+    if kept.is_file():
+        return json.loads(kept.read_text())
+    checkpoint = Checkpoint.load(ckpt, use_ema=True)
+    _, task_set, indices = resolve_tasks(tasks, checkpoint, num_tasks=num)
+    summary = evaluate(checkpoint, task_set, indices, out, Protocol(rollouts=rollouts), workers)["summary"]
+    write_json_atomic(kept, summary)
+    return summary
+
+
+def plot(curves: dict[str, list[dict]], path: Path) -> None:
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for name, points in curves.items():
+        for ax, key in zip(axes, ("minutes", "samples"), strict=True):
+            ax.plot([p[key] for p in points], [p["val"] for p in points], marker="o", label=name)
+    axes[0].set_xlabel("training wall time (min)")
+    axes[1].set_xlabel("training samples (windows or whole demonstrations)")
+    axes[1].set_xscale("log")
+    axes[0].set_ylabel("validation Chamfer (px, lower is better)")
+    axes[0].legend()
+    fig.suptitle("DrawAnything-Sim learning curves, procedural validation split")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path)
+    parser.add_argument("--val", type=Path, default=Path("data/draw/val.zarr"), help="validation store (made once)")
+    parser.add_argument("--num-tasks", type=int, default=20, help="validation tasks evaluated")
+    parser.add_argument("--rollouts", type=int, default=4, help="rollouts per validation task")
+    parser.add_argument("--human-final", action="store_true", help="also score each run's last checkpoint on human")
+    parser.add_argument("--every", type=int, default=0, help="score only checkpoints of steps divisible by this")
+    parser.add_argument("--workers", type=int, default=1, help="evaluation processes")
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_curves"))
+    args = parser.parse_args()
+
+    store_for(args.val, VAL)
+    curves: dict[str, list[dict]] = {}
+    rows = []
+    for run in args.runs:
+        ckpts = [c for c in checkpoints(run) if not args.every or step_of(c) % args.every == 0]
+        if not ckpts:
+            print(f"skipping {run}: no complete checkpoint to score yet")
+            continue
+        method = Checkpoint.load(ckpts[-1]).method
+        name = f"{NAMES.get(method, method)} ({run.name})"
+        points = []
+        for ckpt in ckpts:
+            summary = score(
+                ckpt, str(args.val), args.num_tasks, args.out / run.name / ckpt.name, args.rollouts, args.workers
+            )
+            step = step_of(ckpt)
+            point = {"step": step, "samples": step * batch_size(run), "minutes": minutes_into(run, ckpt)}
+            point |= {"val": summary["score_mean"], "val_median": summary["score_median_rollout"]}
+            points.append(point)
+            rows.append((name, step, f"{point['minutes']:.1f}", f"{point['val']:.2f}", f"{point['val_median']:.2f}"))
+        if args.human_final:
+            human = score(ckpts[-1], "human", 0, args.out / run.name / "human", 8, args.workers)
+            points[-1] |= {"human": human["score_mean"], "human_median": human["score_median_rollout"]}
+        curves[name] = points
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(args.out / "results.json", curves)
+    header = ["run", "step", "train min", "validation mean (px)", "validation median rollout (px)"]
+    table = markdown_table(header, rows)
+    finals = [f"- {n}: unseen human drawings {p[-1]['human']:.2f} px" for n, p in curves.items() if "human" in p[-1]]
+    (args.out / "table.md").write_text(table + ("\n" + "\n".join(finals) + "\n" if finals else ""))
+    plot(curves, args.out / "curves.png")
+    print(table, *finals, f"wrote {args.out / 'table.md'}, {args.out / 'curves.png'}", sep="\n")
+
+
+if __name__ == "__main__":
+    main()
