@@ -3,7 +3,7 @@ split, against training minutes and training samples.
 
     bpp train --method bpp --out runs/curves/bpp-s0 --steps 32000 --save-every 4000 --keep-checkpoints 50 ...
     bpp train --method icrt --out runs/curves/icrt-s0 --steps 16000 --save-every 2000 --keep-checkpoints 50 ...
-    python bench/draw_curves.py runs/curves/bpp-s0 runs/curves/icrt-s0 --human-final
+    python bench/draw_curves.py runs/curves/bpp-s0 runs/curves/icrt-s0 --at 4000 8000 16000 --human-final
 
 The validation split is procedural drawings generated with another seed than the training store's (`--val`, made on
 first use: 50 tasks x 5 demonstrations, seed 1), never the unseen human-made drawings, so a curve can choose a budget
@@ -91,7 +91,7 @@ def main() -> None:
     parser.add_argument("--num-tasks", type=int, default=20, help="validation tasks evaluated")
     parser.add_argument("--rollouts", type=int, default=4, help="rollouts per validation task")
     parser.add_argument("--human-final", action="store_true", help="also score each run's last checkpoint on human")
-    parser.add_argument("--every", type=int, default=0, help="score only checkpoints of steps divisible by this")
+    parser.add_argument("--at", type=int, nargs="*", default=[], help="score only the checkpoints of these steps")
     parser.add_argument("--workers", type=int, default=1, help="evaluation processes")
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_curves"))
     args = parser.parse_args()
@@ -100,7 +100,7 @@ def main() -> None:
     curves: dict[str, list[dict]] = {}
     rows = []
     for run in args.runs:
-        ckpts = [c for c in checkpoints(run) if not args.every or step_of(c) % args.every == 0]
+        ckpts = [c for c in checkpoints(run) if not args.at or step_of(c) in args.at]
         if not ckpts:
             print(f"skipping {run}: no complete checkpoint to score yet")
             continue
@@ -117,7 +117,7 @@ def main() -> None:
             points.append(point)
             rows.append((name, step, f"{point['minutes']:.1f}", f"{point['val']:.2f}", f"{point['val_median']:.2f}"))
         if args.human_final:
-            human = score(ckpts[-1], "human", 0, args.out / run.name / "human", 8, args.workers)
+            human = score(ckpts[-1], "human", 0, args.out / run.name / f"human-{ckpts[-1].name}", 8, args.workers)
             points[-1] |= {"human": human["score_mean"], "human_median": human["score_median_rollout"]}
         curves[name] = points
     args.out.mkdir(parents=True, exist_ok=True)
