@@ -21,30 +21,17 @@ import argparse
 import json
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from bpp.benchmarks.draw.dataset import DrawDataConfig  # noqa: E402
-from bpp.checkpoint import Checkpoint  # noqa: E402
-from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks  # noqa: E402
-from bpp.evaluation.report import markdown_table  # noqa: E402
-from bpp.utils import write_json_atomic  # noqa: E402
-from common import NAMES  # noqa: E402
-from draw_cpu_benchmark import store_for  # noqa: E402
+from bpp.benchmarks.draw.dataset import DrawDataConfig
+from bpp.checkpoint import Checkpoint, read_state, step_folders
+from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
+from bpp.evaluation.report import markdown_table
+from bpp.media import pyplot, save_figure
+from bpp.utils import write_json_atomic
+from common import NAMES
+from draw_cpu_benchmark import store_for
 
 VAL = DrawDataConfig(num_tasks=50, demos_per_task=5, seed=1)
 """The validation split: procedural drawings of seed 1 (the training stores use seed 0)."""
-
-
-def checkpoints(run: Path) -> list[Path]:
-    """The run's complete checkpoint folders, oldest first."""
-    return sorted(p for p in (run / "checkpoints").glob("step_*") if (p / "state.json").is_file())
-
-
-def step_of(ckpt: Path) -> int:
-    return int(ckpt.name.split("_")[1])
 
 
 def minutes_into(run: Path, ckpt: Path) -> float:
@@ -69,7 +56,7 @@ def score(ckpt: Path, tasks: str, num: int, out: Path, rollouts: int, workers: i
 
 
 def plot(curves: dict[str, list[dict]], path: Path) -> None:
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    fig, axes = pyplot().subplots(1, 2, figsize=(10, 4), sharey=True)
     for name, points in curves.items():
         for ax, key in zip(axes, ("minutes", "samples"), strict=True):
             ax.plot([p[key] for p in points], [p["val"] for p in points], marker="o", label=name)
@@ -80,8 +67,7 @@ def plot(curves: dict[str, list[dict]], path: Path) -> None:
     axes[0].legend()
     fig.suptitle("DrawAnything-Sim learning curves, procedural validation split")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path, dpi=120)
 
 
 def main() -> None:
@@ -100,18 +86,19 @@ def main() -> None:
     curves: dict[str, list[dict]] = {}
     rows = []
     for run in args.runs:
-        ckpts = [c for c in checkpoints(run) if not args.at or step_of(c) in args.at]
+        states = {c: read_state(c) for c in reversed(step_folders(run / "checkpoints"))}  # oldest first
+        ckpts = [c for c, state in states.items() if not args.at or state["step"] in args.at]
         if not ckpts:
             print(f"skipping {run}: no complete checkpoint to score yet")
             continue
-        method = Checkpoint.load(ckpts[-1]).method
+        method = states[ckpts[-1]]["method"]
         name = f"{NAMES.get(method, method)} ({run.name})"
         points = []
         for ckpt in ckpts:
             summary = score(
                 ckpt, str(args.val), args.num_tasks, args.out / run.name / ckpt.name, args.rollouts, args.workers
             )
-            step = step_of(ckpt)
+            step = states[ckpt]["step"]
             point = {"step": step, "samples": step * batch_size(run), "minutes": minutes_into(run, ckpt)}
             point |= {"val": summary["score_mean"], "val_median": summary["score_median_rollout"]}
             points.append(point)

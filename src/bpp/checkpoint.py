@@ -168,7 +168,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
             target = base / name
             if _STEP_NAME.fullmatch(name) and (target / "state.json").is_file():
                 return target
-            intact = _step_folders(base)
+            intact = step_folders(base)
             if intact:
                 print(
                     f"[checkpoint] {last} names {target.name}, which is missing or incomplete; using {intact[0].name}",
@@ -181,7 +181,7 @@ def resolve_checkpoint(path: str | Path) -> Path:
 _STEP_NAME = re.compile(r"step_[0-9]{8}")
 
 
-def _step_folders(ckpt_dir: Path) -> list[Path]:
+def step_folders(ckpt_dir: Path) -> list[Path]:
     """Step folders of `ckpt_dir` that have a state.json, newest first."""
     return sorted((p for p in ckpt_dir.glob("step_*") if (p / "state.json").is_file()), reverse=True)
 
@@ -210,7 +210,7 @@ def load_training_state(path: str | Path, model, ema, optimizer) -> int:
     """Restore model, EMA, optimizer and RNG in place from the newest intact checkpoint of run `path`; returns the
     step to continue from. A damaged newest checkpoint is skipped with a line on stderr naming the bad file."""
     newest = resolve_checkpoint(path)
-    candidates = [newest, *(p for p in _step_folders(newest.parent) if p.name < newest.name)]
+    candidates = [newest, *(p for p in step_folders(newest.parent) if p.name < newest.name)]
     for ckpt in candidates:
         try:
             state = read_state(ckpt)
