@@ -5,9 +5,12 @@ served policy."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
 import shutil
+from collections import namedtuple
 from pathlib import Path
 
 import numpy as np
@@ -44,6 +47,8 @@ from bpp.benchmarks.iphumi.recording import (  # noqa: E402
 )
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
+
+imageio_ffmpeg = import_optional("imageio_ffmpeg", "iphumi")
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -390,6 +395,39 @@ def test_synth_refuses_sizes_on_the_command_line_and_folders_that_hold_recording
     with pytest.raises(UserError, match="already holds 1 iPhUMI recording"):
         write_export(tmp_path / "b", SyntheticSettings(demonstrations=1))
     assert (earlier / f"{earlier.name}.json").read_text() == "{}" and len(list((tmp_path / "b").iterdir())) == 1
+
+
+def test_synth_and_process_on_a_full_disk_name_what_they_wrote_and_leave_nothing_half_written(
+    export, tmp_path, monkeypatch, capsys
+):
+    real_writer = imageio_ffmpeg.write_frames
+
+    def writer_that_breaks(*args, **kwargs):
+        frames = real_writer(*args, **kwargs)
+        frames.send(None)
+        for _ in range(3):
+            yield
+            raise BrokenPipeError(errno.EPIPE, "Broken pipe")  # FFmpeg died on the full disk
+        yield
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(imageio_ffmpeg, "write_frames", writer_that_breaks)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(10**9, 10**9, 4096))
+    with pytest.raises(SystemExit) as stop:
+        main(["iphumi", "synth", str(tmp_path / "synth"), "--demonstrations", "1"])
+    assert re.fullmatch(r"bpp iphumi synth: error: .*synth/2026-01-15: No space left on device", stop.value.code)
+    assert list((tmp_path / "synth").iterdir()) == []  # no half-written day folder
+    monkeypatch.undo()
+
+    def no_space(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")  # as zipfile reports it: no file named
+
+    monkeypatch.setattr(pipeline.np, "savez", no_space)
+    out = tmp_path / "store.zarr"
+    with pytest.raises(SystemExit) as stop:
+        main(["iphumi", "process", str(export[0]), "--out", str(out), "--workers", "1"])
+    assert re.fullmatch(r"bpp iphumi process: error: .*\.npz: No space left on device", stop.value.code)
+    assert not out.exists() and not [p for p in tmp_path.rglob("*") if "partial" in p.name or ".tmp-" in p.name]
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,7 @@ runs this file in LeRobot's environment, .venv-lerobot."""
 
 from __future__ import annotations
 
+import errno
 import json
 import shutil
 from pathlib import Path
@@ -31,13 +32,13 @@ HEIGHT, WIDTH = 24, 32  # the video camera's frames: not square, so importing re
 
 
 @pytest.fixture(scope="module", autouse=True)
-def datasets_cache(tmp_path_factory):
-    """The `datasets` package caches every parquet file it reads; here in a temporary folder, not the user's."""
+def home_cache(tmp_path_factory):
+    """The `datasets` package's default cache (the user's home, as far as it knows): bpp must write nothing there."""
     import datasets
 
     before = datasets.config.HF_DATASETS_CACHE
-    datasets.config.HF_DATASETS_CACHE = tmp_path_factory.mktemp("datasets-cache")
-    yield
+    datasets.config.HF_DATASETS_CACHE = tmp_path_factory.mktemp("home-datasets-cache")
+    yield datasets.config.HF_DATASETS_CACHE
     datasets.config.HF_DATASETS_CACHE = before
 
 
@@ -66,7 +67,7 @@ def source(tmp_path_factory):
     }
     rng = np.random.default_rng(0)
     given = {"state": [], "action": [], "front": [], "wrist": [], "task": []}
-    with library.offline_and_quiet():
+    with library.offline_and_quiet(root):
         dataset = lib.LeRobotDataset.create(
             "test/robot", fps=FPS, features=features, root=root, robot_type="arm", video_backend="pyav"
         )
@@ -185,6 +186,107 @@ def test_datasets_bpp_cannot_read_are_refused_with_what_is_wrong(source, tmp_pat
     assert not Path(out).exists()
 
 
+def _data_file(root: Path) -> Path:
+    (path,) = sorted((root / "data").glob("*/*.parquet"))
+    return path
+
+
+def _rewrite_column(root: Path, column: str, change) -> None:
+    """Rewrite the dataset's per-frame parquet file with `change` applied to `column`'s (frames, width) values."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    path = _data_file(root)
+    table = pq.read_table(path)
+    field = table.schema.field(column)
+    values = np.stack(table.column(column).to_pylist()).astype(np.float32)
+    changed = pa.array(list(change(values)), type=field.type)
+    pq.write_table(table.set_column(table.schema.get_field_index(column), field, changed), path)
+
+
+@pytest.mark.parametrize(
+    "column, value, frame",
+    [("action", np.nan, 13), ("observation.state", np.inf, 0), ("observation.state", -np.inf, 57)],
+)
+def test_non_finite_numbers_are_refused_naming_the_file_column_and_frame(source, tmp_path, column, value, frame):
+    copy = _copy(source, tmp_path)
+
+    def poison(values):
+        values[frame, 1] = value
+        return values
+
+    _rewrite_column(copy, column, poison)
+    out = tmp_path / "s.zarr"
+    episode, in_episode = divmod(frame, STEPS)
+    pattern = (
+        rf"{_data_file(copy)} \(episode {episode}\): column '{column}' holds {value} at frame {in_episode} \(value 1\)"
+    )
+    with pytest.raises(SystemExit, match=pattern):
+        main(["lerobot", "import", str(copy), "--out", str(out)])
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["copy"]
+
+
+def test_damaged_files_and_metadata_are_refused_naming_the_file(source, tmp_path):
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    out = str(tmp_path / "s.zarr")
+    copy = _copy(source, tmp_path)
+    info_path = copy / "meta" / "info.json"
+    info = json.loads(info_path.read_text())
+    for fps in (0, -10, "ten", None):
+        info_path.write_text(json.dumps({**info, "fps": fps}))
+        with pytest.raises(SystemExit, match=f"info.json: fps {fps!r}; a dataset's frame rate is a positive number"):
+            main(["lerobot", "import", str(copy), "--out", out])
+    info_path.write_text(json.dumps(info))
+    data = _data_file(copy)
+    whole = data.read_bytes()
+    table = pq.read_table(data)
+    # a renamed column, a narrower one
+    pq.write_table(table.rename_columns(["actions" if n == "action" else n for n in table.column_names]), data)
+    with pytest.raises(SystemExit, match=rf"{data}: no column 'action', a feature of meta/info.json"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    narrow = pa.array([row[:2] for row in table.column("observation.state").to_pylist()], pa.list_(pa.float32(), 2))
+    state = table.schema.get_field_index("observation.state")
+    pq.write_table(table.set_column(state, pa.field("observation.state", narrow.type), narrow), data)
+    with pytest.raises(SystemExit, match=rf"{data}: column 'observation.state' holds 2 values a frame, .* says 3"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    # truncated, and garbled in the middle of its pages
+    data.write_bytes(whole[: len(whole) // 2])
+    with pytest.raises(SystemExit, match=rf"{data}: not a readable parquet file"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    middle = len(whole) // 3
+    data.write_bytes(whole[:middle] + bytes(255 - b for b in whole[middle : middle + 2000]) + whole[middle + 2000 :])
+    with pytest.raises(SystemExit, match=rf"{copy}: a parquet file under data/ is damaged .*{data.relative_to(copy)}"):
+        main(["lerobot", "import", str(copy), "--out", out])
+    assert [p.name for p in tmp_path.iterdir()] == ["copy"]
+
+
+def test_importing_and_exporting_write_nothing_outside_the_output(source, imported, home_cache, tmp_path, capsys):
+    out = tmp_path / "in" / "robot.zarr"
+    main(["lerobot", "import", str(source.root), "--out", str(out), "--episodes", "0:2", "--image-size", "32"])
+    main(["lerobot", "export", str(out), "--out", str(tmp_path / "out" / "robot")])
+    assert sorted(p.name for p in (tmp_path / "in").iterdir()) == ["robot.zarr"]
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["robot"]
+    assert list(Path(home_cache).iterdir()) == []
+
+
+def test_export_on_a_full_disk_names_the_dataset_and_leaves_nothing(debug_store, tmp_path, monkeypatch):
+    lib = library.dataset_library()
+
+    def save_episode(self, *args, **kwargs):
+        (Path(self.root) / "data").mkdir(parents=True, exist_ok=True)
+        (Path(self.root) / "data" / "half.parquet").write_bytes(b"PAR1")
+        raise OSError(errno.ENOSPC, "No space left on device")  # as pyarrow or FFmpeg's pipe report it
+
+    monkeypatch.setattr(lib.LeRobotDataset, "save_episode", save_episode)
+    out = tmp_path / "exports" / "draw"
+    with pytest.raises(SystemExit) as stop:
+        main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--episodes", "0:1", "--image-size", "32"])
+    assert stop.value.code == f"bpp lerobot export: error: {out}: No space left on device"
+    assert list((tmp_path / "exports").iterdir()) == []
+
+
 def test_an_imported_store_exports_under_its_original_feature_names(imported, tmp_path, capsys):
     train, _ = imported
     with pytest.raises(SystemExit, match="--image-size 16: LeRobot's default video encoder .* at least 32 px"):
@@ -280,7 +382,7 @@ def test_a_drawanything_store_exports_to_a_dataset_lerobot_loads_and_imports_bac
     out = tmp_path / "draw"
     main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--image-size", "32", "--episodes", "0:4"])
     lib = library.dataset_library()
-    with library.offline_and_quiet():
+    with library.offline_and_quiet(out):
         dataset = lib.LeRobotDataset("bpp/draw", root=out, video_backend="pyav")
     n = int(debug_store.episode_ends[3])
     assert dataset.num_episodes == 4 and dataset.num_frames == n and dataset.fps == 10
@@ -314,7 +416,7 @@ def test_lerobots_own_loader_returns_every_exported_array(debug_store, tmp_path,
     main(["lerobot", "export", str(debug_store.path), "--out", str(out), "--image-size", "24", "--no-video"]
          + ["--episodes", "5,6", "--overwrite"])  # fmt: skip
     lib = library.dataset_library()
-    with library.offline_and_quiet():
+    with library.offline_and_quiet(out):
         dataset = lib.LeRobotDataset("bpp/draw", root=out, video_backend="pyav")
     assert dataset.num_episodes == 2 and dataset.meta.features["observation.images.image"]["dtype"] == "image"
     index = 0
@@ -355,7 +457,7 @@ def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(
     store = EpisodeStore(path)
     export_store(store, tmp_path / "out", cameras=["agentview"], progress=False)
     lib = library.dataset_library()
-    with library.offline_and_quiet():
+    with library.offline_and_quiet(tmp_path / "out"):
         dataset = lib.LeRobotDataset("bpp/libero", root=tmp_path / "out", video_backend="pyav")
     features = dataset.meta.features
     assert dataset.fps == 20 and dataset.num_frames == 24 and dataset.meta.robot_type == "libero_gen"

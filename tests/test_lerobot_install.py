@@ -95,7 +95,7 @@ def test_the_bpp_command_exports_a_dataset_lerobot_loads_and_imports_it_back(deb
         assert result.returncode == 0, result.stderr[-3000:]
     from lerobot.datasets.lerobot_dataset import LeRobotDataset  # LeRobot's own module, as its users import it
 
-    with offline_and_quiet():
+    with offline_and_quiet(out):
         dataset = LeRobotDataset("bpp/draw", root=out, video_backend="pyav")
     n = int(debug_store.episode_ends[2])
     assert dataset.num_episodes == 3 and dataset.num_frames == n and dataset.fps == 10

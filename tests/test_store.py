@@ -9,9 +9,12 @@ import pytest
 
 from bpp.benchmarks.draw.dataset import PRESETS, generate
 from bpp.core import registry
+from bpp.data import store as store_module
 from bpp.data.integrity import StoreError
 from bpp.data.merge import merge_stores
+from bpp.data.prompt_dataset import finite_statistics
 from bpp.data.store import EpisodeStore, EpisodeWriter, with_derived
+from bpp.errors import UserError
 
 
 def _write(path, episodes=3, **kw):
@@ -291,3 +294,27 @@ def test_stores_of_different_kinds_are_refused_naming_the_field(tmp_path, kind, 
         merge_stores([a, b], tmp_path / "x.zarr")
     _one_of_a_kind(tmp_path / "c.zarr", config={"a": 2, "seed": 7})  # other generation settings: one kind still
     assert merge_stores([a, tmp_path / "c.zarr"], tmp_path / "ac.zarr").num_episodes == 4
+
+
+def test_stores_refuse_non_finite_numbers_and_training_refuses_a_store_that_holds_them(tmp_path, monkeypatch):
+    """The store's door refuses NaN and infinities from any writer (generators, importers, merges); a store written
+    before it did is refused by training before anything is built."""
+    good = {"state": np.zeros((4, 2), np.float32), "action": np.zeros((4, 2), np.float32)}
+    bad = {**good, "action": np.array([[0, 0], [0, 0], [0, np.nan], [0, 0]], np.float32)}
+    writer = EpisodeWriter(tmp_path / "s.zarr", benchmark="drawanything")
+    writer.add_task("t")
+    writer.add_episode(good, 0)
+    with pytest.raises(StoreError, match=r"episode 1: 'action' holds nan at step 2 \(item 1\); a store keeps finite"):
+        writer.add_episode(bad, 0)
+    with pytest.raises(StoreError, match=r"'state' holds -inf at step 0 \(item 0\)"):
+        writer.add_episode({**good, "state": np.full((4, 2), -np.inf, np.float32)}, 0)
+    writer.add_episode({**good, "state": np.ones((4, 2), np.float32)}, 0)
+    finite_statistics(writer.close())  # the refused episodes left nothing behind
+
+    monkeypatch.setattr(store_module, "_check_finite", lambda *args: None)  # a store from before the door
+    with EpisodeWriter(tmp_path / "old.zarr", benchmark="drawanything") as old:
+        old.add_task("t")
+        old.add_episode(good, 0)
+        old.add_episode(bad, 0)
+    with pytest.raises(UserError, match=r"old.zarr: the (min|mean) of 'action' is not finite"):
+        finite_statistics(EpisodeStore(tmp_path / "old.zarr"))

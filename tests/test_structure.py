@@ -43,6 +43,8 @@ DEFERRED = {
     "imageio_ffmpeg": "video files only",
     "zarr": "a third of a second to import; reading or writing a store only",
     "fastapi": "the studio extra",
+    "uvicorn": "the studio extra",
+    "h11": "the studio extra (uvicorn's HTTP/1.1 parser)",
     "triton": "torch's compiler, loaded before LIBERO's renderer (in that order only)",
 }
 """Third-party modules a function may import where it needs them, and why they are not imported with the module."""

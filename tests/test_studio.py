@@ -21,6 +21,7 @@ httpx = import_optional("httpx", "studio")
 import_optional("fastapi", "studio")
 
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
+from bpp.benchmarks.draw.studio.command import server_config  # noqa: E402
 from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints  # noqa: E402
 from bpp.train import TrainConfig, train  # noqa: E402
 
@@ -54,7 +55,7 @@ class Server:
             self.port = s.getsockname()[1]
         self.url = f"http://127.0.0.1:{self.port}"
         self.studio = Studio(find_checkpoints([runs]), workdir, limits, data_dir=data_dir)
-        config_ = uvicorn.Config(create_app(self.studio, TOKEN), host="127.0.0.1", port=self.port, log_level="error")
+        config_ = server_config(create_app(self.studio, TOKEN), limits, host="127.0.0.1", port=self.port)
         self.server = uvicorn.Server(config_)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
         self.thread.start()

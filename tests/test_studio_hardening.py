@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +29,15 @@ from test_studio import TOKEN, TRIANGLE, Server, runs  # noqa: E402, F401 - `run
 
 pytestmark = pytest.mark.studio
 
-LIMITS = Limits(abandon_s=3.0, max_body_bytes=200_000, body_timeout_s=1.0, frame_backlog=8, max_animation_frames=20)
+LIMITS = Limits(
+    abandon_s=3.0,
+    max_body_bytes=200_000,
+    body_timeout_s=1.0,
+    header_timeout_s=1.5,
+    max_connections_per_client=8,
+    frame_backlog=8,
+    max_animation_frames=20,
+)
 HOUSE = [  # unit square, y up: walls, roof, door
     [[0.25, 0.2], [0.25, 0.55], [0.75, 0.55], [0.75, 0.2], [0.25, 0.2]],
     [[0.22, 0.55], [0.5, 0.82], [0.78, 0.55]],
@@ -109,6 +118,35 @@ def test_a_slow_body_is_cut_off(server):
 
 
 @pytest.mark.slow
+def test_half_sent_headers_hold_no_place_for_long_and_one_address_holds_few_places(server):
+    """Connections that send half a request's headers and then nothing (a "slowloris", no token needed): one address
+    gets its share of connections, the rest are answered 429 at once; the share is closed when the headers are
+    overdue; meanwhile a client at another address is served."""
+    half = b"GET /api/checkpoints HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Padding: "
+    share = LIMITS.max_connections_per_client
+    held = []
+    for _ in range(share + 4):
+        sock = socket.create_connection(("127.0.0.1", server.port), timeout=5)
+        sock.sendall(half)
+        held.append(sock)
+    start = time.monotonic()
+    try:
+        for sock in held[share:]:
+            assert sock.recv(100).startswith(b"HTTP/1.1 429 Too Many Requests")
+        other = httpx.HTTPTransport(local_address="127.0.0.2")
+        with httpx.Client(transport=other, headers=auth(), timeout=5) as http:
+            assert http.get(f"{server.url}/api/checkpoints").status_code == 200
+        for sock in held[:share]:
+            sock.settimeout(LIMITS.header_timeout_s + 3 - (time.monotonic() - start))
+            assert sock.recv(100) == b""  # closed by the server, without an answer
+        assert LIMITS.header_timeout_s - 0.2 < time.monotonic() - start < LIMITS.header_timeout_s + 3
+        with httpx.Client(headers=auth(), timeout=5) as http:  # the address is welcome again
+            assert http.get(f"{server.url}/api/checkpoints").status_code == 200
+    finally:
+        for sock in held:
+            sock.close()
+
+
 def test_no_input_answers_500(server):
     """Malformed headers, queries, paths and bodies on every route: each gets a 4xx (or a 2xx), never a 500."""
     with StudioClient(server.url, TOKEN) as c:
@@ -338,19 +376,40 @@ def test_the_studio_releases_freed_memory_regularly_until_closed(tmp_path, monke
     assert len(calls) == stopped
 
 
-def test_a_session_in_use_is_never_evicted_for_a_new_one(tmp_path):
-    studio = Studio([], tmp_path, Limits(max_sessions=3, max_sessions_per_client=2, session_active_s=60.0))
-    mine = [studio.new_session("10.0.0.1"), studio.new_session("10.0.0.1")]
-    with pytest.raises(StudioError) as err:  # one client cannot take every place
+def test_sessions_are_shared_fairly_between_addresses_and_busy_ones_are_never_evicted(tmp_path):
+    studio = Studio([], tmp_path, Limits(max_sessions=6, max_sessions_per_client=3))
+    user = studio.new_session("10.0.0.9")
+    studio.sessions[user].prompts["triangle"] = None  # it holds work
+    flood = [studio.new_session("10.0.0.1") for _ in range(20)]  # a flood from one address is never refused ...
+    assert sum(s.client == "10.0.0.1" for s in studio.sessions.values()) == 3  # ... and replaces only its own
+    assert flood[-3:] == [sid for sid in studio.sessions if sid in flood]
+    for address in ("10.0.0.2", "10.0.0.3", "10.0.0.4", "10.0.0.5"):  # more addresses than places
+        for _ in range(5):
+            studio.new_session(address)
+    assert user in studio.sessions and len(studio.sessions) == 6  # the one-session client keeps its place
+    counts = sorted(Counter(s.client for s in studio.sessions.values()).values())
+    assert counts[-1] - counts[1] <= 1  # the other places are spread evenly
+
+    # A new page from an address that also floods: the flood's empty sessions go before one that holds work.
+    studio = Studio([], tmp_path, Limits(max_sessions=64, max_sessions_per_client=3))
+    page = studio.new_session("10.0.0.1")
+    studio.sessions[page].prompts["house"] = None
+    for _ in range(10):
         studio.new_session("10.0.0.1")
-    assert err.value.status == 429
-    studio.new_session("10.0.0.2")
-    with pytest.raises(StudioError) as err:  # full, and all in use: refused, nobody pushed out
-        studio.new_session("10.0.0.3")
-    assert err.value.status == 429 and all(sid in studio.sessions for sid in mine)
-    studio.sessions[mine[0]].last_used -= 120.0  # idle for two minutes: now it may make room
+    assert page in studio.sessions
+
+    # Sessions whose work is under way are never replaced: with every candidate busy, a new one is refused.
+    studio = Studio([], tmp_path, Limits(max_sessions=3, max_sessions_per_client=2))
+    busy = [studio.new_session("10.0.0.1"), studio.new_session("10.0.0.1"), studio.new_session("10.0.0.2")]
+    for sid in busy:
+        studio.sessions[sid].streams = 1
+    for address in ("10.0.0.1", "10.0.0.3"):
+        with pytest.raises(StudioError) as err:
+            studio.new_session(address)
+        assert err.value.status == 429 and "all busy" in str(err.value) and list(studio.sessions) == busy
+    studio.sessions[busy[1]].streams = 0
     studio.new_session("10.0.0.3")
-    assert mine[0] not in studio.sessions and mine[1] in studio.sessions
+    assert busy[1] not in studio.sessions and busy[0] in studio.sessions and busy[2] in studio.sessions
     studio.close()
 
 

@@ -3,6 +3,7 @@ machine, what a token must be to guard one that does not, the listening socket, 
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import errno
 import ipaddress
@@ -77,3 +78,77 @@ def _network_addresses() -> list[str]:
 
 def _bracket(host: str) -> str:
     return f"[{host}]" if ":" in host else host
+
+
+TOO_MANY = b"HTTP/1.1 429 Too Many Requests\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
+"""The whole answer to a connection over its address's share."""
+
+
+def guarded_http(header_seconds: float, per_address: int) -> type:
+    """uvicorn's HTTP/1.1 protocol (h11), bounded before any route or token is read against clients that hold
+    connections without finishing a request (a "slowloris"): a connection must deliver a request's headers within
+    `header_seconds` of opening, or of its previous response, else it is closed; and one client address holds at most
+    `per_address` connections at once, further ones are answered 429 and closed. Without these, a few hundred
+    connections that send half a request's headers take every place the server has for everyone, for as long as the
+    sender likes."""
+    # uvicorn and h11: the studio extra
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    open_by_address: collections.Counter = collections.Counter()
+
+    class Guarded(H11Protocol):
+        _deadline = None
+        _address = None
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._address = self.client[0] if self.client else ""
+            open_by_address[self._address] += 1
+            if open_by_address[self._address] > per_address:
+                transport.write(TOO_MANY)
+                transport.close()
+                return
+            self._arm()
+
+        def _arm(self) -> None:
+            self._disarm()
+            self._deadline = self.loop.call_later(header_seconds, self._headers_overdue)
+
+        def _disarm(self) -> None:
+            if self._deadline is not None:
+                self._deadline.cancel()
+                self._deadline = None
+
+        def _headers_overdue(self) -> None:
+            self._deadline = None
+            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+                self.transport.close()
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)
+            if self.conn.their_state is not h11.IDLE:  # the request's headers are in
+                self._disarm()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if not self.transport.is_closing() and self.conn.their_state is h11.IDLE:
+                self._arm()  # the next request's headers are due as the first one's were
+
+        def _leave(self) -> None:
+            self._disarm()
+            if self._address is not None:
+                open_by_address[self._address] -= 1
+                if open_by_address[self._address] <= 0:
+                    del open_by_address[self._address]
+                self._address = None
+
+        def handle_websocket_upgrade(self, event) -> None:
+            self._leave()  # the connection leaves this protocol
+            super().handle_websocket_upgrade(event)
+
+        def connection_lost(self, exc) -> None:
+            self._leave()
+            super().connection_lost(exc)
+
+    return Guarded

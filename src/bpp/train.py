@@ -22,7 +22,7 @@ from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpo
 from bpp.core.contract import device_frames
 from bpp.core.registry import get_benchmark, open_store
 from bpp.data.frame_refs import render_batch
-from bpp.data.prompt_dataset import PromptBatchDataset, trainable_tasks
+from bpp.data.prompt_dataset import PromptBatchDataset, finite_statistics, trainable_tasks
 from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
@@ -226,6 +226,7 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     store = open_store(cfg.data)
     benchmark = get_benchmark(store.benchmark)
     trainable_tasks(store)  # refused now, not after the model is built (or loaded, or compiled)
+    finite_statistics(store)
     method = get_method(cfg.method)
     torch.manual_seed(cfg.seed)
     model, ema, optimizer = build_training(cfg, method.model_cls(model_cfg, store.stats), device)

@@ -86,6 +86,18 @@ def trainable_tasks(store: EpisodeStore, tasks: Sequence[int] | None = None) -> 
     return usable
 
 
+def finite_statistics(store: EpisodeStore) -> None:
+    """Refuse a store whose normalisation statistics hold a NaN or an infinity (a store written before stores
+    refused non-finite values): training on it would end with NaN weights."""
+    for key, stats in store.stats.items():
+        for name, values in stats.items():
+            if not np.isfinite(np.asarray(values, dtype=np.float64)).all():
+                raise UserError(
+                    f"{store.path}: the {name} of {key!r} is not finite ({values}): the store holds a NaN or an "
+                    "infinity; write it again from its source, whose bad values are then named"
+                )
+
+
 class PromptBatchDataset(torch.utils.data.Dataset):
     """Batches ``{"obs": {k: (B, To, ...)}, "action": (B, T, A), "context": {...}, "context_index": (B,),
     "task": (G,)}`` (numpy).

@@ -113,6 +113,20 @@ def _json_safe(value: Any) -> Any:
     return value
 
 
+def _check_finite(key: str, value: np.ndarray, episode: int) -> None:
+    """Refuse a per-step array with a NaN or an infinity: a store holds finite numbers only, so that no statistic,
+    normaliser or trained weight downstream of it turns into NaN (every writer passes this door: generators,
+    importers, merges)."""
+    if value.dtype.kind not in "fc" or np.isfinite(value).all():
+        return
+    flat = value.reshape(len(value), -1)
+    step, item = (int(i) for i in np.argwhere(~np.isfinite(flat))[0])
+    raise StoreError(
+        f"episode {episode}: {key!r} holds {flat[step, item]} at step {step} (item {item}); a store keeps finite "
+        "numbers only"
+    )
+
+
 class _RunningStats:
     """Per-feature min/max/mean/std over all steps, accumulated in float64."""
 
@@ -250,6 +264,8 @@ class EpisodeWriter:
         if self._columns and set(columns) | {"task_index"} != set(self._columns):
             raise StoreError(f"episode columns {sorted(columns)} differ from earlier {sorted(self._columns)}")
         n = next(iter(lengths.values()))
+        for key, value in steps.items():
+            _check_finite(key, np.asarray(value), len(self._ends))
         for key, value in steps.items():
             value = np.asarray(value)
             self._buffer.setdefault(key, []).append(value)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import functools
 import json
 import multiprocessing
-import os
 import re
 import sys
 from collections.abc import Mapping, Sequence
@@ -41,7 +40,7 @@ from bpp.benchmarks.iphumi.recording import (
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
 from bpp.recorded.heldout import heldout_path, split_episodes
-from bpp.utils import usable_cores, worker_pool, write_json_atomic
+from bpp.utils import atomic_path, usable_cores, worker_pool, write_json_atomic
 
 BENCHMARK = "iphumi"
 """The benchmark name written into the stores made here (the registry's key)."""
@@ -100,9 +99,8 @@ def _process(group: str, folders: dict[str, str], index: dict[str, str], setting
         write_json_atomic(part(".rejected.json"), {"group": group, "reason": str(err)})
         return group, 0, [], str(err)
     arrays = {f"{i}/{name}": value for i, episode in enumerate(episodes) for name, value in episode["steps"].items()}
-    tmp = Path(parts) / f".{part('.npz').name}.tmp-{os.getpid()}.npz"
-    np.savez(tmp, **arrays)
-    os.replace(tmp, part(".npz"))
+    with atomic_path(part(".npz")) as tmp:  # complete or absent, a full disk named
+        np.savez(tmp, **arrays)
     meta = {"group": group, "episodes": [{"task": e["task"], "start": e["start"]} for e in episodes], "notes": skipped}
     part(".rejected.json").unlink(missing_ok=True)
     write_json_atomic(part(".json"), meta)  # last: its presence marks the part complete

@@ -26,7 +26,7 @@ from bpp.benchmarks.iphumi.video import write_video
 from bpp.core.poses import invert, make_pose
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 from bpp.errors import UserError
-from bpp.utils import check_fields
+from bpp.utils import atomic_path, check_fields
 
 DEVICE = "iPhone16,1"
 CLOSED_WIDTH = 0.025
@@ -166,60 +166,64 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
             "no recording is overwritten"
         )
     day = datetime(2026, 1, 15, 9, 0, 0, tzinfo=timezone.utc)
-    folder = out / day.strftime("%Y-%m-%d")
-    truths: dict[str, Truth] = {}
-    sides = ["right", "left"] if settings.bimanual else ["right"]
-    calibrations = {}
-    clock = day.timestamp()
-    for side in sides:
-        name = f"{_folder_time(clock)}_{rng.integers(10000, 99999)}_{settings.session}_grippercalibration_{side}"
-        _write_calibration(folder / name, clock, side, settings, rng)
-        calibrations[side] = name
-        clock += 20.0
-    for demo in range(settings.demonstrations):
-        clock += 5.0
-        tasks = [(demo + k) % settings.tasks for k in range(settings.tasks_per_demonstration)]
-        place = make_pose(_rotation_y(rng.uniform(-0.5, 0.5)), [rng.uniform(-0.1, 0.1), 0.0, rng.uniform(-0.1, 0.1)])
-        # the motion, shared by the phones of a bimanual demonstration (the left gripper mirrors the right at an offset)
-        local, positions, labels, widths, t = [], [], [], [], 0.0
-        for task in tasks:
-            path, _, _ = _task_path(task, settings.seed)
-            duration = _segment_seconds(path) + 2 * GRASP
-            steps = np.arange(0.0, duration, 1 / 60)
-            positions.append(_trace(path, np.clip(steps - GRASP, 0, None)))
-            widths.append(_opening(steps, duration))
-            labels.append((f"draw task {task}", t, t + duration))
-            local.append(t + steps)
-            t += duration + 0.5
-        number = rng.integers(10000, 99999)
-        group = f"{_folder_time(clock)}_{number}_{settings.session}_demonstration"
-        present = [*sides, "head"] if settings.head else sides
-        # the phones' shared ARKit world frame: a random rigid transform of the table's, as a new session's is
-        world = make_pose(_rotation_y(rng.uniform(-np.pi, np.pi)), rng.normal(0, 0.5, 3))
-        for side in present:
-            offset = {"right": 0.0, "left": -0.35, "head": -0.15}[side]
-            jitter = rng.uniform(-0.4, 0.4, size=sum(len(p) for p in positions)) * 1e-3
-            times = np.round((clock + np.concatenate(local) + jitter) * 1000) / 1000
-            motion = _motion(clock, positions, local, widths, world @ place, offset, side)
-            tcp, width = motion(times)
-            name = f"{group}_{side}"
-            _write_demonstration(
-                folder / name,
-                times,
-                tcp,
-                width,
-                labels,
-                clock,
-                side,
-                present,
-                calibrations.get(side, ""),
-                tasks,
-                settings,
-                rng,
-            )
-            if side != "head":
-                truths[name] = Truth(times, tcp, width, [(n, clock + a, clock + b) for n, a, b in labels], motion)
-        clock += t + 2.0
+    out.mkdir(parents=True, exist_ok=True)
+    # The day's folder is written as a whole or not at all (a full disk, Ctrl-C), the error naming it.
+    with atomic_path(out / day.strftime("%Y-%m-%d")) as folder:
+        truths: dict[str, Truth] = {}
+        sides = ["right", "left"] if settings.bimanual else ["right"]
+        calibrations = {}
+        clock = day.timestamp()
+        for side in sides:
+            name = f"{_folder_time(clock)}_{rng.integers(10000, 99999)}_{settings.session}_grippercalibration_{side}"
+            _write_calibration(folder / name, clock, side, settings, rng)
+            calibrations[side] = name
+            clock += 20.0
+        for demo in range(settings.demonstrations):
+            clock += 5.0
+            tasks = [(demo + k) % settings.tasks for k in range(settings.tasks_per_demonstration)]
+            turn = _rotation_y(rng.uniform(-0.5, 0.5))
+            place = make_pose(turn, [rng.uniform(-0.1, 0.1), 0.0, rng.uniform(-0.1, 0.1)])
+            # the motion, shared by the phones of a bimanual demonstration (the left gripper mirrors the right at an
+            # offset)
+            local, positions, labels, widths, t = [], [], [], [], 0.0
+            for task in tasks:
+                path, _, _ = _task_path(task, settings.seed)
+                duration = _segment_seconds(path) + 2 * GRASP
+                steps = np.arange(0.0, duration, 1 / 60)
+                positions.append(_trace(path, np.clip(steps - GRASP, 0, None)))
+                widths.append(_opening(steps, duration))
+                labels.append((f"draw task {task}", t, t + duration))
+                local.append(t + steps)
+                t += duration + 0.5
+            number = rng.integers(10000, 99999)
+            group = f"{_folder_time(clock)}_{number}_{settings.session}_demonstration"
+            present = [*sides, "head"] if settings.head else sides
+            # the phones' shared ARKit world frame: a random rigid transform of the table's, as a new session's is
+            world = make_pose(_rotation_y(rng.uniform(-np.pi, np.pi)), rng.normal(0, 0.5, 3))
+            for side in present:
+                offset = {"right": 0.0, "left": -0.35, "head": -0.15}[side]
+                jitter = rng.uniform(-0.4, 0.4, size=sum(len(p) for p in positions)) * 1e-3
+                times = np.round((clock + np.concatenate(local) + jitter) * 1000) / 1000
+                motion = _motion(clock, positions, local, widths, world @ place, offset, side)
+                tcp, width = motion(times)
+                name = f"{group}_{side}"
+                _write_demonstration(
+                    folder / name,
+                    times,
+                    tcp,
+                    width,
+                    labels,
+                    clock,
+                    side,
+                    present,
+                    calibrations.get(side, ""),
+                    tasks,
+                    settings,
+                    rng,
+                )
+                if side != "head":
+                    truths[name] = Truth(times, tcp, width, [(n, clock + a, clock + b) for n, a, b in labels], motion)
+            clock += t + 2.0
     return truths
 
 

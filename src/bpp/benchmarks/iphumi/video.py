@@ -8,7 +8,10 @@ last decoded frame read that frame (and are counted), and a video far shorter th
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
+import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -16,6 +19,8 @@ import numpy as np
 
 from bpp.benchmarks.iphumi.recording import RecordingError
 
+FULL_DISK = 16 << 20
+"""Free bytes under which a video FFmpeg stopped writing is reported as written to a full disk."""
 MAX_DROPPED = 0.05
 """A video may lack at most this share of its logged frame times (dropped frames); more is a truncated file."""
 
@@ -85,7 +90,12 @@ def write_video(path: Path, frames, fps: float, size: tuple[int, int]) -> None:
         output_params=["-f", "mov", "-preset", "veryfast"],
         ffmpeg_log_level="error",
     )
-    writer.send(None)
-    for frame in frames:
-        writer.send(np.ascontiguousarray(frame, dtype=np.uint8))
-    writer.close()
+    try:
+        writer.send(None)
+        for frame in frames:
+            writer.send(np.ascontiguousarray(frame, dtype=np.uint8))
+        writer.close()
+    except OSError as err:  # FFmpeg stopped: the pipe to it breaks, and neither names the file nor says why
+        if shutil.disk_usage(path.parent).free < FULL_DISK:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path)) from None
+        raise OSError(err.errno, f"FFmpeg stopped writing it ({err})", str(path)) from None

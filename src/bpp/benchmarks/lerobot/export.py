@@ -37,6 +37,7 @@ from bpp.benchmarks.lerobot.library import dataset_library, offline_and_quiet
 from bpp.core.registry import get_benchmark
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.utils import naming
 
 CONTROL_HZ = {"drawanything": 10, "libero_gen": 20}
 """Control rates of the built-in simulators (DrawAnything's physics.CONTROL_HZ; LIBERO's control_freq), the fps of
@@ -162,7 +163,7 @@ def export_store(
     tmp = out.parent / f".{out.name}.partial-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
-        with offline_and_quiet():
+        with offline_and_quiet(out):
             dataset = lib.LeRobotDataset.create(
                 repo_id=f"bpp/{out.name}",
                 fps=fps,
@@ -175,6 +176,9 @@ def export_store(
             )
             for episode in tqdm(episodes, desc="export", unit="episode", disable=not progress):
                 steps = store.episode(episode, [action, *numeric, *concat])
+                for key, values in steps.items():
+                    if values.dtype.kind == "f" and not np.isfinite(values).all():
+                        raise UserError(f"{store.path}: episode {episode}'s {key!r} holds a NaN or an infinity")
                 columns = {names[k]: _feature_values(steps[k], features[names[k]]) for k in [action, *numeric]}
                 if concat:
                     joined = np.concatenate([steps[k].reshape(len(steps[k]), -1) for k in concat], axis=1)
@@ -195,6 +199,8 @@ def export_store(
             os.replace(out, old)
             shutil.rmtree(old, ignore_errors=True)
         os.replace(tmp, out)
+    except OSError as err:  # a full disk: LeRobot's writer, pyarrow and FFmpeg name the temporary folder or nothing
+        raise naming(err, out) from None
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out

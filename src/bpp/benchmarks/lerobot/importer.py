@@ -12,6 +12,7 @@ and resized to one square size when imported.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -135,7 +136,46 @@ def read_info(root: Path) -> dict:
     for needed in ("meta/tasks.parquet", "meta/episodes"):
         if not (root / needed).exists():
             raise UserError(f"{root}: missing {needed}; the dataset is incomplete")
+    fps = info["fps"]
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not math.isfinite(fps) or fps <= 0:
+        raise UserError(f"{info_path}: fps {fps!r}; a dataset's frame rate is a positive number")
     return info
+
+
+def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> None:
+    """Refuse a per-frame parquet file that cannot be read, or lacks a column bpp imports, or holds it narrower or
+    wider than ``meta/info.json`` says, naming the file and the column (LeRobot's library would fail later, in the
+    `datasets` package, with a traceback that names neither)."""
+    # pyarrow: the lerobot extra
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(path)
+    except (pa.ArrowException, OSError) as err:
+        raise UserError(f"{path}: not a readable parquet file ({err}); the dataset is damaged") from None
+    for item in (*fmap.lowdim, fmap.action):
+        if item.feature not in schema.names:
+            raise UserError(f"{path}: no column {item.feature!r}, a feature of meta/info.json; the file is damaged")
+        kind = schema.field(item.feature).type
+        width = kind.list_size if pa.types.is_fixed_size_list(kind) else None
+        expected = int(np.prod(features[item.feature].get("shape") or (1,)))
+        if width is not None and width != expected:
+            raise UserError(
+                f"{path}: column {item.feature!r} holds {width} values a frame, meta/info.json says {expected}"
+            )
+
+
+def _check_finite_frames(values: np.ndarray, where: str, feature: str) -> None:
+    """Refuse NaN and infinities where they enter, naming the file, the column and the frame (the store refuses
+    them too, but knows neither)."""
+    if values.dtype.kind != "f" or np.isfinite(values).all():
+        return
+    frame, item = (int(i) for i in np.argwhere(~np.isfinite(values))[0])
+    raise UserError(
+        f"{where}: column {feature!r} holds {values[frame, item]} at frame {frame} (value {item}); bpp imports finite "
+        "numbers only: repair or drop the episode (--episodes)"
+    )
 
 
 def parse_episodes(text: str, total: int) -> list[int]:
@@ -158,8 +198,9 @@ def parse_episodes(text: str, total: int) -> list[int]:
 
 
 # ------------------------------------------------------------------------------------------------ reading
-def _as_numpy(column, rows: int, item: Mapped) -> np.ndarray:
-    """An Arrow column of a numeric feature -> (rows, width) in the store's dtype."""
+def _as_numpy(column, rows: int, item: Mapped, where: str) -> np.ndarray:
+    """An Arrow column of a numeric feature -> (rows, width) in the store's dtype; `where` names the episode's file
+    in errors."""
     # pyarrow: the lerobot extra
     import pyarrow as pa
 
@@ -171,8 +212,24 @@ def _as_numpy(column, rows: int, item: Mapped) -> np.ndarray:
         array = array.flatten()
     values = array.to_numpy(zero_copy_only=False)
     if values.size != rows * item.width:
-        raise UserError(f"feature {item.feature!r}: {values.size} values for {rows} frames of shape {item.shape}")
-    return values.reshape(rows, item.width).astype(item.store_dtype)
+        raise UserError(f"{where}: column {item.feature!r}: {values.size} values for {rows} frames of {item.shape}")
+    values = values.reshape(rows, item.width)
+    _check_finite_frames(values, where, item.feature)
+    return values.astype(item.store_dtype)
+
+
+def _arrow_cause(err: BaseException) -> str | None:
+    """The Arrow or I/O error at the root of `err`'s chain as "Type: message", or None if there is none."""
+    # pyarrow: the lerobot extra
+    import pyarrow as pa
+
+    found, seen = None, set()
+    while err is not None and id(err) not in seen:
+        seen.add(id(err))
+        if isinstance(err, pa.ArrowException | OSError):
+            found = f"{type(err).__name__}: {' '.join(str(err).split())}"
+        err = err.__cause__ or err.__context__
+    return found
 
 
 class _Reader:
@@ -198,10 +255,14 @@ class _Reader:
         # the Hugging Face Hub's client: the lerobot extra
         from huggingface_hub.errors import OfflineModeIsEnabled
 
+        checked = set()
         for episode in episodes:
             data = self.root / self.meta.get_data_file_path(episode)
             if not data.is_file():
                 raise UserError(f"{self.root}: missing data file {data.relative_to(self.root)} (episode {episode})")
+            if data not in checked:
+                check_data_file(data, self.fmap, self.meta.features)
+                checked.add(data)
             for key in self.meta.video_keys:
                 video = self.root / self.meta.get_video_file_path(episode, key)
                 if not video.is_file():
@@ -220,6 +281,15 @@ class _Reader:
         except OfflineModeIsEnabled:
             raise UserError(
                 f"{self.root}: LeRobot's library finds the dataset incomplete; nothing is downloaded"
+            ) from None
+        except Exception as err:  # noqa: BLE001 - the `datasets` package wraps a damaged file's Arrow error its own way
+            cause = _arrow_cause(err)
+            if cause is None:
+                raise
+            files = sorted({str(self.meta.get_data_file_path(e)) for e in episodes})
+            raise UserError(
+                f"{self.root}: a parquet file under data/ is damaged ({cause}); the episodes imported read "
+                f"{', '.join(files)}"
             ) from None
         self.table = self.dataset.hf_dataset.with_format("arrow")
         columns = self.table[:].select(["episode_index", "frame_index", "task_index"])
@@ -248,7 +318,8 @@ class _Reader:
     def read(self, episode: int, table) -> dict[str, np.ndarray]:
         """The store's per-step arrays of one episode."""
         n = table.num_rows
-        steps = {m.key: _as_numpy(table.column(m.feature), n, m) for m in (*self.fmap.lowdim, self.fmap.action)}
+        where = f"{self.root / self.meta.get_data_file_path(episode)} (episode {episode})"
+        steps = {m.key: _as_numpy(table.column(m.feature), n, m, where) for m in (*self.fmap.lowdim, self.fmap.action)}
         for camera in self.fmap.cameras:
             steps[camera.key] = self._camera(episode, camera, table)
         return steps
@@ -295,7 +366,7 @@ def import_dataset(
     fmap = map_features(info["features"], settings.cameras, settings.skip, settings.action)
     holding_out = bool(settings.holdout_episodes or settings.holdout_tasks)
     held_path = Path(heldout_out) if heldout_out is not None else heldout_path(out)
-    with offline_and_quiet():
+    with offline_and_quiet(out):
         reader = _Reader(root, fmap, settings)
         try:
             chosen = parse_episodes(settings.episodes, reader.total_episodes)

@@ -17,6 +17,8 @@ import ctypes
 import glob
 import io
 import os
+import shutil
+import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -38,14 +40,22 @@ def dataset_library():
 
 
 @contextlib.contextmanager
-def offline_and_quiet() -> Iterator[None]:
+def offline_and_quiet(beside: Path) -> Iterator[None]:
     """While the library runs: no network (a file it cannot find locally is an error rather than a download from the
-    Hugging Face Hub), and no progress bars or encoder banners in the output."""
-    # PyAV: the lerobot extra
+    Hugging Face Hub), no progress bars or encoder banners in the output, and nothing written outside the command's
+    output: the `datasets` package, through which the library reads parquet files, keeps an Arrow copy of each in its
+    cache (under the user's home by default), here a hidden temporary folder beside `beside`, removed afterwards."""
+    # PyAV, the `datasets` package: the lerobot extra
     import av
+    import datasets
     import huggingface_hub.constants as hub
     from datasets.utils import logging as datasets_logging
 
+    beside = Path(beside)
+    beside.parent.mkdir(parents=True, exist_ok=True)
+    cache = Path(tempfile.mkdtemp(prefix=f".{beside.name}.datasets-cache-", dir=beside.parent))
+    cache_before = datasets.config.HF_DATASETS_CACHE
+    datasets.config.HF_DATASETS_CACHE = cache
     offline, bars = hub.HF_HUB_OFFLINE, datasets_logging.is_progress_bar_enabled()
     svt = os.environ.get("SVT_LOG")
     hub.HF_HUB_OFFLINE = True
@@ -55,6 +65,8 @@ def offline_and_quiet() -> Iterator[None]:
     try:
         yield
     finally:
+        datasets.config.HF_DATASETS_CACHE = cache_before
+        shutil.rmtree(cache, ignore_errors=True)
         hub.HF_HUB_OFFLINE = offline
         _ffmpeg_log_level(level)
         if bars:

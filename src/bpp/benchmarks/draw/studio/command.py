@@ -16,7 +16,7 @@ from pathlib import Path
 
 from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints, make_memory_releasable
 from bpp.errors import require_extra
-from bpp.network import TOKEN_RULE, is_loopback, listen, strong_token, urls
+from bpp.network import TOKEN_RULE, guarded_http, is_loopback, listen, strong_token, urls
 from bpp.utils import check_fields
 
 
@@ -104,15 +104,28 @@ def studio(args: StudioCommand) -> None:
             print("[studio] API token (Authorization: Bearer ...): " + token)
             if args.browser:
                 threading.Timer(1.0, webbrowser.open, (f"{urls[-1]}#token={token}",)).start()
-            config = uvicorn.Config(
-                app, log_level="warning", limit_concurrency=256, timeout_keep_alive=5, timeout_graceful_shutdown=5
-            )
             try:
-                uvicorn.Server(config).run(sockets=[listener])
+                uvicorn.Server(server_config(app, limits)).run(sockets=[listener])
             finally:
                 engine.close()
     finally:
         listener.close()
+
+
+def server_config(app, limits: Limits, **where):
+    """uvicorn's configuration for a studio `app`: every connection guarded before any route or token is read
+    (:func:`bpp.network.guarded_http`), 256 connections and requests at once in all (503 beyond), idle connections
+    closed after 5 s. `where`: uvicorn's host and port, where it opens the socket itself."""
+    uvicorn = require_extra("uvicorn", "studio")
+    return uvicorn.Config(
+        app,
+        http=guarded_http(limits.header_timeout_s, limits.max_connections_per_client),
+        log_level="warning",
+        limit_concurrency=256,
+        timeout_keep_alive=5,
+        timeout_graceful_shutdown=5,
+        **where,
+    )
 
 
 def _trace_allocations(path: str) -> None:

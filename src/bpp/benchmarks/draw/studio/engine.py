@@ -12,11 +12,11 @@ is stopped.
 Nothing a client sends is used as a file path: prompts and uploads are written under server-chosen names.
 
 Every token holder may be an abuser, so every kind of work has a bound per session and in total (:class:`Limits`):
-prompts are prepared a few at a time and refused by cheap checks before costly ones, a rollout's rendered frames
-wait for their reader (a rollout runs ahead of its reader by at most ``Limits.frame_backlog`` frames), events are
-kept as compact JSON text, animations are rendered from a bounded number of frames, cached, and stopped when their
-client leaves, and a session that is in use is never evicted to make room for a new one. What a burst of work frees
-goes back to the system within ``RELEASE_EVERY_S`` (:func:`make_memory_releasable`).
+prompts are prepared a few at a time and refused by cheap checks before costly ones, a rollout's rendered frames wait
+for their reader (a rollout runs ahead of its reader by at most ``Limits.frame_backlog`` frames), events are kept as
+compact JSON text, animations are rendered from a bounded number of frames, cached, and stopped when their client
+leaves, and places are shared fairly between client addresses (a session whose work is under way is never evicted). What
+a burst of work frees goes back to the system within ``RELEASE_EVERY_S`` (:func:`make_memory_releasable`).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import secrets
 import shutil
 import threading
 import time
+from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -99,11 +100,9 @@ class Limits:
     """A running rollout whose events no client has read for this long is stopped."""
     session_idle_s: float = 3600.0
     """A session unused for this long is forgotten (its prompts deleted)."""
-    session_active_s: float = 300.0
-    """A session used this recently (or with a running rollout, an open stream or a render) is in use: a new
-    session never evicts it; when every session is in use, a new one is refused (429)."""
     max_sessions_per_client: int = 16
-    """Sessions one client address may hold, so that one client cannot take every place."""
+    """Sessions one client address may hold, so that one client cannot take every place: its next one replaces its
+    own least valuable one (:meth:`Studio.new_session`)."""
     max_prompt_jobs: int = 2
     """Prompts prepared at once in the whole studio (one per session)."""
     max_streams_per_session: int = 4
@@ -117,6 +116,10 @@ class Limits:
     """An animation shows at most this many frames (a longer rollout shows every k-th step, at the same pace)."""
     body_timeout_s: float = 10.0
     """A request body must arrive within this many seconds."""
+    header_timeout_s: float = 10.0
+    """A request's headers must arrive within this many seconds of the connection opening (or of its last answer)."""
+    max_connections_per_client: int = 32
+    """Connections one client address may hold open at once (a browser opens about 6 per page)."""
 
 
 @dataclass
@@ -240,9 +243,14 @@ class Session:
     preparing: bool = False
     """A prompt of this session is being prepared (one at a time)."""
 
-    def in_use(self, now: float, active_s: float) -> bool:
-        busy = self.streams or self.renders or self.preparing or any(r.running for r in self.rollouts.values())
-        return bool(busy) or now - self.last_used < active_s
+    def busy(self) -> bool:
+        """Work is under way: a running rollout, an open stream, a render or a prompt being prepared."""
+        return bool(self.streams or self.renders or self.preparing or any(r.running for r in self.rollouts.values()))
+
+    def worth(self) -> tuple[bool, float]:
+        """What eviction weighs, least first: a session that holds nothing (no prompt, no rollout: a page opened and
+        left, or a flood of new sessions) before one that holds work, then the least recently used."""
+        return bool(self.prompts or self.rollouts), self.last_used
 
 
 def find_checkpoints(roots) -> list[CheckpointInfo]:
@@ -297,32 +305,38 @@ class Studio:
 
     # ------------------------------------------------------------------------------------------ sessions
     def new_session(self, client: str = "") -> str:
-        """A new session for the client at address `client`. When the client holds ``max_sessions_per_client``
-        sessions, its own least recently used session that is not in use (``Limits.session_active_s``) is
-        forgotten to make room; when the studio is full, anyone's. A session in use is never pushed out: when all
-        candidates are in use, the new session is refused (429)."""
+        """A new session for the client at address `client`, the places shared fairly between addresses. A client at
+        ``max_sessions_per_client`` replaces one of its own sessions; when the studio is full, the new session
+        replaces one of the client that holds the most. Either way the one replaced is the least valuable
+        (:meth:`Session.worth`: one that holds nothing before one that holds work, then the least recently used),
+        and a session whose work is under way (:meth:`Session.busy`) is never replaced: when every candidate is
+        busy, the new session is refused (429). So a flood of new sessions from one address replaces only its
+        own, and a client with one session keeps it unless every address holds one."""
         with self.lock:
             forgotten = self._forget_idle()
-            now = time.monotonic()
             mine = [s for s in self.sessions.values() if s.client == client]
             if len(mine) >= self.limits.max_sessions_per_client:  # a client makes room only among its own
-                forgotten.append(self._evict(mine, now, f"this client's {len(mine)} sessions"))
+                forgotten.append(self._evict([mine], f"this client's {len(mine)} sessions"))
             elif len(self.sessions) >= self.limits.max_sessions:
-                forgotten.append(
-                    self._evict(list(self.sessions.values()), now, f"the studio's {len(self.sessions)} sessions")
-                )
+                held = Counter(s.client for s in self.sessions.values())
+                by_count: dict[int, list[Session]] = {}  # the sessions of the clients that hold n, by n
+                for session in self.sessions.values():
+                    by_count.setdefault(held[session.client], []).append(session)
+                largest_first = [by_count[n] for n in sorted(by_count, reverse=True)]
+                forgotten.append(self._evict(largest_first, f"the studio's {len(self.sessions)} sessions"))
             sid = secrets.token_hex(16)
             self.sessions[sid] = Session(sid, self.workdir / sid, client=client)
         for session in forgotten:  # outside the lock: deleting files must not hold up requests
             self._discard(session)
         return sid
 
-    def _evict(self, candidates: list[Session], now: float, whose: str) -> Session:
-        """Forget the least recently used of `candidates` that is not in use, or refuse (429) if all are."""
-        idle = [s for s in candidates if not s.in_use(now, self.limits.session_active_s)]
-        if not idle:
-            raise StudioError(f"{whose} are all in use; end one (DELETE /api/session) or try later", "session", 429)
-        return self.sessions.pop(min(idle, key=lambda s: s.last_used).id)
+    def _evict(self, groups: list[list[Session]], whose: str) -> Session:
+        """Forget the least valuable session that is not busy of the first group that has one, or refuse (429)."""
+        for group in groups:
+            idle = [s for s in group if not s.busy()]
+            if idle:
+                return self.sessions.pop(min(idle, key=Session.worth).id)
+        raise StudioError(f"{whose} are all busy; end one (DELETE /api/session) or try later", "session", 429)
 
     def end_session(self, sid: str) -> None:
         """Stop the session's rollouts and forget it (its prompts are deleted)."""
@@ -359,7 +373,7 @@ class Studio:
         forgotten = []
         for sid, session in list(self.sessions.items()):
             idle = now - session.last_used > self.limits.session_idle_s
-            if idle and not session.in_use(now, 0.0):
+            if idle and not session.busy():
                 forgotten.append(self.sessions.pop(sid))
         return forgotten
 
