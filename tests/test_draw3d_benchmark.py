@@ -24,6 +24,7 @@ from helpers import import_optional  # noqa: E402
 pytestmark = [pytest.mark.libero, pytest.mark.iphumi, pytest.mark.slow]  # robosuite's Panda; OpenCV
 import_optional("robosuite", "libero")
 import_optional("cv2", "iphumi")
+iio = import_optional("imageio.v3", "iphumi")
 
 from bpp.benchmarks.draw3d.benchmark import BENCHMARK  # noqa: E402
 from bpp.core.registry import get_benchmark  # noqa: E402
@@ -122,6 +123,20 @@ def test_a_lab_calibration_is_checked_against_touched_markers(tmp_path, capsys):
     moved.write_text(json.dumps(calibration))
     with pytest.raises(SystemExit, match="moved.json: .*rotation is not a rotation"):
         main([*check, "--calibration", str(moved)])
+    # refusals name the photo or the file of touched points they are about
+    own = ["--calibration", str(lab / "calibration.json")]
+    blank = tmp_path / "blank.png"
+    iio.imwrite(blank, np.full((calibration["height"], calibration["width"], 3), 240, np.uint8))
+    with pytest.raises(SystemExit, match=f"{blank}: found no red marker"):
+        main([*check[:2], "--photo", str(blank), "--touched", str(lab / "touched.json"), *own])
+    small = tmp_path / "small.png"
+    iio.imwrite(small, np.full((10, 12, 3), 240, np.uint8))
+    with pytest.raises(SystemExit, match=f"{small}: the photo is 12x10 px"):
+        main([*check[:2], "--photo", str(small), "--touched", str(lab / "touched.json"), *own])
+    three = tmp_path / "three.json"
+    three.write_text(json.dumps({"touched": [[0, 0, 0]] * 3}))
+    with pytest.raises(SystemExit, match=f"{three}: touched must be 4 finite"):
+        main([*check[:2], "--photo", str(lab / "photo.png"), "--touched", str(three), *own])
 
 
 def test_a_robot_reaches_a_served_policy_with_the_simulator_standing_in_for_its_driver(store, tmp_path):

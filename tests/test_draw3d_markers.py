@@ -62,7 +62,7 @@ def cut(pose: np.ndarray, marker: int, fraction: float, direction_deg: float) ->
 @pytest.mark.parametrize("seed", range(6))
 def test_round_trip_at_random_placements(seed):
     rng = np.random.default_rng(seed)
-    truth = random_canvas_pose(rng, K, distance=(0.5, 1.0), max_tilt_deg=30, max_rotation_deg=45)
+    truth = random_canvas_pose(rng, K, distance=(0.5, 1.0), max_tilt_deg=30, max_rotation_deg=44)
     image = render_canvas(truth, K, light=rng.uniform(0.7, 1.1), rng=rng)
     assert_close(canvas_pose(image, K), truth)
 
@@ -96,6 +96,13 @@ def test_44_degrees_on_a_tilted_canvas_is_settled_in_3d():
     image; the pose still names its corners by the canvas's own rotation."""
     truth = canvas_placement([0.0, 0.0, 0.7], tilt_deg=30, tilt_axis_deg=45, rotation_deg=44)
     assert_close(canvas_pose(render_canvas(truth, K, rng=np.random.default_rng(1)), K), truth)
+
+
+@pytest.mark.parametrize("rotation_deg", [45.0, -45.0, 44.7, -45.3, 135.2])
+def test_45_degrees_is_refused_where_the_identical_markers_cannot_name_the_corners(rotation_deg):
+    truth = canvas_placement(FACING[:3, 3], rotation_deg=rotation_deg)
+    with pytest.raises(CanvasNotFound, match=r"turned 4[45]\.[0-9] degrees from upright: within 0.5 degree of 45"):
+        canvas_pose(render_canvas(truth, K, rng=np.random.default_rng(3)), K)
 
 
 def test_beyond_45_degrees_is_read_as_the_nearer_upright():

@@ -178,9 +178,12 @@ def read_touched(path: str | Path) -> np.ndarray:
     if not isinstance(data, dict) or "touched" not in data:
         raise UserError(f'{path}: expected {{"touched": [[x, y, z], ...4 points]}} in metres, base frame')
     try:
-        return np.array(data["touched"], dtype=np.float64)
+        touched = np.array(data["touched"], dtype=np.float64)
     except (ValueError, TypeError) as err:
         raise UserError(f"{path}: touched: {err}") from None
+    if touched.shape != (4, 3) or not np.all(np.isfinite(touched)):
+        raise UserError(f"{path}: touched must be 4 finite [x, y, z] positions in metres, got shape {touched.shape}")
+    return touched
 
 
 def simulated_lab(folder: str | Path, seed: int = 0, touch_noise_mm: float = 0.5) -> dict[str, Path]:

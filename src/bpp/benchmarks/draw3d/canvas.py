@@ -52,6 +52,9 @@ AREA_RATIO_RANGE = (0.9, 1.1)
 marker is partly hidden (or merged with other red) and its centroid cannot be trusted."""
 MAX_REPROJECTION_PX = 1.0
 """Largest distance (pixels) between a measured marker centre and the fitted pose's projection of it."""
+AMBIGUOUS_DEG = 0.5
+"""A canvas turned within this of 45 degrees from upright is refused: its top and its side are equally near up, and
+the markers are identical (beyond 45 degrees its top is the side nearer up: 50 degrees reads as -40)."""
 SUPERSAMPLE = 4
 """render_canvas's samples per pixel along each axis."""
 NOISE_STD = 2.0
@@ -320,11 +323,20 @@ def _reprojection(k, obj, pts, rvec, tvec) -> float:
 
 def _quarter_rotations(pose: np.ndarray, up: np.ndarray) -> int:
     """How many 90-degree rotations about its normal bring the canvas's y axis within 45 degrees of `up` (a direction in
-    the camera frame) projected onto the canvas plane."""
+    the camera frame) projected onto the canvas plane. :class:`CanvasNotFound` within ``AMBIGUOUS_DEG`` of 45
+    degrees, where two of them are as near."""
     up_canvas = pose[:3, :3].T @ up
     if math.hypot(up_canvas[0], up_canvas[1]) < 1e-6:  # the canvas faces straight up or down: no upright
         return 0
-    return round(math.atan2(up_canvas[0], up_canvas[1]) / (math.pi / 2))
+    quarters = math.atan2(up_canvas[0], up_canvas[1]) / (math.pi / 2)
+    turned = 90.0 * (quarters - round(quarters))  # the canvas's turn from the nearest upright, degrees
+    if abs(abs(turned) - 45.0) < AMBIGUOUS_DEG:
+        raise CanvasNotFound(
+            f"the canvas is turned {abs(turned):.1f} degrees from upright: within {AMBIGUOUS_DEG:g} degree of 45, its "
+            "four identical markers cannot tell its top from its side; hang it nearer upright",
+            "ambiguous rotation",
+        )
+    return round(quarters)
 
 
 def canvas_pose(

@@ -56,9 +56,11 @@ def draw3d_calibration(args: Draw3DCalibration) -> None:
         image = iio.imread(photo)
     except (OSError, ValueError) as err:
         raise UserError(f"{photo}: cannot read the photo ({err})") from None
-    check = check_calibration(
-        CameraCalibration.load(calibration), image[..., :3], read_touched(touched), args.tolerance_mm
-    )
+    camera, points = CameraCalibration.load(calibration), read_touched(touched)
+    try:
+        check = check_calibration(camera, image[..., :3], points, args.tolerance_mm)
+    except UserError as err:  # the inputs are checked: what is left is the photo's (its size, its markers)
+        raise UserError(f"{photo}: {err}") from None
     print(check.report())
     if not check.passed:
         raise UserError(f"{calibration}: the calibration does not agree with the touched markers")
