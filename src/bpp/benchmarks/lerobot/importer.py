@@ -142,10 +142,10 @@ def read_info(root: Path) -> dict:
     return info
 
 
-def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> None:
+def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> np.ndarray:
     """Refuse a per-frame parquet file that cannot be read, or lacks a column bpp imports, or holds it narrower or
     wider than ``meta/info.json`` says, naming the file and the column (LeRobot's library would fail later, in the
-    `datasets` package, with a traceback that names neither)."""
+    `datasets` package, with a traceback that names neither). Returns its count of frames per episode index."""
     # pyarrow: the lerobot extra
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -164,6 +164,12 @@ def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> None:
             raise UserError(
                 f"{path}: column {item.feature!r} holds {width} values a frame, meta/info.json says {expected}"
             )
+    try:
+        episodes = pq.read_table(path, columns=["episode_index"]).column("episode_index").to_numpy()
+    except (pa.ArrowException, OSError, KeyError) as err:
+        cause = " ".join(str(err).split())
+        raise UserError(f"{path}: cannot read its episode_index column ({cause}); the file is damaged") from None
+    return np.bincount(episodes.astype(np.int64)) if len(episodes) else np.zeros(0, np.int64)
 
 
 def _check_finite_frames(values: np.ndarray, where: str, feature: str) -> None:
@@ -255,14 +261,24 @@ class _Reader:
         # the Hugging Face Hub's client: the lerobot extra
         from huggingface_hub.errors import OfflineModeIsEnabled
 
-        checked = set()
+        frames: dict[Path, np.ndarray] = {}  # each data file's frames per episode index
         for episode in episodes:
             data = self.root / self.meta.get_data_file_path(episode)
             if not data.is_file():
                 raise UserError(f"{self.root}: missing data file {data.relative_to(self.root)} (episode {episode})")
-            if data not in checked:
-                check_data_file(data, self.fmap, self.meta.features)
-                checked.add(data)
+            if data not in frames:
+                frames[data] = check_data_file(data, self.fmap, self.meta.features)
+            listed = int(self.meta.episodes[episode]["length"])
+            held = int(frames[data][episode]) if episode < len(frames[data]) else 0
+            if listed <= 0 or held != listed:
+                raise UserError(
+                    f"{data}: episode {episode} has {held} frames there, meta/episodes lists {listed}; "
+                    + (
+                        "an empty episode cannot be imported: leave it out with --episodes"
+                        if 0 in (listed, held)
+                        else "the dataset is damaged"
+                    )
+                )
             for key in self.meta.video_keys:
                 video = self.root / self.meta.get_video_file_path(episode, key)
                 if not video.is_file():
