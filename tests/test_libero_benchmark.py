@@ -508,3 +508,9 @@ def test_the_score_users_read_says_a_chain_s_steps_must_come_in_order():
     said = " ".join(BENCHMARK.metric.description.split())
     assert "Chain task's two steps must be done in their order" in said
     assert "final_goal" in said and "first_step" in said
+
+
+def test_where_a_chain_score_is_read_it_says_the_steps_count_in_their_order():
+    label, _ = BENCHMARK._task_sets["chain-held-out"]
+    assert label.endswith("(success: both steps, in their order)")
+    assert "two steps must be done in their order" in BENCHMARK.metric.description  # the results.md's score line

@@ -86,7 +86,7 @@ class LiberoGen:
             "the Combination suite's 10 held-out tasks x 5 demonstrations (generated on first use)",
         ),
         "chain-held-out": (
-            "unseen Chain chains",
+            "unseen Chain chains (success: both steps, in their order)",
             "the Chain suite's 10 unseen chains x 5 demonstrations (generated on first use)",
         ),
         "libero-spatial": (
