@@ -22,7 +22,8 @@ import_optional("fastapi", "studio")
 
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
 from bpp.benchmarks.draw.studio.command import server_config  # noqa: E402
-from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints  # noqa: E402
+from bpp.benchmarks.draw.studio.engine import Studio  # noqa: E402
+from bpp.benchmarks.draw.studio.state import Limits, find_checkpoints  # noqa: E402
 from bpp.train import TrainConfig, train  # noqa: E402
 
 pytestmark = pytest.mark.studio

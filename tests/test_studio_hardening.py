@@ -24,7 +24,8 @@ httpx = import_optional("httpx", "studio")
 import_optional("fastapi", "studio")
 
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
-from bpp.benchmarks.draw.studio.engine import CheckpointInfo, Limits, Rollout, Studio, StudioError  # noqa: E402
+from bpp.benchmarks.draw.studio.engine import Studio  # noqa: E402
+from bpp.benchmarks.draw.studio.state import CheckpointInfo, Limits, Rollout, StudioError  # noqa: E402
 from test_studio import TOKEN, TRIANGLE, Server, runs  # noqa: E402, F401 - `runs` is the shared fixture
 
 pytestmark = pytest.mark.studio
@@ -319,7 +320,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.draw.studio.engine import make_memory_releasable, release_memory
+from bpp.benchmarks.draw.studio.memory import make_memory_releasable, release_memory
 
 make_memory_releasable()
 

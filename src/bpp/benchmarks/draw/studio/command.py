@@ -14,7 +14,9 @@ import webbrowser
 from dataclasses import dataclass
 from pathlib import Path
 
-from bpp.benchmarks.draw.studio.engine import Limits, Studio, find_checkpoints, make_memory_releasable
+from bpp.benchmarks.draw.studio.engine import Studio
+from bpp.benchmarks.draw.studio.memory import make_memory_releasable
+from bpp.benchmarks.draw.studio.state import Limits, find_checkpoints
 from bpp.errors import require_extra
 from bpp.network import TOKEN_RULE, guarded_http, is_loopback, listen, strong_token, urls
 from bpp.utils import check_fields

@@ -16,15 +16,12 @@ prompts are prepared a few at a time and refused by cheap checks before costly o
 for their reader (a rollout runs ahead of its reader by at most ``Limits.frame_backlog`` frames), events are kept as
 compact JSON text, animations are rendered from a bounded number of frames, cached, and stopped when their client
 leaves, and places are shared fairly between client addresses (a session whose work is under way is never evicted). What
-a burst of work frees goes back to the system within ``RELEASE_EVERY_S`` (:func:`make_memory_releasable`).
+a burst of work frees goes back to the system within ``RELEASE_EVERY_S`` (:mod:`bpp.benchmarks.draw.studio.memory`).
 """
 
 from __future__ import annotations
 
 import base64
-import ctypes
-import ctypes.util
-import hashlib
 import io
 import json
 import secrets
@@ -33,7 +30,7 @@ import threading
 import time
 from collections import Counter
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +41,17 @@ from bpp.benchmarks.draw.dataset import episode_steps
 from bpp.benchmarks.draw.demonstrator import LAST_TRY_FACTOR, DemoConfig, Demonstration, demonstrate, replay_paths
 from bpp.benchmarks.draw.env import ACTION_FRAMES, DrawEnv
 from bpp.benchmarks.draw.rollouts import prompt_target
-from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
+from bpp.benchmarks.draw.studio.animation import Cancelled, render_animation
+from bpp.benchmarks.draw.studio.memory import RELEASE_EVERY_S, release_memory
+from bpp.benchmarks.draw.studio.state import (
+    BENCHMARK,
+    CheckpointInfo,
+    Limits,
+    Prompt,
+    Rollout,
+    Session,
+    StudioError,
+)
 from bpp.core.registry import get_benchmark
 from bpp.data.contexts import task_context
 from bpp.data.store import EpisodeStore, EpisodeWriter
@@ -52,231 +59,14 @@ from bpp.drawing.drawing import Drawing, DrawingError, strokes_array, task_drawi
 from bpp.drawing.files import MAX_POINTS, bounded, load_drawings
 from bpp.drawing.geometry import BOARD_SIZE, CANVAS_SIZE, MAX_BOARD_ANGLE, canvas_to_unit
 
-try:
-    from numpy._core.multiarray import _set_madvise_hugepage
-except ImportError:  # NumPy 1.x
-    try:
-        from numpy.core.multiarray import _set_madvise_hugepage
-    except ImportError:
-        _set_madvise_hugepage = None
-
-BENCHMARK = "drawanything"
 END_REST_STEPS = DemoConfig().end_rest_steps
 """Pen-up steps appended to a drawn prompt, as the demonstrator rests after its last stroke."""
 
 
-RELEASE_EVERY_S = 10.0
-"""How often the studio gives freed memory back to the system (well under a millisecond of work each time)."""
 KEEP_FINISHED_ROLLOUTS = 8
 """Finished rollouts a session keeps (for their results and downloads); older ones are forgotten."""
 FASTEST_DEMO_STEP_PX = DemoConfig().speed_range[1] * (1 + DemoConfig().speed_wobble) * 1.3**7
 """The farthest the demonstrator's hand moves in one step, at its fastest try (it speeds up x1.3 per try)."""
-
-
-class StudioError(ValueError):
-    """A request the studio refuses; ``field`` names the offending input, ``status`` is the HTTP status to give."""
-
-    def __init__(self, message: str, field: str = "", status: int = 400):
-        super().__init__(message)
-        self.field, self.status = field, status
-
-
-@dataclass(frozen=True)
-class Limits:
-    """What one studio accepts (every limit is checked before work starts)."""
-
-    max_body_bytes: int = 2 << 20
-    """Largest request body."""
-    max_prompt_steps: int = 800
-    """Longest prompt (BPP's learned prompt positions cover 800 steps)."""
-    max_rollout_steps: int = 1000
-    max_prompts_per_session: int = 32
-    max_rollouts_per_session: int = 2
-    """Rollouts of one session running at once."""
-    max_rollouts: int = 8
-    """Rollouts running at once in the whole studio (they share the CPU)."""
-    max_sessions: int = 64
-    abandon_s: float = 30.0
-    """A running rollout whose events no client has read for this long is stopped."""
-    session_idle_s: float = 3600.0
-    """A session unused for this long is forgotten (its prompts deleted)."""
-    max_sessions_per_client: int = 16
-    """Sessions one client address may hold, so that one client cannot take every place: its next one replaces its
-    own least valuable one (:meth:`Studio.new_session`)."""
-    max_prompt_jobs: int = 2
-    """Prompts prepared at once in the whole studio (one per session)."""
-    max_streams_per_session: int = 4
-    max_streams: int = 64
-    """Event streams open at once in the whole studio."""
-    frame_backlog: int = 32
-    """Rendered frames a rollout keeps for its reader; with that many unsent it waits for the reader."""
-    max_renders: int = 2
-    """Animations (GIF/MP4) rendered at once in the whole studio (one per session)."""
-    max_animation_frames: int = 200
-    """An animation shows at most this many frames (a longer rollout shows every k-th step, at the same pace)."""
-    body_timeout_s: float = 10.0
-    """A request body must arrive within this many seconds."""
-    header_timeout_s: float = 10.0
-    """A request's headers must arrive within this many seconds of the connection opening (or of its last answer)."""
-    max_connections_per_client: int = 32
-    """Connections one client address may hold open at once (a browser opens about 6 per page)."""
-
-
-@dataclass
-class CheckpointInfo:
-    id: str
-    label: str
-    method: str
-    step: int
-    path: Path = field(repr=False)
-
-    def public(self) -> dict:
-        return {"id": self.id, "label": self.label, "method": self.method, "step": self.step}
-
-
-@dataclass
-class Prompt:
-    id: str
-    source: str
-    board_angle: float
-    steps: int
-    store: EpisodeStore = field(repr=False)
-    label: str = ""
-    ink: list = field(default_factory=list, repr=False)
-    """What the recorded demonstration inked: canvas polylines [[x, y], ...] (px, 0.1 px), as the page shows it."""
-    target: list = field(default_factory=list, repr=False)
-    """The Chamfer target (the ink, upright), loaded once: rollouts and animations need it after a deletion."""
-
-    def public(self, ink: bool = False) -> dict:
-        out = {
-            "id": self.id,
-            "source": self.source,
-            "label": self.label,
-            "board_angle": self.board_angle,
-            "steps": self.steps,
-        }
-        return {**out, "ink": self.ink} if ink else out
-
-
-@dataclass
-class Rollout:
-    id: str
-    prompt: Prompt
-    checkpoint: CheckpointInfo
-    board_angle: float
-    seed: int
-    max_steps: int
-    frames: int = 0
-    """Side of the rendered frame sent with every step event as a base64 PNG (0: none)."""
-    events: list[str] = field(default_factory=list)
-    """Every event as JSON text (a dict per event would take several times the memory)."""
-    pending_frames: dict[int, str] = field(default_factory=dict)
-    """Frames of events not yet sent, by event index: a frame is sent once, live, then forgotten."""
-    readers: int = 0
-    """Event streams open on it."""
-    status: str = "starting"
-    """starting, running, done, stopped (asked to), abandoned (nobody read it), error."""
-    error: str = ""
-    actions: list = field(default_factory=list)
-    """Actions taken, as [x, y, pen] lists while running, as a (T, 3) float64 array once finished."""
-    best: float = float("inf")
-    last_read: float = field(default_factory=time.monotonic)
-    stop: threading.Event = field(default_factory=threading.Event)
-
-    @property
-    def running(self) -> bool:
-        return self.status in ("starting", "running")
-
-    @property
-    def counted(self) -> bool:
-        """Whether it counts against the rollout limits: running and not asked to stop (it stops at its next step;
-        the thread pool bounds the CPU meanwhile), so that pressing Run again is not refused."""
-        return self.running and not self.stop.is_set()
-
-    def end(self, status: str) -> None:
-        """Append the end event (its score and steps) and take `status`."""
-        end = {
-            "type": "end",
-            "status": status,
-            "best_chamfer": self.public()["best_chamfer"],
-            "steps": len(self.actions),
-        }
-        self.events.append(json.dumps(end))
-        self.status = status  # after the end event: a stream that sees the rollout finished has it to send
-
-    def drop_frames(self) -> None:
-        """Forget the frames nobody has read (they are only for the live stream)."""
-        self.pending_frames.clear()
-
-    def event_text(self, index: int) -> str:
-        """Event `index` as JSON, with its frame if it has not been sent yet (taking it: frames are sent once)."""
-        text = self.events[index]
-        frame = self.pending_frames.pop(index, None)
-        return text if frame is None else f'{text[:-1]}, "frame": "{frame}"}}'
-
-    def public(self) -> dict:
-        return {
-            "id": self.id,
-            "status": self.status,
-            "error": self.error,
-            "prompt": self.prompt.id,
-            "checkpoint": self.checkpoint.id,
-            "method": self.checkpoint.method,
-            "board_angle": self.board_angle,
-            "seed": self.seed,
-            "steps": len(self.actions),
-            "best_chamfer": None if not np.isfinite(self.best) else round(self.best, 3),
-        }
-
-
-@dataclass
-class Session:
-    id: str
-    folder: Path
-    prompts: dict[str, Prompt | None] = field(default_factory=dict)
-    rollouts: dict[str, Rollout] = field(default_factory=dict)
-    last_used: float = field(default_factory=time.monotonic)
-    client: str = ""
-    """The client's address, for the per-client session limit."""
-    streams: int = 0
-    renders: int = 0
-    preparing: bool = False
-    """A prompt of this session is being prepared (one at a time)."""
-
-    def busy(self) -> bool:
-        """Work is under way: a running rollout, an open stream, a render or a prompt being prepared."""
-        return bool(self.streams or self.renders or self.preparing or any(r.running for r in self.rollouts.values()))
-
-    def worth(self) -> tuple[bool, float]:
-        """What eviction weighs, least first: a session that holds nothing (no prompt, no rollout: a page opened and
-        left, or a flood of new sessions) before one that holds work, then the least recently used."""
-        return bool(self.prompts or self.rollouts), self.last_used
-
-
-def find_checkpoints(roots) -> list[CheckpointInfo]:
-    """DrawAnything runs (folders with ``checkpoints/last``, or checkpoint folders) under `roots`, newest first."""
-    # torch: imported when the command runs, not when the command line starts
-    from bpp.checkpoint import read_state, resolve_checkpoint
-
-    found: dict[Path, CheckpointInfo] = {}
-    for root in map(Path, roots):
-        if not root.exists():
-            continue
-        candidates = [root] if (root / "checkpoints" / "last").is_file() else []
-        candidates += [p.parent.parent for p in sorted(root.glob("*/checkpoints/last"))]
-        candidates += [p.parent.parent for p in sorted(root.glob("*/*/checkpoints/last"))]
-        for run in candidates:
-            try:
-                ckpt = resolve_checkpoint(run)
-                state = read_state(ckpt)
-            except (OSError, ValueError):
-                continue
-            if state.get("dataset", {}).get("benchmark") != BENCHMARK or ckpt.resolve() in found:
-                continue
-            ident = hashlib.sha256(str(ckpt.resolve()).encode()).hexdigest()[:12]
-            label = f"{state['method']} · {run.name} · step {state['step']}"
-            found[ckpt.resolve()] = CheckpointInfo(ident, label, state["method"], int(state["step"]), ckpt)
-    return sorted(found.values(), key=lambda c: c.path.stat().st_mtime, reverse=True)
 
 
 class Studio:
@@ -814,9 +604,9 @@ class Studio:
             spec_frame = self._action_frame(rollout.checkpoint)
             partial = path.with_name(f".{path.stem}-{secrets.token_hex(4)}{path.suffix}")  # the suffix picks the format
             try:
-                _render_animation(rollout, spec_frame, partial, fmt, size, self.limits.max_animation_frames, cancel)
+                render_animation(rollout, spec_frame, partial, fmt, size, self.limits.max_animation_frames, cancel)
                 partial.replace(path)
-            except _Cancelled:
+            except Cancelled:
                 raise StudioError("the client left before the animation was ready", "rollout_id", 499) from None
             finally:
                 partial.unlink(missing_ok=True)
@@ -828,104 +618,6 @@ class Studio:
 
     def _action_frame(self, checkpoint: CheckpointInfo) -> str:
         return ACTION_FRAMES[self._model(checkpoint).data_spec().action_key]
-
-
-class _Cancelled(Exception):
-    """An animation's client left."""
-
-
-def _render_animation(
-    rollout: Rollout, action_frame: str, path: Path, fmt: str, size: int, max_frames: int, cancel
-) -> None:
-    """Replay `rollout` into `path`, frame by frame into the encoder (never all frames in memory at once)."""
-    actions = np.asarray(rollout.actions, dtype=np.float64).reshape(-1, 3)
-    every = max(1, int(np.ceil(len(actions) / max(1, max_frames - 1))))
-    # Without a target the env skips the per-step Chamfer update; the target is blended in here instead.
-    env = DrawEnv(
-        image_size=None,
-        max_episode_steps=max(1, len(actions)),
-        render_mode="rgb_array",
-        render_size=size,
-        action_frame=action_frame,
-        early_stop=False,
-    )
-    env.reset(seed=rollout.seed, options={"board_angle": rollout.board_angle})
-    cover = (0.35 * target_coverage(rollout.prompt.target, rollout.board_angle, size))[..., None]
-    tint = cover * np.asarray(TARGET_RGB, dtype=np.float64)
-
-    def frames():
-        for step in range(len(actions) + 1):
-            if step:
-                env.step(actions[step - 1])
-            if step % every == 0 or step == len(actions):
-                if cancel is not None and cancel.is_set():
-                    raise _Cancelled
-                yield np.rint(env.render() * (1.0 - cover) + tint).astype(np.uint8)
-
-    if fmt == "mp4":
-        # imageio: for video and GIF files only
-        import imageio.v2 as iio2
-
-        with iio2.get_writer(path, format="FFMPEG", fps=10 / every, codec="libx264", macro_block_size=16) as out:
-            for frame in frames():
-                out.append_data(frame)
-    else:
-        # A GIF is written at the end; frames are kept as 1-byte palette images (a third of RGB) meanwhile.
-        palette = _palette()
-        images = [Image.fromarray(f).quantize(palette=palette, dither=Image.Dither.NONE) for f in frames()]
-        images[0].save(path, format="GIF", save_all=True, append_images=images[1:], duration=100 * every, loop=0)
-
-
-def _palette():
-    """A fixed GIF palette: a 6x6x6 colour cube plus 40 greys, so every frame shares it."""
-    levels = [0, 51, 102, 153, 204, 255]
-    colours = [(r, g, b) for r in levels for g in levels for b in levels]
-    colours += [(v, v, v) for v in np.linspace(0, 255, 40).astype(int)]
-    image = Image.new("P", (1, 1))
-    image.putpalette([c for rgb in colours for c in rgb])
-    return image
-
-
-def release_memory() -> None:
-    """Give freed memory back to the system: glibc's malloc keeps what a burst of work freed for the next burst
-    otherwise (up to its trim threshold, which grows to 64 MiB after large frees). ``malloc_trim`` releases it all
-    from the main arena, but from the other arenas only the free pages below their top chunk: see
-    :func:`make_memory_releasable`."""
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
-
-
-M_ARENA_MAX = -8
-"""glibc's ``mallopt`` parameter: the most malloc arenas a process makes."""
-
-
-def make_memory_releasable() -> None:
-    """Set up this process so that :func:`release_memory` reaches all the memory it freed. Call it first thing, before
-    threads allocate (an arena a thread already has stays).
-
-    - One malloc arena for every thread (glibc ``M_ARENA_MAX`` 1): by default threads get up to 8 arenas per core, and
-      ``malloc_trim`` leaves each arena's top chunk resident (measured after abuse on 2 cores: 30-55 MiB in 14 idle
-      arenas). The studio's threads hold the GIL for most of their work, so sharing one arena costs them nothing
-      measurable.
-    - No transparent huge pages for NumPy's arrays: NumPy marks the memory of an array of 4 MiB or more for huge
-      pages, and the kernel's khugepaged then fills the freed, released 2 MiB ranges of that memory back in (up to 8
-      MiB at a time, seen every 10 s) until the next release."""
-    if _LIBC is not None and hasattr(_LIBC, "mallopt"):
-        _LIBC.mallopt(ctypes.c_int(M_ARENA_MAX), ctypes.c_int(1))
-    if _set_madvise_hugepage is not None:
-        _set_madvise_hugepage(False)
-
-
-def _load_libc():
-    name = ctypes.util.find_library("c")
-    try:
-        libc = ctypes.CDLL(name) if name else None
-        return libc if libc is not None and hasattr(libc, "malloc_trim") else None
-    except OSError:
-        return None
-
-
-_LIBC = _load_libc()
 
 
 def _polylines(paths: list[np.ndarray]) -> list[list[list[float]]]:

@@ -54,7 +54,8 @@ from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Stre
 from pydantic import BaseModel, ConfigDict, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from bpp.benchmarks.draw.studio.engine import Rollout, Studio, StudioError
+from bpp.benchmarks.draw.studio.engine import Studio
+from bpp.benchmarks.draw.studio.state import Rollout, StudioError
 
 ANGLE = Field(default=0.0, ge=-3.2, le=3.2, description="board angle, radians")
 
@@ -253,18 +254,47 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
     IP addresses and ``localhost`` (e.g. the machine's name, for a phone on the same network)."""
     app = FastAPI(title="bpp studio", docs_url=None, redoc_url=None, openapi_url=None)
     page_html = resources.files("bpp.benchmarks.draw.studio").joinpath(PAGE).read_text(encoding="utf-8")
-    digest = hashlib.sha256(token.encode()).hexdigest()
-    cookie_name = f"bpp_studio_{digest[:12]}"  # per token: two studios on one machine keep their own cookies
-    cookie_value = hmac.new(token.encode(), b"studio cookie", hashlib.sha256).hexdigest()
+    cookie = _Cookie(token)
+    _answer_errors(app)
+    session = _session_dependency(studio)
+    _page_routes(app, page_html, token, cookie)
+    _session_routes(app, studio, session)
+    _prompt_routes(app, studio, session)
+    _rollout_routes(app, studio, session)
+    app.add_middleware(
+        _Guard,
+        authorised=cookie.authorised,
+        hosts=tuple(hosts),
+        limit=studio.limits.max_body_bytes,
+        timeout_s=studio.limits.body_timeout_s,
+        csp=_csp(page_html),
+    )
+    return app
 
-    def authorised(headers: dict[str, str]) -> bool:
+
+class _Cookie:
+    """What a browser holds once it has shown the token: an HttpOnly cookie, named per token (two studios on one
+    machine keep their own), whose value is derived from the token."""
+
+    def __init__(self, token: str):
+        self.token = token
+        self.name = f"bpp_studio_{hashlib.sha256(token.encode()).hexdigest()[:12]}"
+        self.value = hmac.new(token.encode(), b"studio cookie", hashlib.sha256).hexdigest()
+
+    def authorised(self, headers: dict[str, str]) -> bool:
+        """Whether a request carries the token (a bearer header) or the cookie."""
         given = headers.get("authorization", "")
-        if given.startswith("Bearer ") and hmac.compare_digest(given[7:].encode(), token.encode()):
+        if given.startswith("Bearer ") and hmac.compare_digest(given[7:].encode(), self.token.encode()):
             return True
         cookies = [c.strip().partition("=") for c in headers.get("cookie", "").split(";")]
-        return any(
-            name == cookie_name and hmac.compare_digest(v.encode(), cookie_value.encode()) for name, _, v in cookies
-        )
+        return any(name == self.name and hmac.compare_digest(v.encode(), self.value.encode()) for name, _, v in cookies)
+
+    def set(self, response) -> None:
+        response.set_cookie(self.name, self.value, httponly=True, samesite="strict", path="/")
+
+
+def _answer_errors(app: FastAPI) -> None:
+    """Every refusal as ``{"detail", "field"}`` JSON with its status, the field named the way the page names it."""
 
     @app.exception_handler(StudioError)
     async def _studio_error(_: Request, err: StudioError):
@@ -294,6 +324,11 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
             {"detail": f"{'.'.join(where) or 'request'}: {first.get('msg')}", "field": field}, status_code=422
         )
 
+
+def _session_dependency(studio: Studio):
+    """The session a request names (its X-Studio-Session header, or ``?session=`` where EventSource cannot set
+    headers), checked to exist: a parameter type for the routes."""
+
     def session_id(
         x_studio_session: Annotated[str | None, Header()] = None,
         session_query: Annotated[str | None, Query(alias="session", max_length=64)] = None,
@@ -304,7 +339,11 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
         studio.session(sid)
         return sid
 
-    SessionId = Annotated[str, Depends(session_id)]
+    return Annotated[str, Depends(session_id)]
+
+
+def _page_routes(app: FastAPI, page_html: str, token: str, cookie: _Cookie) -> None:
+    """The page, and the token traded for the cookie (from the page's address, or by the page's script)."""
 
     @app.get("/", response_class=HTMLResponse)
     def page(request: Request):
@@ -312,18 +351,19 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
         if given is not None:  # an address with the token: trade it for the cookie and drop it from the address
             answer = RedirectResponse("/", status_code=303)
             if hmac.compare_digest(given.encode(), token.encode()):
-                _set_cookie(answer)
+                cookie.set(answer)
             return answer
         return HTMLResponse(page_html)
-
-    def _set_cookie(response) -> None:
-        response.set_cookie(cookie_name, cookie_value, httponly=True, samesite="strict", path="/")
 
     @app.post("/api/login")
     def login() -> JSONResponse:
         answer = JSONResponse({"cookie": True})
-        _set_cookie(answer)
+        cookie.set(answer)
         return answer
+
+
+def _session_routes(app: FastAPI, studio: Studio, SessionId) -> None:  # noqa: N803 - a type, as FastAPI reads it
+    """Sessions, and what every session may read: the checkpoints and the stored demonstrations."""
 
     @app.post("/api/session")
     def new_session(request: Request) -> dict:
@@ -347,6 +387,10 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
     def stored() -> list[dict]:
         return studio.stored_prompts()
 
+
+def _prompt_routes(app: FastAPI, studio: Studio, SessionId) -> None:  # noqa: N803 - a type, as FastAPI reads it
+    """A session's prompts: drawn, strokes, a drawing file or a stored demonstration; deleted; as a task file."""
+
     @app.post("/api/prompts")
     def add_prompt(body: PromptRequest, sid: SessionId) -> dict:
         if isinstance(body, DrawnPrompt):
@@ -369,6 +413,10 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
         task = studio.prompt_task_file(sid, pid)
         headers = {"Content-Disposition": f'attachment; filename="studio-{studio.prompt(sid, pid).id}.json"'}
         return JSONResponse(task, headers=headers)
+
+
+def _rollout_routes(app: FastAPI, studio: Studio, SessionId) -> None:  # noqa: N803 - a type, as FastAPI reads it
+    """A session's rollouts: started, read as they run (server-sent events), stopped, downloaded."""
 
     @app.post("/api/rollouts")
     def start(body: RolloutRequest, sid: SessionId) -> dict:
@@ -438,16 +486,6 @@ def create_app(studio: Studio, token: str, hosts: Collection[str] = ()) -> FastA
         media = "image/gif" if fmt == "gif" else "video/mp4"
         headers = {"Content-Disposition": f'attachment; filename="rollout-{studio.rollout(sid, rid).id}.{fmt}"'}
         return StreamingResponse(chunks(), media_type=media, headers=headers)
-
-    app.add_middleware(
-        _Guard,
-        authorised=authorised,
-        hosts=tuple(hosts),
-        limit=studio.limits.max_body_bytes,
-        timeout_s=studio.limits.body_timeout_s,
-        csp=_csp(page_html),
-    )
-    return app
 
 
 async def _event_stream(rollout: Rollout, since: int, request: Request):
