@@ -13,7 +13,7 @@ from bpp.policies.bpp.model import BPPModel
 from bpp.policies.config import DEBUG_DIFFUSION, ObsConfig
 from bpp.policies.icrt.model import ICRTModel
 from bpp.policies.normalizer import Normalizer
-from bpp.policies.registry import METHODS, PolicyModelContract, get_method
+from bpp.policies.registry import METHODS, PolicyModelContract, get_method, method_names
 from helpers import KEYS, config, prompt_from_store
 
 
@@ -93,3 +93,26 @@ def test_an_action_dimension_the_data_never_moves_stays_still_whatever_the_model
     assert normalizer.normalize("obs", torch.tensor([[0.2, 2.0]]))[0].tolist() == pytest.approx([0.2, 0.0])
     # the constants are derived from the statistics the checkpoint keeps, so the saved weights do not repeat them
     assert set(normalizer.state_dict()) == {"obs__scale", "obs__offset", "action__scale", "action__offset"}
+
+
+def test_other_packages_add_methods_through_entry_points(tmp_path, monkeypatch):
+    """A package outside bpp declares a method in the ``bpp.methods`` entry-point group: bpp finds it by name."""
+    plugin = tmp_path / "mine"
+    plugin.mkdir()
+    (plugin / "__init__.py").write_text("from bpp.policies.bpp import MODEL, PRESETS, Config  # noqa: F401\n")
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "__init__.py").write_text("")
+    info = tmp_path / "bpp_plugin-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: bpp-plugin\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[bpp.methods]\nmine = mine\nbroken = broken\ngone = not_there\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert method_names()[: len(METHODS)] == list(METHODS) and {"mine", "broken", "gone"} <= set(method_names())
+    method = get_method("mine")
+    assert method.name == "mine" and method.preset("debug") == get_method("bpp").preset("debug")
+    with pytest.raises(ValueError, match="method 'broken': its package 'broken' lacks Config, MODEL, PRESETS"):
+        get_method("broken")
+    with pytest.raises(ValueError, match="method 'gone': cannot import its package 'not_there'"):
+        get_method("gone")
+    with pytest.raises(ValueError, match="unknown method 'nope'; available: bpp, icrt, goal_image, language, broken"):
+        get_method("nope")

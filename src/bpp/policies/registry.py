@@ -1,6 +1,7 @@
 """Methods by name, and the contract every method's model implements.
 
-Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`. A method's package exports
+Adding a method is a new folder under ``bpp/policies`` plus one line in :data:`METHODS`; packages outside bpp add
+methods through the ``bpp.methods`` entry-point group (``name = "package.module"``). A method's package exports
 ``Config`` (a frozen dataclass: the model's whole configuration, saved in every checkpoint; a subclass of
 :class:`~bpp.policies.config.PolicyConfig`, or of :class:`~bpp.policies.config.ContextDiffusionConfig` for a method
 with the diffusion decoder, and with ``horizons``), ``PRESETS`` (size name -> Config, at least ``debug``, ``cpu`` and
@@ -16,6 +17,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from importlib.metadata import entry_points
 from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 from bpp.data.spec import ContextKind, DataSpec
@@ -130,8 +132,29 @@ class Method:
         return with_observation(base, benchmark.observations[name])
 
 
+def _plugins() -> dict[str, str]:
+    """Methods other packages add: the ``bpp.methods`` entry points (name -> the package that implements it)."""
+    return {ep.name: ep.value for ep in entry_points(group="bpp.methods")}
+
+
+def method_names() -> list[str]:
+    """The built-in methods, then those other packages add."""
+    return [*METHODS, *sorted(set(_plugins()) - set(METHODS))]
+
+
 def get_method(name: str) -> Method:
-    if name not in METHODS:
-        raise UserError(f"unknown method {name!r}; available: {', '.join(METHODS)}")
-    module = importlib.import_module(METHODS[name])
+    """The method registered as `name` (built in, or added through the ``bpp.methods`` entry points)."""
+    target = METHODS.get(name) or _plugins().get(name)
+    if target is None:
+        raise UserError(f"unknown method {name!r}; available: {', '.join(method_names())}")
+    try:
+        module = importlib.import_module(target)
+    except ImportError as err:
+        raise UserError(f"method {name!r}: cannot import its package {target!r} ({err})") from None
+    missing = [attr for attr in ("Config", "MODEL", "PRESETS") if not hasattr(module, attr)]
+    if missing:
+        raise UserError(
+            f"method {name!r}: its package {target!r} lacks {', '.join(missing)} (a method's package exports Config, "
+            "PRESETS and MODEL)"
+        )
     return Method(name, module.Config, module.MODEL, module.PRESETS)
