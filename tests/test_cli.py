@@ -182,7 +182,8 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     assert list((tmp_path / "out" / "eval-human").glob("rollout_*"))
     second = _bpp(*args)
     assert second.returncode == 0, second.stderr[-3000:]
-    assert second.stdout.count("reusing") == 4  # training data, human set, trained policy, evaluation
+    assert second.stdout.count("reusing") == 3  # training data, trained policy, evaluation
+    assert "the evaluation set: " in second.stdout
     # The same run folder asked for another observation preset: refused, not evaluated as if it were that model.
     other = _bpp(*args, "--obs", "canvas")
     assert other.returncode != 0 and "holds a policy trained with another model" in other.stderr
@@ -207,3 +208,15 @@ def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
     out = _bpp("eval", str(tmp_path / "run0"), "--files", str(drawing), "--out", str(tmp_path / "mine"), *common)
     assert out.returncode == 0, out.stderr[-3000:]
     assert "drawings: tri.json" in (tmp_path / "mine" / "results.md").read_text()
+
+
+def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold():
+    from bpp.runs import RUNS, SUMMARIES
+
+    assert set(SUMMARIES) == set(RUNS) and RUNS["demo"].method == "bpp"
+    listing = _bpp("run", "--help")
+    assert listing.returncode == 0 and all(f"bpp run {name} " in listing.stdout for name in RUNS)
+    refused = _bpp("run", "smoke", "--batch-size", "4", "--tasks-per-batch", "8")
+    assert refused.returncode != 0 and "batch_size must be >= tasks_per_batch" in refused.stderr
+    unknown = _bpp("run", "nope")
+    assert unknown.returncode == 2 and "bpp run smoke" in unknown.stderr

@@ -97,7 +97,7 @@ NOT_MEASURED: dict[tuple[str, str], str] = {
     ("docs/drawanything.md", "15 px"): "the cursor's radius: the geometry of the authors' DrawAnything-Sim",
     ("docs/drawanything.md", "724.1 px"): "the 512-px canvas's diagonal, the score of empty ink by definition",
     ("src/bpp/benchmarks/lerobot/commands.py", "32 px"): "the smallest frame the AV1 encoder takes: a limit",
-    ("src/bpp/benchmarks/draw/studio/engine.py", "0.1 px"): "the resolution polylines are rounded to: a setting",
+    ("src/bpp/benchmarks/draw/studio/state.py", "0.1 px"): "the resolution polylines are rounded to: a setting",
     ("docs/libero-gen/combination.md", "15 of 20"): "how many of the appendix's 20 counts another reading of the "
     "published task list reproduces: a fact of published data",
     ("docs/libero-gen/combination.md", "11 of 20"): "how many of the appendix's 20 counts another reading of the "

@@ -35,6 +35,7 @@ from bpp.evaluation.protocol import PromptChoice
 from bpp.evaluation.report import markdown_table
 from bpp.executor import check_executor_flags, make_executor
 from bpp.policies.registry import get_method
+from bpp.runs import RUNS, SUMMARIES, WholeRun, whole_run
 from bpp.serve.command import Serve, serve
 from bpp.serve.robot import RobotClient, robot_client
 from bpp.train_config import TrainConfig
@@ -352,9 +353,14 @@ COMMANDS: dict[tuple[str, ...], tuple[type, Callable]] = {
 
 def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | None:
     """(words, command class, function, tyro default) for the command argv starts with, or None."""
-    if argv[:1] in (["demo"], ["studio"]):  # the main job and the studio: the default benchmark's
-        cls, run = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))[argv[0]]
-        return (argv[0],), cls, run, None
+    if argv[:1] == ["demo"]:  # the main job: the named whole run "demo"
+        return ("demo",), WholeRun, lambda args: whole_run(args, "demo"), RUNS["demo"]
+    if argv[:1] == ["run"] and len(argv) > 1 and argv[1] in RUNS:
+        name = argv[1]
+        return ("run", name), WholeRun, lambda args: whole_run(args, name), RUNS[name]
+    if argv[:1] == ["studio"]:  # the studio: the default benchmark's
+        cls, run = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))["studio"]
+        return ("studio",), cls, run, None
     for n in (2, 1):
         words = tuple(argv[:n])
         if words in COMMANDS:
@@ -383,13 +389,19 @@ def _resolve(argv: list[str]) -> tuple[tuple[str, ...], type, Callable, Any] | N
 def _command_classes() -> list[tuple[tuple[str, ...], type]]:
     """Every command's words and class, in the order ``bpp --help`` lists them."""
     found = [(words, cls) for words, (cls, _) in COMMANDS.items()]
-    main_job = benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))
-    found += [(("demo",), main_job["demo"][0]), (("studio",), main_job["studio"][0])]
+    found.append((("demo",), _described(SUMMARIES["demo"])))
+    found += [(("run", name), _described(SUMMARIES.get(name, f"The whole run {name}."))) for name in RUNS]
+    found.append((("studio",), benchmark_commands(get_benchmark(DEFAULT_BENCHMARK))["studio"][0]))
     for name in benchmark_names():
         benchmark = get_benchmark(name)
         found.append(((benchmark.command, "generate"), _generate_class(benchmark)))
         found += [((benchmark.command, command), cls) for command, (cls, _) in benchmark_commands(benchmark).items()]
     return found
+
+
+def _described(summary: str) -> type:
+    """:class:`WholeRun` with `summary` as its help's first line (each named run's line in ``bpp --help``)."""
+    return type("WholeRun", (WholeRun,), {"__doc__": f"{summary}\n\n{WholeRun.__doc__}"})
 
 
 def _groups() -> set[str]:
@@ -432,7 +444,8 @@ def main(argv: list[str] | None = None) -> None:
         prog = f"bpp {' '.join(words)}"
         if cls is Train:
             cls, default = _train_default(rest)
-        args = tyro.cli(cls, args=rest, prog=prog, default=default)
+        described = {"description": _described(SUMMARIES[words[-1]]).__doc__} if cls is WholeRun else {}
+        args = tyro.cli(cls, args=rest, prog=prog, default=default, **described)
         run(args)
     except (UserError, OSError) as err:
         sys.exit(f"{prog}: error: {_message(err)}")

@@ -29,7 +29,7 @@ BENCHMARKS: dict[str, str] = {
 DEFAULT_BENCHMARK = "drawanything"
 """The benchmark of the main job (``bpp demo``)."""
 
-RESERVED_COMMANDS = ("train", "eval", "store", "demo", "studio", "serve", "robot-client")
+RESERVED_COMMANDS = ("train", "eval", "store", "demo", "run", "studio", "serve", "robot-client")
 """The generic command-line groups a benchmark's `command` may not take."""
 
 _LOADED: dict[str, Benchmark] = {}
