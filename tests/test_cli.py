@@ -176,7 +176,7 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     first = _bpp(*args)
     assert first.returncode == 0, first.stderr[-3000:]
     report = (tmp_path / "out" / "report.md").read_text()
-    assert "Chamfer, mean over drawings" in report and "rollout_" in report
+    assert "| Chamfer distance, mean over tasks | **" in report and "rollout_" in report and "paper | BPP" in report
     for name in ("grid.png", "attention.png", "results.json", "results.md"):
         assert (tmp_path / "out" / "eval-human" / name).stat().st_size > 300
     assert list((tmp_path / "out" / "eval-human").glob("rollout_*"))
