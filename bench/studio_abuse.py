@@ -3,18 +3,19 @@
     python bench/studio_abuse.py [--run runs/demo-bpp] [--seconds 40] [--rounds 3] [--tracemalloc]
 
 Starts ``bpp studio --port 0`` in a subprocess (on a trained run: --run, else a 2-step debug run trained here) and
-warms it up as ordinary users would, once along every path the abuse takes: 8 rollouts at once (two of 1000 steps),
-a rollout's 256 px frames read to the end and its events read again, a GIF and an MP4, a download left before its
-render ends, a drawing too long for a prompt, a request body cut off. Their sessions end, and 15 s later the
-server's resident memory (VmRSS) is the baseline. Then --rounds rounds against the same server. In each, an owner's
-session runs two new 1000-step rollouts, and then, for --seconds, abusive clients all at once: a flood of new
-sessions from one address (a new loopback address each round: the flood's sessions count as in use for 5 minutes,
-so from the same address a later round would only be refused); rollouts streaming 256 px frames that nobody reads;
-event streams resumed past the end; GIF and MP4 downloads of the owner's two rollouts, half of them dropped after
-0.3 s; drawings too long to demonstrate; request bodies that never arrive. Meanwhile one ordinary user keeps drawing
-and running rollouts, and must never be refused nor evicted. Then the abusers end their sessions, the owner's too
-(the flood just leaves), and the memory is measured 15 s and 45 s later (the abandon time is 30 s). Prints the
-memory of each round (MiB) and what each kind of request got in each round.
+warms it up as ordinary users would, once along every path the abuse takes: 8 rollouts at once (two of 1000 steps), a
+rollout's 256 px frames read to the end and its events read again, a GIF and an MP4, a download left before its render
+ends, a drawing too long for a prompt, a request body cut off. Their sessions end, and 15 s later the server's
+resident memory (VmRSS) is the baseline. Then --rounds rounds against the same server. In each, an owner's session
+runs two new 1000-step rollouts, and then, for --seconds, abusive clients all at once: a flood of new sessions from
+one address (a new loopback address each round); prompts uploaded without pause from three other addresses, four
+sessions each; 40 connections that send half a request's headers and then nothing, reopened when closed, from another
+address; rollouts streaming 256 px frames that nobody reads; event streams resumed past the end; GIF and MP4 downloads
+of the owner's two rollouts, half of them dropped after 0.3 s; drawings too long to demonstrate; request bodies that
+never arrive. Meanwhile one ordinary user keeps drawing and running rollouts: its refusals (each answered 429, then
+retried after 0.5 s) and its rollouts are counted. Then the abusers end their sessions, the owner's too (the flood
+just leaves), and the memory is measured 15 s and 45 s later (the abandon time is 30 s). Prints the memory of each
+round (MiB) and what each kind of request got in each round.
 
 --tracemalloc runs the server with BPP_STUDIO_TRACEMALLOC: Python's allocations are traced from the baseline on
 (the server runs several times slower, and its memory includes the traces), and after each round the source lines
@@ -323,14 +324,65 @@ def abuse(url: str, checkpoint: str, owner: StudioClient, long_ones: list[str], 
         with StudioClient(url, TOKEN) as c:
             while time.time() < stop_at:
                 try:
-                    end = retried(lambda: c.run(c.prompt_strokes(TRIANGLE)["id"], checkpoint, max_steps=50))
-                    count("ordinary user's rollout", end["status"])
-                    c._call("DELETE", f"/api/prompts/{c.episode(end['id'])['prompt']['id']}")
+                    prompt = c.prompt_strokes(TRIANGLE)["id"]
+                    count("ordinary user's prompt", 200)
                 except StudioClientError as err:
-                    count("ordinary user's rollout", err.status)
+                    count("ordinary user's prompt", err.status)
                     time.sleep(0.5)
+                    continue
+                while time.time() < stop_at:
+                    try:
+                        end = c.run(prompt, checkpoint, max_steps=50)
+                        count("ordinary user's rollout", end["status"])
+                        break
+                    except StudioClientError as err:
+                        count("ordinary user's rollout", err.status)
+                        time.sleep(0.5)
+                c._call("DELETE", f"/api/prompts/{prompt}")
+
+    def prompt_flood(address: str):
+        clients = [StudioClient(url, TOKEN, local_address=address) for _ in range(4)]
+        try:
+            while time.time() < stop_at:
+                for c in clients:
+                    try:
+                        c._call("DELETE", f"/api/prompts/{c.prompt_strokes(TRIANGLE)['id']}")
+                        count("prompt flood", 200)
+                    except StudioClientError as err:
+                        count("prompt flood", err.status)
+        finally:
+            for c in clients:
+                c.close()
+
+    def half_headers(address: str):
+        host, port = url.removeprefix("http://").split(":")
+        held: list[socket.socket] = []
+        while time.time() < stop_at:
+            for sock in list(held):
+                try:
+                    sock.recv(100)  # b"" (closed) or a 429: the server let it go
+                except BlockingIOError:
+                    continue  # still held open by the server
+                except OSError:
+                    pass
+                held.remove(sock)
+                sock.close()
+                count("half-sent headers: connection closed by the server", "closed")
+            while len(held) < 40 and time.time() < stop_at:
+                sock = socket.socket()
+                sock.bind((address, 0))
+                sock.connect((host, int(port)))
+                sock.sendall(b"GET /api/checkpoints HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Wait: ")
+                sock.setblocking(False)
+                held.append(sock)
+                count("half-sent headers: connection opened", "opened")
+            time.sleep(0.2)
+        for sock in held:
+            sock.close()
 
     workers = [sessions_flood, unread_frames, unread_frames, past_the_end, long_drawings, slow_bodies, ordinary_user]
+    workers += [lambda a=a: prompt_flood(a) for a in ("127.0.1.3", "127.0.1.4", "127.0.1.5")]
+    workers.append(lambda: half_headers("127.0.1.6"))
     a, b = long_ones
     workers += [lambda: downloads("gif", a, True), lambda: downloads("mp4", b, True)]
     workers += [lambda: downloads("gif", a, False), lambda: downloads("mp4", b, False)]

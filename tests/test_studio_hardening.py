@@ -25,7 +25,7 @@ import_optional("fastapi", "studio")
 
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
 from bpp.benchmarks.draw.studio.engine import Studio  # noqa: E402
-from bpp.benchmarks.draw.studio.state import CheckpointInfo, Limits, Rollout, StudioError  # noqa: E402
+from bpp.benchmarks.draw.studio.state import CheckpointInfo, FairSlots, Limits, Rollout, StudioError  # noqa: E402
 from test_studio import TOKEN, TRIANGLE, Server, runs  # noqa: E402, F401 - `runs` is the shared fixture
 
 pytestmark = pytest.mark.studio
@@ -412,6 +412,34 @@ def test_sessions_are_shared_fairly_between_addresses_and_busy_ones_are_never_ev
     studio.new_session("10.0.0.3")
     assert busy[1] not in studio.sessions and busy[0] in studio.sessions and busy[2] in studio.sessions
     studio.close()
+
+
+def test_prompt_places_go_to_the_address_served_least_recently_not_to_the_busiest():
+    slots = FairSlots(1, max_waiting=2)
+    for _ in range(5):  # a busy address, served again and again
+        assert slots.acquire("10.0.0.1", 0.1)
+        slots.release()
+    assert slots.acquire("10.0.0.1", 0.1)  # it holds the one place now
+    got = []
+
+    def wait(client: str) -> None:
+        got.append((client, slots.acquire(client, 5.0)))
+
+    busy = threading.Thread(target=wait, args=("10.0.0.1",))
+    busy.start()
+    time.sleep(0.1)  # the busy address waits first ...
+    assert not slots.acquire("10.0.0.1", 0.1)  # ... one waiting request per address ...
+    user = threading.Thread(target=wait, args=("10.0.0.9",))
+    user.start()
+    time.sleep(0.1)
+    assert not slots.acquire("10.0.0.5", 0.1)  # ... and two in all
+    slots.release()  # the freed place goes to the address not served yet, though it came second
+    user.join(timeout=5)
+    assert got == [("10.0.0.9", True)]
+    slots.release()
+    busy.join(timeout=5)
+    assert got[1] == ("10.0.0.1", True)
+    assert not slots.acquire("10.0.0.2", 0.2)  # every place taken: refused when the wait is over
 
 
 def test_a_long_drawing_is_refused_before_seconds_of_work(server):

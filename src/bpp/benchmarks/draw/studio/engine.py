@@ -46,6 +46,7 @@ from bpp.benchmarks.draw.studio.memory import RELEASE_EVERY_S, release_memory
 from bpp.benchmarks.draw.studio.state import (
     BENCHMARK,
     CheckpointInfo,
+    FairSlots,
     Limits,
     Prompt,
     Rollout,
@@ -87,7 +88,7 @@ class Studio:
         self._human_lock = threading.Lock()
         self.pool = ThreadPoolExecutor(max_workers=limits.max_rollouts, thread_name_prefix="rollout")
         self._human: EpisodeStore | None = None
-        self._prompt_jobs = threading.BoundedSemaphore(limits.max_prompt_jobs)
+        self._prompt_jobs = FairSlots(limits.max_prompt_jobs, limits.max_waiting_prompts)
         self._renders = threading.BoundedSemaphore(limits.max_renders)
         self.streams = 0
         self._closing = threading.Event()
@@ -217,8 +218,9 @@ class Studio:
         return [{"task": t, "id": task["id"], "episodes": len(episodes[t])} for t, task in enumerate(store.tasks)]
 
     def _preparing(self, sid: str):
-        """A context in which session `sid` prepares one prompt: one per session, ``max_prompt_jobs`` in all,
-        refused (429) rather than queued, so that waiting requests cannot pile up."""
+        """A context in which session `sid` prepares one prompt: one per session, ``max_prompt_jobs`` in all, shared
+        fairly between client addresses (:class:`FairSlots`: a prompt waits up to ``Limits.prompt_wait_s`` for a
+        place, then 429; one waits per address, ``Limits.max_waiting_prompts`` in all)."""
         studio = self
 
         class _Job:
@@ -234,11 +236,10 @@ class Studio:
                             "prompt",
                             429,
                         )
-                    if not studio._prompt_jobs.acquire(blocking=False):
-                        raise StudioError(
-                            "the studio is busy preparing other prompts; try again shortly", "prompt", 429
-                        )
-                    session.preparing = True
+                    session.preparing = True  # before waiting: the session's next prompt is refused meanwhile
+                if not studio._prompt_jobs.acquire(session.client, studio.limits.prompt_wait_s):
+                    session.preparing = False
+                    raise StudioError("the studio is busy preparing other prompts; try again shortly", "prompt", 429)
                 self.session = session
                 return session
 

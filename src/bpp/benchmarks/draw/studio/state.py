@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import threading
 import time
 from dataclasses import dataclass, field
@@ -49,6 +50,11 @@ class Limits:
     own least valuable one (:meth:`Studio.new_session`)."""
     max_prompt_jobs: int = 2
     """Prompts prepared at once in the whole studio (one per session)."""
+    prompt_wait_s: float = 10.0
+    """How long a prompt waits for one of those places (then 429); waiting prompts are served address by address,
+    the least recently served first, one waiting per address (:class:`FairSlots`)."""
+    max_waiting_prompts: int = 8
+    """Prompts waiting at once in the whole studio (more are refused at once, 429)."""
     max_streams_per_session: int = 4
     max_streams: int = 64
     """Event streams open at once in the whole studio."""
@@ -221,3 +227,56 @@ def find_checkpoints(roots) -> list[CheckpointInfo]:
             label = f"{state['method']} · {run.name} · step {state['step']}"
             found[ckpt.resolve()] = CheckpointInfo(ident, label, state["method"], int(state["step"]), ckpt)
     return sorted(found.values(), key=lambda c: c.path.stat().st_mtime, reverse=True)
+
+
+class FairSlots:
+    """`slots` places shared fairly between client addresses: a request takes a free place at once if nobody waits;
+    else it waits up to `timeout` seconds, and each freed place goes to the waiting address served least recently, so
+    a client that sends many requests gets no more places than one that sends a few. Each address has at most one
+    request waiting and at most `max_waiting` wait in all (the others are refused at once): waiting holds a server
+    thread."""
+
+    def __init__(self, slots: int, max_waiting: int):
+        self.free, self.max_waiting = slots, max_waiting
+        self.cond = threading.Condition()
+        self.waiting: list[tuple[str, object]] = []
+        self.served: dict[str, float] = {}
+
+    def acquire(self, client: str, timeout: float) -> bool:
+        """Take a place for `client` (an address); False if none came within `timeout` or it may not wait."""
+        with self.cond:
+            if self.free and not self.waiting:
+                return self._take(client)
+            if len(self.waiting) >= self.max_waiting or any(c == client for c, _ in self.waiting):
+                return False
+            ticket = (client, object())
+            self.waiting.append(ticket)
+            deadline = time.monotonic() + timeout
+            try:
+                while True:
+                    if self.free and min(self.waiting, key=self._rank) is ticket:
+                        self.waiting.remove(ticket)
+                        return self._take(client)
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        self.waiting.remove(ticket)
+                        return False
+                    self.cond.wait(left)
+            finally:
+                self.cond.notify_all()  # the next in line may go now
+
+    def release(self) -> None:
+        with self.cond:
+            self.free += 1
+            self.cond.notify_all()
+
+    def _take(self, client: str) -> bool:
+        self.free -= 1
+        self.served[client] = time.monotonic()
+        if len(self.served) > 4096:  # forget the longest-served addresses; they rank as new again
+            for old in sorted(self.served, key=self.served.get)[:2048]:
+                del self.served[old]
+        return True
+
+    def _rank(self, ticket: tuple[str, object]) -> float:
+        return self.served.get(ticket[0], -math.inf)
