@@ -177,6 +177,7 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     assert first.returncode == 0, first.stderr[-3000:]
     report = (tmp_path / "out" / "report.md").read_text()
     assert "| Chamfer distance, mean over tasks | **" in report and "rollout_" in report and "paper | BPP" in report
+    assert " px px" not in report and "| rollouts under 5 px |" in report
     for name in ("grid.png", "attention.png", "results.json", "results.md"):
         assert (tmp_path / "out" / "eval-human" / name).stat().st_size > 300
     assert list((tmp_path / "out" / "eval-human").glob("rollout_*"))
@@ -210,7 +211,7 @@ def test_eval_command_over_checkpoints_and_drawing_files(tmp_path, debug_store):
     assert "drawings: tri.json" in (tmp_path / "mine" / "results.md").read_text()
 
 
-def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold():
+def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold(tmp_path):
     from bpp.runs import RUNS, SUMMARIES
 
     assert set(SUMMARIES) == set(RUNS) and RUNS["demo"].method == "bpp"
@@ -220,3 +221,6 @@ def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold():
     assert refused.returncode != 0 and "batch_size must be >= tasks_per_batch" in refused.stderr
     unknown = _bpp("run", "nope")
     assert unknown.returncode == 2 and "bpp run smoke" in unknown.stderr
+    data = tmp_path / "data"
+    wrong = _bpp("run", "smoke", "--obs", "nope", "--data-dir", str(data), "--run-dir", str(tmp_path / "run"))
+    assert wrong.returncode != 0 and "nope" in wrong.stderr and not data.exists()  # refused before any data is made

@@ -253,7 +253,7 @@ def test_damaged_files_and_metadata_are_refused_naming_the_file(source, tmp_path
         main(["lerobot", "import", str(copy), "--out", out])
     # an episode the metadata lists whose frames are gone
     pq.write_table(table.filter(pa.compute.not_equal(table.column("episode_index"), 1)), data)
-    gone = rf"{data}: episode 1 has 0 frames there, meta/episodes lists {STEPS}; an empty episode cannot be imported"
+    gone = rf"{data}: episode 1 has 0 frames there, meta/episodes lists {STEPS}; the dataset is damaged"
     with pytest.raises(SystemExit, match=gone):
         main(["lerobot", "import", str(copy), "--out", out])
     # truncated, and garbled in the middle of its pages

@@ -26,6 +26,7 @@ import_optional("fastapi", "studio")
 from bpp.benchmarks.draw.studio.client import StudioClient, StudioClientError  # noqa: E402
 from bpp.benchmarks.draw.studio.engine import Studio  # noqa: E402
 from bpp.benchmarks.draw.studio.state import CheckpointInfo, FairSlots, Limits, Rollout, StudioError  # noqa: E402
+from bpp.network import client_key  # noqa: E402
 from test_studio import TOKEN, TRIANGLE, Server, runs  # noqa: E402, F401 - `runs` is the shared fixture
 
 pytestmark = pytest.mark.studio
@@ -143,6 +144,14 @@ def test_half_sent_headers_hold_no_place_for_long_and_one_address_holds_few_plac
         assert LIMITS.header_timeout_s - 0.2 < time.monotonic() - start < LIMITS.header_timeout_s + 3
         with httpx.Client(headers=auth(), timeout=5) as http:  # the address is welcome again
             assert http.get(f"{server.url}/api/checkpoints").status_code == 200
+        # A refusal answered before the body is read ends the connection: the rest of the body holds no place.
+        with socket.create_connection(("127.0.0.1", server.port), timeout=5) as sock:
+            sock.sendall(b"POST /api/prompts HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 100000\r\n\r\n{")
+            answer = b""
+            while chunk := sock.recv(4096):
+                answer += chunk
+            assert answer.startswith(b"HTTP/1.1 401")  # and then closed, not kept for the body
+        assert client_key("2001:db8::1") == client_key("2001:db8::2:3") == "2001:db8::/64"
     finally:
         for sock in held:
             sock.close()

@@ -80,6 +80,20 @@ def _bracket(host: str) -> str:
     return f"[{host}]" if ":" in host else host
 
 
+def client_key(host: str) -> str:
+    """The address a per-client limit counts: the host itself, or for IPv6 its /64 network (one machine commonly
+    holds a whole /64, and takes a new address of it at will)."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return host
+    if address.version == 4:
+        return str(address)
+    if address.ipv4_mapped is not None:
+        return str(address.ipv4_mapped)
+    return str(ipaddress.ip_network(f"{address}/64", strict=False))
+
+
 TOO_MANY = b"HTTP/1.1 429 Too Many Requests\r\ncontent-length: 0\r\nconnection: close\r\n\r\n"
 """The whole answer to a connection over its address's share."""
 
@@ -103,7 +117,7 @@ def guarded_http(header_seconds: float, per_address: int) -> type:
 
         def connection_made(self, transport) -> None:
             super().connection_made(transport)
-            self._address = self.client[0] if self.client else ""
+            self._address = client_key(self.client[0] if self.client else "")
             open_by_address[self._address] += 1
             if open_by_address[self._address] > per_address:
                 transport.write(TOO_MANY)
@@ -132,8 +146,12 @@ def guarded_http(header_seconds: float, per_address: int) -> type:
 
         def on_response_complete(self) -> None:
             super().on_response_complete()
-            if not self.transport.is_closing() and self.conn.their_state is h11.IDLE:
+            if self.transport.is_closing():
+                return
+            if self.conn.their_state is h11.IDLE:
                 self._arm()  # the next request's headers are due as the first one's were
+            elif self.conn.their_state is h11.SEND_BODY:  # answered before its body was read (a refusal): no reuse
+                self.transport.close()
 
         def _leave(self) -> None:
             self._disarm()

@@ -36,9 +36,12 @@ class WholeRun:
     Re-running reuses every finished stage.
     """
 
-    out_dir: Path = Path("outputs/demo")
-    data_dir: Path = Path("data/draw")
-    run_dir: Path = Path("runs/demo-bpp")
+    out_dir: Path | None = None
+    """The report folder (default: outputs/NAME)."""
+    data_dir: Path | None = None
+    """Where the data is generated (default: the benchmark's data folder, e.g. data/draw)."""
+    run_dir: Path | None = None
+    """The training run (default: runs/NAME-METHOD)."""
     benchmark: str = DEFAULT_BENCHMARK
     data: str = "cpu"
     """The benchmark's data preset to train on (its store: data_dir/train-N.zarr, or train-PRESET-N.zarr for others
@@ -102,11 +105,9 @@ RUNS: dict[str, WholeRun] = {
         steps=3000,
         batch_size=16,
         paper="ICRT, 224 px images: about 5.1 px",
-    ),  # fmt: skip
+    ),
     # A minute's check that everything runs (a debug-size model; its score means nothing).
     "smoke": WholeRun(
-        run_dir=Path("runs/smoke"),
-        out_dir=Path("outputs/smoke"),
         data_dir=Path("data/smoke"),
         preset="debug",
         num_tasks=12,
@@ -139,13 +140,18 @@ def whole_run(args: WholeRun, name: str = "") -> None:
         print(f"[{label} {time.perf_counter() - t0:6.0f} s] {text}", flush=True)
 
     benchmark = get_benchmark(args.benchmark)
+    args = dataclasses.replace(
+        args,
+        out_dir=args.out_dir or Path("outputs") / (name or "run"),
+        data_dir=args.data_dir or benchmark.default_data_dir,
+        run_dir=args.run_dir or Path("runs") / f"{name or 'run'}-{args.method}",
+    )
     if args.tasks not in benchmark.task_sets:
         raise UserError(f"--tasks {args.tasks!r}: {benchmark.name}'s task sets are {', '.join(benchmark.task_sets)}")
+    method = get_method(args.method)
+    model_cfg = method.config(args.preset, args.obs, benchmark)  # flags refused before any data is made
     store = _training_data(args, benchmark, stage)
     stage(f"the evaluation set: {benchmark.task_set(args.tasks, args.data_dir, args.workers).store.path}")
-
-    method = get_method(args.method)
-    model_cfg = method.config(args.preset, args.obs, benchmark)
     run = args.run_dir
     finished = False
     with contextlib.suppress(OSError, ValueError):  # no checkpoint yet
@@ -231,10 +237,10 @@ def write_report(args: WholeRun, name: str, benchmark, label: str, result: dict,
         "",
         "| quantity | value |",
         "| --- | --- |",
-        f"| {metric.name}, mean over tasks | **{metric.format(s['score_mean'])}{unit}** |",
+        f"| {metric.name}, mean over tasks | **{metric.format(s['score_mean'])}** |",
         f"| std / s.e.m. over tasks | {s['score_std_over_tasks']:.2f} / {s['score_sem_over_tasks']:.2f}{unit} |",
-        f"| median rollout | {metric.format(s['score_median_rollout'])}{unit} |",
-        f"| rollouts scoring {metric.good_threshold:g}{unit} or better | {100 * s['good_rollouts']:.0f}% |",
+        f"| median rollout | {metric.format(s['score_median_rollout'])} |",
+        *([f"| {metric.good_label} | {100 * s['good_rollouts']:.0f}% |"] if metric.good_label else []),
         *([f"| paper | {args.paper} |"] if args.paper else []),
         f"| wall time of this run (this call) | {seconds / 60:.1f} min |",
         "",

@@ -64,7 +64,7 @@ NOISE_STD = 2.0
 class CanvasNotFound(UserError):
     """The image does not show the canvas's four red markers clearly enough for a trustworthy pose; the message says
     what was seen. `reason` is a short fixed label for counting failures: ``missing marker``, ``extra red``,
-    ``partly hidden``, ``poor fit`` or ``facing away``."""
+    ``partly hidden``, ``poor fit``, ``facing away`` or ``ambiguous rotation``."""
 
     def __init__(self, message: str, reason: str):
         super().__init__(message)

@@ -169,6 +169,8 @@ def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> np.ndarray:
     except (pa.ArrowException, OSError, KeyError) as err:
         cause = " ".join(str(err).split())
         raise UserError(f"{path}: cannot read its episode_index column ({cause}); the file is damaged") from None
+    if len(episodes) and not (np.isfinite(episodes).all() and episodes.min() >= 0):
+        raise UserError(f"{path}: episode_index holds {episodes.min()}; episode indices are 0 or more")
     return np.bincount(episodes.astype(np.int64)) if len(episodes) else np.zeros(0, np.int64)
 
 
@@ -224,15 +226,18 @@ def _as_numpy(column, rows: int, item: Mapped, where: str) -> np.ndarray:
     return values.astype(item.store_dtype)
 
 
-def _arrow_cause(err: BaseException) -> str | None:
-    """The Arrow or I/O error at the root of `err`'s chain as "Type: message", or None if there is none."""
+def _arrow_cause(err: BaseException, root: Path) -> str | None:
+    """The Arrow error, or the I/O error on a file of the dataset at `root`, at the bottom of `err`'s chain, as
+    "Type: message"; None if there is none (an I/O error elsewhere, e.g. a full disk under the cache, is not the
+    dataset's)."""
     # pyarrow: the lerobot extra
     import pyarrow as pa
 
     found, seen = None, set()
     while err is not None and id(err) not in seen:
         seen.add(id(err))
-        if isinstance(err, pa.ArrowException | OSError):
+        ours = isinstance(err, OSError) and str(root) in f"{err.filename or ''} {err}"
+        if isinstance(err, pa.ArrowException) or ours:
             found = f"{type(err).__name__}: {' '.join(str(err).split())}"
         err = err.__cause__ or err.__context__
     return found
@@ -270,14 +275,15 @@ class _Reader:
                 frames[data] = check_data_file(data, self.fmap, self.meta.features)
             listed = int(self.meta.episodes[episode]["length"])
             held = int(frames[data][episode]) if episode < len(frames[data]) else 0
-            if listed <= 0 or held != listed:
+            if listed <= 0:
                 raise UserError(
-                    f"{data}: episode {episode} has {held} frames there, meta/episodes lists {listed}; "
-                    + (
-                        "an empty episode cannot be imported: leave it out with --episodes"
-                        if 0 in (listed, held)
-                        else "the dataset is damaged"
-                    )
+                    f"{self.root}: meta/episodes lists episode {episode} with {listed} frames; an empty episode "
+                    "cannot be imported: leave it out with --episodes"
+                )
+            if held != listed:
+                raise UserError(
+                    f"{data}: episode {episode} has {held} frames there, meta/episodes lists {listed}; the dataset is "
+                    "damaged (leave the episode out with --episodes)"
                 )
             for key in self.meta.video_keys:
                 video = self.root / self.meta.get_video_file_path(episode, key)
@@ -299,7 +305,7 @@ class _Reader:
                 f"{self.root}: LeRobot's library finds the dataset incomplete; nothing is downloaded"
             ) from None
         except Exception as err:  # noqa: BLE001 - the `datasets` package wraps a damaged file's Arrow error its own way
-            cause = _arrow_cause(err)
+            cause = _arrow_cause(err, self.root)
             if cause is None:
                 raise
             files = sorted({str(self.meta.get_data_file_path(e)) for e in episodes})

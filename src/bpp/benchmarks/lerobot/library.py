@@ -53,16 +53,16 @@ def offline_and_quiet(beside: Path) -> Iterator[None]:
 
     beside = Path(beside)
     beside.parent.mkdir(parents=True, exist_ok=True)
-    cache = Path(tempfile.mkdtemp(prefix=f".{beside.name}.datasets-cache-", dir=beside.parent))
     cache_before = datasets.config.HF_DATASETS_CACHE
-    datasets.config.HF_DATASETS_CACHE = cache
     offline, bars = hub.HF_HUB_OFFLINE, datasets_logging.is_progress_bar_enabled()
     svt = os.environ.get("SVT_LOG")
     hub.HF_HUB_OFFLINE = True
     level = _ffmpeg_log_level(av.logging.ERROR)
     datasets_logging.disable_progress_bar()
     os.environ["SVT_LOG"] = "1"  # SVT-AV1 (LeRobot's default encoder) prints its settings for every video otherwise
+    cache = Path(tempfile.mkdtemp(prefix=f".{beside.name}.datasets-cache-", dir=beside.parent))
     try:
+        datasets.config.HF_DATASETS_CACHE = cache
         yield
     finally:
         datasets.config.HF_DATASETS_CACHE = cache_before

@@ -56,6 +56,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from bpp.benchmarks.draw.studio.engine import Studio
 from bpp.benchmarks.draw.studio.state import Rollout, StudioError
+from bpp.network import client_key
 
 ANGLE = Field(default=0.0, ge=-3.2, le=3.2, description="board angle, radians")
 
@@ -367,7 +368,7 @@ def _session_routes(app: FastAPI, studio: Studio, SessionId) -> None:  # noqa: N
 
     @app.post("/api/session")
     def new_session(request: Request) -> dict:
-        client = request.client.host if request.client else ""
+        client = client_key(request.client.host if request.client else "")
         return {"session": studio.new_session(client), "limits": studio.limits.__dict__}
 
     @app.get("/api/session")
