@@ -2,11 +2,16 @@
 
     python bench/cpu_precision.py                      # BPP, cpu size, board observations, batch 64, 8 tasks
     python bench/cpu_precision.py --obs board-image --rounds 5
+    python bench/cpu_precision.py --limit              # what bounds the step: its convolutions, profiled
 
 In one process on `--threads` torch threads (default 1): the cores' matrix-product rate in fp32 and bf16 (the
 yardstick), a 1D convolution at the action decoder's largest size with its backward in both precisions, then the
 whole training step (``bpp.train.train_step``: loss, backward, clipping, fused AdamW, EMA) on the same batches in
 fp32 and under bf16 autocast with fp32 weights, alternated for `--rounds` rounds. Prints each round and the medians.
+
+With --limit: the matrix-product rate in fp32, bf16 and fp16, every 1D convolution of the action decoder at its
+real sizes (forward and both gradients) in fp32, and a profile of 10 fp32 training steps: the share of a step spent
+in convolutions, and so the speed-up the step could reach if everything else took no time at all.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch.profiler import ProfilerActivity, profile
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
@@ -57,6 +63,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
     parser.add_argument("--data-dir", type=Path, default=Path("data/bench-speed-history"))
+    parser.add_argument("--limit", action="store_true", help="profile what bounds an fp32 step instead")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -76,6 +83,9 @@ def main() -> None:
     )  # fmt: skip
     batches = [to_torch(dataset[i], cpu) for i in range(args.steps + 3)]
 
+    if args.limit:
+        limit(cfg, model, ema, optimizer, batches, args.threads)
+        return
     print(
         f"matmul GFLOP/s on {args.threads} thread(s): fp32 {matmul_peak(torch.float32, args.threads):.1f}, "
         f"bf16 {matmul_peak(torch.bfloat16, args.threads):.1f}; decoder convolution with its gradients: "
@@ -96,6 +106,56 @@ def main() -> None:
     fp32 = float(np.median(rates["fp32"]))
     for name, values in rates.items():
         print(f"{name:>13}: median {np.median(values):6.1f} samples/s, {np.median(values) / fp32:.3f}x fp32")
+
+
+def decoder_convolutions(model) -> tuple[list, list[tuple[int, int, int, int]]]:
+    """Hooks that record (in channels, out channels, kernel, steps) of every 1D convolution a forward pass runs, and
+    the list they fill."""
+    sizes = []
+
+    def record(module, inputs, _output):
+        sizes.append((module.in_channels, module.out_channels, module.kernel_size[0], inputs[0].shape[-1]))
+
+    hooks = [m.register_forward_hook(record) for m in model.modules() if isinstance(m, torch.nn.Conv1d)]
+    return hooks, sizes
+
+
+def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
+    """Print what bounds an fp32 step on this CPU (see the module's docstring)."""
+    rates = {dt: matmul_peak(dt, threads) for dt in (torch.float32, torch.bfloat16, torch.float16)}
+    print("matmul GFLOP/s: " + ", ".join(f"{str(dt).split('.')[-1]} {r:.1f}" for dt, r in rates.items()))
+    hooks, sizes = decoder_convolutions(model)
+    train_step(cfg, model, model, ema, optimizer, batches[0], 0, False)
+    for h in hooks:
+        h.remove()
+    batch = cfg.batch_size
+    for c_in, c_out, k, t in sorted(set(sizes)):
+        x = torch.randn(batch, c_in, t, requires_grad=True)
+        w = torch.randn(c_out, c_in, k, requires_grad=True)
+        flops = 3 * 2 * batch * t * c_in * c_out * k
+        F.conv1d(x, w, padding=k // 2).sum().backward()
+        count, t0 = 0, time.perf_counter()
+        while (elapsed := time.perf_counter() - t0) < 0.5:
+            F.conv1d(x, w, padding=k // 2).sum().backward()
+            count += 1
+        rate = flops * count / elapsed / 1e9
+        print(f"conv1d {c_in:4d} -> {c_out:4d}, kernel {k}, {t:2d} steps: {rate:6.1f} GFLOP/s fp32 "
+              f"({rate / rates[torch.float32]:.0%} of the fp32 matmul rate)")  # fmt: skip
+    for step in range(1, 4):
+        train_step(cfg, model, model, ema, optimizer, batches[step], step, False)
+    t0 = time.perf_counter()
+    for step in range(4, 14):
+        train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, False)
+    step_ms = (time.perf_counter() - t0) / 10 * 1e3
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for step in range(4, 14):
+            train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, False)
+    events = prof.key_averages()
+    total = sum(e.self_cpu_time_total for e in events)
+    conv = sum(e.self_cpu_time_total for e in events if "convolution" in e.key)
+    share = conv / total
+    print(f"a step: {step_ms:.1f} ms unprofiled; convolutions {share:.1%} of its profiled time: with everything else "
+          f"taking no time the step would run {1 / share:.2f}x faster at these kernels' speed")  # fmt: skip
 
 
 if __name__ == "__main__":
