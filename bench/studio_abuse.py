@@ -320,14 +320,14 @@ def abuse(url: str, checkpoint: str, owner: StudioClient, long_ones: list[str], 
                 status = s.recv(100).decode().split(" ")[1:2]
                 count("body that never arrives", status[0] if status else "closed")
 
-    def ordinary_user():
-        with StudioClient(url, TOKEN) as c:
+    def ordinary_user():  # at an address of its own, as another person's machine is
+        with StudioClient(url, TOKEN, local_address="127.0.2.1") as c:
             while time.time() < stop_at:
                 try:
                     prompt = c.prompt_strokes(TRIANGLE)["id"]
                     count("ordinary user's prompt", 200)
                 except StudioClientError as err:
-                    count("ordinary user's prompt", err.status)
+                    count(f"ordinary user's prompt ({err.detail.split(';')[0]})", err.status)
                     time.sleep(0.5)
                     continue
                 while time.time() < stop_at:

@@ -50,7 +50,7 @@ class Limits:
     own least valuable one (:meth:`Studio.new_session`)."""
     max_prompt_jobs: int = 2
     """Prompts prepared at once in the whole studio (one per session)."""
-    prompt_wait_s: float = 10.0
+    prompt_wait_s: float = 30.0
     """How long a prompt waits for one of those places (then 429); waiting prompts are served address by address,
     the least recently served first, one waiting per address (:class:`FairSlots`)."""
     max_waiting_prompts: int = 8
