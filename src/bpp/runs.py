@@ -39,7 +39,7 @@ class WholeRun:
     out_dir: Path | None = None
     """The report folder (default: outputs/NAME)."""
     data_dir: Path | None = None
-    """Where the data is generated (default: the benchmark's data folder, e.g. data/draw)."""
+    """Where the data is generated (default: the benchmark's data folder)."""
     run_dir: Path | None = None
     """The training run (default: runs/NAME-METHOD)."""
     benchmark: str = DEFAULT_BENCHMARK
@@ -95,7 +95,7 @@ class WholeRun:
 
 
 RUNS: dict[str, WholeRun] = {
-    # The main job: BPP on DrawAnything-Sim, state observations in the board's frame, about 25-40 minutes on 2 cores.
+    # The main job: BPP on the default benchmark, state observations, about 25-40 minutes on 2 cores.
     "demo": WholeRun(paper="BPP, 224 px images, 27-42 hours on 4 GPUs: 3.41 ± 0.13 px"),
     # The same on ICRT, the paper's strongest baseline, at its own batch (whole demonstrations) and a similar time.
     "demo-icrt": WholeRun(
@@ -119,7 +119,7 @@ RUNS: dict[str, WholeRun] = {
 }
 """Named whole runs (``bpp run NAME``)."""
 SUMMARIES = {
-    "demo": "The main job: BPP on DrawAnything-Sim's unseen drawings, end to end on built-in defaults.",
+    "demo": "The main job: BPP on the default benchmark's unseen tasks, end to end on built-in defaults.",
     "demo-icrt": "The main job's data and evaluation, on ICRT (the paper's strongest baseline).",
     "smoke": "A minute's check that data, training, evaluation and the report all run (a debug-size model).",
 }
