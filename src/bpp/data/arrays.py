@@ -84,5 +84,14 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
     return str(tuple("steps" if n is None else n for n in shape)).replace("'", "")
 
 
+def first_non_finite(values: np.ndarray) -> tuple[int, int] | None:
+    """(row, item) of the first NaN or infinity of `values` (rows along the first axis, the rest flattened), or None
+    where every value is finite or the dtype holds no such values."""
+    if values.dtype.kind not in "fc" or np.isfinite(values).all():
+        return None
+    step, item = _first(~np.isfinite(values.reshape(len(values), -1)))
+    return step, item
+
+
 def _first(mask: np.ndarray) -> tuple[int, ...]:
     return tuple(int(i) for i in np.argwhere(mask)[0])

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from bpp.data.arrays import first_non_finite
 from bpp.data.destination import DestinationLock, enclosing_store, partial_path, remove_stale_partials
 from bpp.data.integrity import (
     FORMAT,
@@ -117,13 +118,13 @@ def _check_finite(key: str, value: np.ndarray, episode: int) -> None:
     """Refuse a per-step array with a NaN or an infinity: a store holds finite numbers only, so that no statistic,
     normaliser or trained weight downstream of it turns into NaN (every writer passes this door: generators,
     importers, merges)."""
-    if value.dtype.kind not in "fc" or np.isfinite(value).all():
+    found = first_non_finite(value)
+    if found is None:
         return
-    flat = value.reshape(len(value), -1)
-    step, item = (int(i) for i in np.argwhere(~np.isfinite(flat))[0])
+    step, item = found
     raise StoreError(
-        f"episode {episode}: {key!r} holds {flat[step, item]} at step {step} (item {item}); a store keeps finite "
-        "numbers only"
+        f"episode {episode}: {key!r} holds {value.reshape(len(value), -1)[step, item]} at step {step} (item {item}); "
+        "a store keeps finite numbers only"
     )
 
 

@@ -33,6 +33,7 @@ from bpp.benchmarks.lerobot.library import (
     fit_image,
     offline_and_quiet,
 )
+from bpp.data.arrays import first_non_finite
 from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.errors import UserError
 from bpp.recorded.heldout import heldout_path, split_episodes
@@ -177,9 +178,10 @@ def check_data_file(path: Path, fmap: FeatureMap, features: dict) -> np.ndarray:
 def _check_finite_frames(values: np.ndarray, where: str, feature: str) -> None:
     """Refuse NaN and infinities where they enter, naming the file, the column and the frame (the store refuses
     them too, but knows neither)."""
-    if values.dtype.kind != "f" or np.isfinite(values).all():
+    found = first_non_finite(values)
+    if found is None:
         return
-    frame, item = (int(i) for i in np.argwhere(~np.isfinite(values))[0])
+    frame, item = found
     raise UserError(
         f"{where}: column {feature!r} holds {values[frame, item]} at frame {frame} (value {item}); bpp imports finite "
         "numbers only: repair or drop the episode (--episodes)"
