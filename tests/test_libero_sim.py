@@ -378,14 +378,16 @@ def _env_of_task(folder, task, name: str = "task"):
 
 
 def _assert_same_scene(a, b) -> None:
-    """The same simulator state, fixture poses, changeable parts of the model (bodies' poses, sites' colours) and
-    gripper command, bit for bit."""
-    from bpp.benchmarks.libero.sim import fixture_poses
+    """The same simulator state, fixture poses, changeable parts of the model (bodies' poses, sites' colours, the
+    constants derived from the poses) and gripper command, bit for bit."""
+    from bpp.benchmarks.libero.sim import COMPILED_CONSTANTS, fixture_poses
 
     np.testing.assert_array_equal(a.env.sim.get_state().flatten(), b.env.sim.get_state().flatten())
     np.testing.assert_array_equal(fixture_poses(a)[1], fixture_poses(b)[1])
     for name in ("body_pos", "body_quat", "site_rgba"):
         np.testing.assert_array_equal(getattr(a.env.sim.model, name), getattr(b.env.sim.model, name), err_msg=name)
+    for name in COMPILED_CONSTANTS:
+        np.testing.assert_array_equal(getattr(a.env.sim.model._model, name), getattr(b.env.sim.model._model, name))
     np.testing.assert_array_equal(a.env.robots[0].gripper.current_action, b.env.robots[0].gripper.current_action)
 
 
@@ -424,14 +426,15 @@ def test_a_soft_reset_gives_what_libero_hard_reset_gives_after_the_same_episodes
 
 def test_a_soft_reset_after_an_episode_gives_the_scene_of_a_new_env(tmp_path):
     """Where the problem sets no joint at the start (no initializer draws from the seed before the placements), a
-    seed's scene does not depend on the env's history: reset_env in an env whose episode left the gripper closed
-    gives LIBERO's reset of a new env, and the same steps after it."""
-    from bpp.benchmarks.libero.sim import reset_env
+    seed's scene does not depend on the env's history: reset_env in an env whose episode left the gripper closed,
+    its fixtures' constants derived where they stood, gives LIBERO's reset of a new env, and the same steps after it."""
+    from bpp.benchmarks.libero.sim import fixture_poses, place_fixtures, reset_env
 
     task = combination().train[0]
     used, new = _env_of_task(tmp_path, task), _env_of_task(tmp_path, task)
     try:
         reset_env(used, 3)
+        place_fixtures(used, *fixture_poses(used))  # as a replay of a demonstration starts
         for _ in range(10):
             used.step(np.r_[0.0, 0.2, -0.5, 0.0, 0.0, 0.0, 1.0])
         new.seed(5)
@@ -477,5 +480,37 @@ def test_the_fast_step_gives_robosuite_own_step_bit_for_bit(tmp_path):
         np.testing.assert_array_equal(inner.sim.get_state().flatten(), end)
         np.testing.assert_array_equal(robot.recent_ee_forcetorques.current, force)
         assert np.abs(force).max() > 0
+    finally:
+        env.close()
+
+
+def test_a_drawer_demonstration_replays_in_the_scene_its_file_compiles(tmp_path):
+    """A demonstration whose hand reaches into the open top drawer, replayed in the scene its exported ``model_file``
+    compiles (the fixtures where it had them), passes through every state it recorded, bit for bit, and reaches its
+    goal or not, as it did. LIBERO compiles a scene with its fixtures at the origin and then moves them: what MuJoCo
+    derives from the bodies' poses at compile time (the drawer joints' inverse weights, the cameras' offsets) must be
+    the file's, or the replay leaves the demonstration where the hand pushes the drawer."""
+    from bpp.benchmarks.libero.demonstrator import demonstrate
+    from bpp.benchmarks.libero.export import scene_xml
+    from bpp.benchmarks.libero.sim import COMPILED_CONSTANTS, fixture_poses, seat
+
+    task = next(t for t in combination().train if t.pick == "TD" and t.place == "NP")
+    env = _env_of_task(tmp_path, task)
+    try:
+        demo = demonstrate(env, task, seed=0)  # it fails, pushing the drawer (step 190)
+        built = {name: getattr(env.env.sim.model._model, name).copy() for name in COMPILED_CONSTANTS}
+        sim_end = env.env.sim.get_state().flatten()
+        xml = scene_xml(env, 0, fixture_poses(env))
+        env.env.reset_from_xml_string(xml)
+        compiled = env.env.sim.model._model
+        for name in COMPILED_CONSTANTS:
+            np.testing.assert_array_equal(built[name], getattr(compiled, name), err_msg=name)
+        seat(env, demo.states[0])
+        actions = demo.actions if demo.executed is None else demo.executed
+        for t, action in enumerate(actions):
+            np.testing.assert_array_equal(env.env.sim.get_state().flatten(), demo.states[t], err_msg=f"step {t}")
+            env.step(action)
+        np.testing.assert_array_equal(env.env.sim.get_state().flatten(), sim_end)
+        assert env.env._check_success() == demo.success
     finally:
         env.close()

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from bpp.benchmarks.libero.chain import parse_step
-from bpp.benchmarks.libero.sim import GoalOrder, holds, reset_env, seat
+from bpp.benchmarks.libero.sim import GoalOrder, derive_constants, holds, reset_env, seat
 from bpp.benchmarks.libero.suites import BOWL, BOWLS, LOCATION_TARGETS, PickPlace
 
 TIGHT_PLACES = ("TC", "BPR", "NP", "NR", "NB")
@@ -113,6 +113,7 @@ class Arm:
     def start(cls, env, seed: int, cfg: DemoConfig = DemoConfig(), upright: bool = False) -> Arm:
         arm = cls(env, cfg, upright, seed)
         arm.obs = reset_env(env, seed)
+        derive_constants(env)  # as its exported scene file compiles: a replay in that file follows it
         for _ in range(SETTLE_STEPS):
             env.step(np.zeros(7))
         arm.obs = seat(env)  # as a replay starts

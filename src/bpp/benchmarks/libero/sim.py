@@ -209,6 +209,8 @@ class _SoftReset:
     - the fixtures' bodies at the pose the MJCF declares (none: the origin). LIBERO samples their placement at every
       reset and writes it into the compiled model, after placing the objects that stand in a fixture's region (a bowl
       in the cabinet's drawer) from where the region's site is in the model as it was before.
+    - what MuJoCo derived from the bodies' poses when it compiled the model (:data:`COMPILED_CONSTANTS`), which
+      :func:`derive_constants` recomputes for a demonstration's fixtures.
     - the sites' colours as a new model has them: LIBERO shows a stove's burner when the stove is on, setting the
       colour after each step, and a state rendered right after a reset would show the last episode's. (The stove's
       flag that decides it needs nothing: LIBERO sets it from the knob's joint right before each use.)
@@ -224,6 +226,9 @@ class _SoftReset:
     body_pos: np.ndarray
     body_quat: np.ndarray
     site_rgba: np.ndarray
+    constants: dict[str, np.ndarray]
+    """:data:`COMPILED_CONSTANTS` as the build derived them (fixtures at the origin), put back after
+    :func:`derive_constants` changed them."""
     initializers: list
     """The joint initializers one model build appends."""
 
@@ -242,7 +247,8 @@ class _SoftReset:
             index = model.body_name2id(fixture.root_body)
             body_pos[index], body_quat[index] = 0.0, (1.0, 0.0, 0.0, 0.0)
         initializers = list(inner.object_property_initializers if initializers is None else initializers)
-        return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), initializers)
+        constants = {name: getattr(model._model, name).copy() for name in COMPILED_CONSTANTS}
+        return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), constants, initializers)
 
     def reset(self, inner) -> dict:
         # robosuite: the libero extra
@@ -253,6 +259,8 @@ class _SoftReset:
             inner.object_property_initializers.extend(self.initializers)
             model = inner.sim.model
             model.body_pos[:], model.body_quat[:], model.site_rgba[:] = self.body_pos, self.body_quat, self.site_rgba
+            for name, value in self.constants.items():
+                getattr(model._model, name)[:] = value
             for robot in inner.robots:
                 robot.gripper.current_action = np.zeros(robot.gripper.dof)
             inner.hard_reset = False
@@ -607,8 +615,41 @@ def fixture_row(env) -> tuple[list[str], np.ndarray]:
     return names, row
 
 
+COMPILED_CONSTANTS = (
+    "body_subtreemass",
+    "body_invweight0",
+    "dof_invweight0",
+    "dof_M0",
+    "cam_pos0",
+    "cam_poscom0",
+    "cam_mat0",
+    "light_pos0",
+    "light_poscom0",
+    "light_dir0",
+    "tendon_length0",
+    "tendon_invweight0",
+    "actuator_length0",
+    "actuator_acc0",
+)
+"""The model's fields MuJoCo derives from the bodies' poses when it compiles a scene (``mj_setConst``)."""
+
+
+def derive_constants(env) -> None:
+    """Recompute what MuJoCo derives from the bodies' poses at compile time (:data:`COMPILED_CONSTANTS`: the inverse
+    weights its constraint solver scales contacts by, the cameras' and lights' offsets) for where the fixtures stand
+    now, as compiling the scene's MJCF (an export's ``model_file``) gives them. LIBERO compiles a scene with its
+    fixtures at the origin and then moves them, so its model keeps the origin's: a drawer joint's inverse weight
+    differed from the file's by 6e-17, and a demonstration whose hand pushed the drawer left its file's replay there."""
+    # MuJoCo: the libero extra
+    import mujoco
+
+    model = env.env.sim.model._model
+    mujoco.mj_setConst(model, mujoco.MjData(model))  # a data of its own: the simulator's state is left as it is
+
+
 def place_fixtures(env, names: list[str], poses) -> None:
-    """Put the env's fixtures where :func:`fixture_poses` found them (after a reset, before setting a state)."""
+    """Put the env's fixtures where :func:`fixture_poses` found them (after a reset, before setting a state), with
+    the constants MuJoCo derives from their poses (:func:`derive_constants`), as a demonstration had them."""
     inner = env.env
     if sorted(inner.fixtures_dict) != list(names):
         raise UserError(f"the scene's fixtures {sorted(inner.fixtures_dict)} are not the stored {list(names)}")
@@ -616,6 +657,7 @@ def place_fixtures(env, names: list[str], poses) -> None:
         body = inner.sim.model.body_name2id(inner.fixtures_dict[name].root_body)
         inner.sim.model.body_pos[body] = pose[:3]
         inner.sim.model.body_quat[body] = pose[3:7]
+    derive_constants(env)
     inner.sim.forward()
 
 
