@@ -15,13 +15,15 @@ same training store (skipping runs that already finished, resuming killed ones),
 protocol on the unseen drawings and on training drawings, and writes a Markdown table, a JSON file and a bar chart
 into --out. Training wall time is measured and reported per run. Re-running reuses everything already done, so
 several invocations can train different methods or seeds side by side (one core each), and a last `--report-only`
-call gathers them into one table.
+call gathers them into one table. Each run's scores are kept in `--out/<run>/entry.json`: the table is made of those,
+so a run whose checkpoint was deleted to free the disk still counts.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +60,19 @@ def _mean_sd(x: np.ndarray) -> str:
 def _seed_averaged(per_seed: list[dict[str, float]]) -> dict[str, float]:
     """Each drawing's task mean, averaged over seeds (every seed evaluates the same drawings)."""
     return {task: float(np.mean([seed[task] for seed in per_seed])) for task in per_seed[0]}
+
+
+ENTRY = "entry.json"
+"""A run's scores, training time and budget, in its folder of --out."""
+
+
+def _kept_entry(folder: Path, steps: int, batch: int) -> dict | None:
+    """The run's kept scores if they are of this budget (a run trained longer or with other batches is not it)."""
+    path = folder / ENTRY
+    if not path.is_file():
+        return None
+    entry = json.loads(path.read_text())
+    return entry if (entry["steps"], entry["batch_size"]) == (steps, batch) else None
 
 
 def _paired(a: str, b: str, drawings: dict[str, dict[str, float]]) -> str:
@@ -131,6 +146,10 @@ def main() -> None:
         protocol = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps if replans else 0)
         for seed in args.seeds:
             run = args.runs / f"{method}-{label}-s{seed}"
+            kept = _kept_entry(args.out / run.name, steps[method], batch[method])
+            if kept is not None and not args.train_only:
+                results[f"{method}/s{seed}"] = kept
+                continue
             if args.report_only and not (trained_to(run, steps[method]) and (run / "train_seconds.json").is_file()):
                 print(f"skipping {run}: not trained to {steps[method]} steps")
                 continue
@@ -164,7 +183,8 @@ def main() -> None:
                 entry[f"{name}_median_rollout"] = data["summary"]["score_median_rollout"]
                 entry[f"{name}_per_task"] = {t["task"]: t["score_mean"] for t in data["tasks"]}
             results[f"{method}/s{seed}"] = entry
-            write_json_atomic(args.out / "results.json", results)
+            write_json_atomic(args.out / run.name / ENTRY, entry)
+    write_json_atomic(args.out / "results.json", results)
 
     chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
     drawings: dict[str, dict[str, float]] = {}  # method name -> unseen drawing -> Chamfer averaged over seeds
@@ -212,6 +232,12 @@ def main() -> None:
         if "BPP" in unseen and name in unseen
     ]
     findings += [_paired("BPP", name, drawings) for name in ("Goal-Image", "ICRT") if {"BPP", name} <= drawings.keys()]
+    for method in args.methods:
+        seeds = sorted((e["seed"], e["human"]) for e in results.values() if e["method"] == method)
+        if len(seeds) > 1:
+            findings.append(
+                f"{NAMES[method]} on the unseen drawings by seed: " + ", ".join(f"s{k} {v:.2f}" for k, v in seeds)
+            )
     if findings:
         table += "\n" + "\n".join(f"- {line}" for line in findings) + "\n"
     executed = ""
