@@ -451,14 +451,16 @@ def test_a_soft_reset_after_an_episode_gives_the_scene_of_a_new_env(tmp_path):
 
 def test_the_fast_step_gives_robosuite_own_step_bit_for_bit(tmp_path):
     """make_env's envs step with one forward dynamics per physics substep (mj_step1, the controller, mj_step2) where
-    robosuite's step runs it three times: a scripted demonstration (down to the bowl, grasp, carry, release: contacts
-    all along) made with it replays through robosuite's own step to its states and observations bit for bit, and to
-    the same force-torque record of the hand (read at each action's first substep)."""
+    robosuite's step runs it three times, and control the arm between policy steps without robosuite's lookups: a
+    scripted demonstration (down to the bowl, grasp, carry, release: contacts all along) made with it replays through
+    robosuite's own step to its states and observations bit for bit, and to the same force-torque record of the hand
+    (read at each action's first substep)."""
     import mujoco
     from robosuite.environments.base import MujocoEnv
 
     from bpp.benchmarks.libero import sim
     from bpp.benchmarks.libero.demonstrator import demonstrate
+    from bpp.benchmarks.libero.substeps import ArmSubstep
 
     task = combination().train[0]
     env = _env_of_task(tmp_path, task)
@@ -468,6 +470,7 @@ def test_the_fast_step_gives_robosuite_own_step_bit_for_bit(tmp_path):
         demo = demonstrate(env, task, seed=0)
         assert demo.success
         robot, inner = env.env.robots[0], env.env
+        assert ArmSubstep.of(robot) is not None  # its substeps ran bpp's control, not robosuite's
         end, force = inner.sim.get_state().flatten(), robot.recent_ee_forcetorques.current.copy()
         sim.reset_scene(env, 0)
         sim.seat(env, demo.states[0])

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bpp.benchmarks.libero.substeps import pre_action
 from bpp.errors import UserError
 
 
@@ -296,7 +297,9 @@ def _install_fast_step() -> None:
     acceleration stage. The observables are still updated at every substep: when they sample depends on a time
     counter each of them adds up substep by substep.
 
-    A forced controller update (:func:`seat`) still runs its ``mj_forward``."""
+    The controller of a substep that is not a policy step runs without robosuite's per-call lookups
+    (:mod:`bpp.benchmarks.libero.substeps`), with the same operations. A forced controller update (:func:`seat`)
+    still runs its ``mj_forward``."""
     global _ROBOSUITE_STEP
     if _ROBOSUITE_STEP is not None:
         return
@@ -321,7 +324,7 @@ def _install_fast_step() -> None:
                 mujoco.mj_step1(model, data)
             sim.forward = _computed  # the controller's update reads what was just computed
             try:
-                self._pre_action(action, i == 0)
+                pre_action(self, action, i == 0)
             finally:
                 del sim.forward
             if i == 0:
