@@ -7,26 +7,24 @@ from collections.abc import Sequence
 import numpy as np
 
 from bpp.benchmarks.draw.physics import PEN_THRESHOLD, control_step
-from bpp.benchmarks.draw.render import SceneRenderer
-from bpp.drawing.geometry import BOARD_CENTER, CANVAS_SIZE, rotation, unit_to_canvas
-from bpp.drawing.raster import INK_WIDTH, coverage, pixel_centers, polyline_segments
-from bpp.drawing.raster import segment_distance as _segment_distance
+from bpp.benchmarks.draw.render import SceneRenderer, line_coverage
+from bpp.drawing.geometry import BOARD_CENTER, rotation, unit_to_canvas
+from bpp.drawing.raster import INK_WIDTH, polyline_segments
 from bpp.media import contact_sheet, save_animation  # noqa: F401 - part of this module's interface
 
 TARGET_RGB = (255, 80, 80)
 
 
 def _paint_paths(image: np.ndarray, paths: Sequence[np.ndarray], rgb, alpha: float = 1.0) -> None:
-    """Blend (N, 2) canvas polylines into a float (H, W, 3) image in place."""
-    size = image.shape[0]
-    pixel = CANVAS_SIZE / size
-    x, y = pixel_centers(size)
+    """Blend (N, 2) canvas polylines into a float (H, W, 3) image in place (only the pixels the lines may cover are
+    measured: :func:`~bpp.benchmarks.draw.render.line_coverage`)."""
     segs = [polyline_segments(p) for p in paths if len(p)]
     if not segs:
         return
-    cover = alpha * coverage(_segment_distance(x, y, np.concatenate(segs)), INK_WIDTH / 2, pixel)
-    image *= 1.0 - cover[..., None]
-    image += cover[..., None] * np.asarray(rgb, dtype=np.float64)
+    pixels, cover = line_coverage(image.shape[0], np.concatenate(segs), INK_WIDTH / 2)
+    cover = alpha * cover[:, None]
+    flat = image.reshape(-1, 3)
+    flat[pixels] = flat[pixels] * (1.0 - cover) + cover * np.asarray(rgb, dtype=np.float64)
 
 
 def stroke_colors(n: int) -> np.ndarray:
