@@ -155,6 +155,39 @@ def test_evaluate_reuses_results_only_under_the_same_protocol(debug_store, tmp_p
     control = Protocol(rollouts=1, max_steps=8, prompts="other-task")
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out
+    data = json.loads(results.read_text())
+    del data["protocol"]["tasks_per_batch"]  # recorded before tasks were batched together: one task a batch
+    results.write_text(json.dumps(data))
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
+    assert "reusing" in capsys.readouterr().out
+    batched = Protocol(rollouts=1, max_steps=8, prompts="other-task", tasks_per_batch=2)
+    evaluate(run, TaskSet(debug_store, "debug"), [2], out, batched, workers=1, videos=0, progress=False)
+    assert "reusing" not in capsys.readouterr().out
+
+
+def test_tasks_batched_together_give_the_same_results_on_any_number_of_workers(debug_store, tmp_path, monkeypatch):
+    """With tasks_per_batch, consecutive tasks of the list step together (batches fixed by the list, not by the
+    workers): one worker or two give the same results file, and they are the rollouts of one task at a time to the
+    last bits of the policy's arithmetic."""
+    import bpp.evaluation.evaluate as evaluation
+
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
+    train(cfg, config("bpp"), progress=False)
+    tasks, batches = TaskSet(debug_store, "debug"), []
+    real = evaluation._run_tasks
+    monkeypatch.setattr(evaluation, "_run_tasks", lambda job: batches.append([t for t, _ in job]) or real(job))
+    results = {}
+    for name, size, workers in (("alone", 1, 1), ("one", 3, 1), ("two", 3, 2)):
+        if workers == 2:
+            monkeypatch.undo()  # the pool's processes pickle the function they run
+        protocol = Protocol(rollouts=2, max_steps=12, tasks_per_batch=size)
+        results[name] = evaluate(run, tasks, [0, 3, 5, 7], tmp_path / name, protocol, workers, 1, progress=False)
+    assert batches == [[0], [3], [5], [7], [0, 3, 5], [7]]
+    assert results["one"]["rollouts"] == results["two"]["rollouts"]
+    assert results["one"]["summary"] == results["two"]["summary"]
+    for got, want in zip(results["one"]["rollouts"], results["alone"]["rollouts"], strict=True):
+        assert got["steps"] == want["steps"] and got["score"] == pytest.approx(want["score"], abs=1e-3)
 
 
 def test_an_interrupted_evaluation_resumes_with_the_tasks_it_had_finished(debug_store, tmp_path, monkeypatch):
@@ -165,15 +198,15 @@ def test_an_interrupted_evaluation_resumes_with_the_tasks_it_had_finished(debug_
     train(cfg, config("bpp"), progress=False)
     protocol, tasks = Protocol(rollouts=2, max_steps=10), TaskSet(debug_store, "debug")
     evaluate(run, tasks, [0, 3, 5], tmp_path / "whole", protocol, workers=1, videos=1, progress=False)
-    real, ran = evaluation._run_task, []
+    real, ran = evaluation._run_tasks, []
 
     def killed_on_the_third(job):
-        ran.append(job[0])
+        ran.append(job[0][0])
         if len(ran) == 3:
             raise KeyboardInterrupt
         return real(job)
 
-    monkeypatch.setattr(evaluation, "_run_task", killed_on_the_third)
+    monkeypatch.setattr(evaluation, "_run_tasks", killed_on_the_third)
     out = tmp_path / "eval"
     with pytest.raises(KeyboardInterrupt):
         evaluate(run, tasks, [0, 3, 5], out, protocol, workers=1, videos=1, progress=False)

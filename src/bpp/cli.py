@@ -258,6 +258,10 @@ class Eval:
     """Actions executed per inference (0: the checkpoint's Ta; fewer replans more often)."""
     inference_steps: int = 0
     """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
+    tasks_per_batch: int = 1
+    """Tasks whose rollouts step together through the policy, in the order evaluated: faster on a CPU (DrawAnything:
+    8); each task's scores then depend in their last bits on the tasks batched with it. LIBERO keeps a simulator per
+    rollout in memory."""
     workers: int = 0
     """Processes (0: one per core), for the rollouts and for generating a named task set or --files the first time."""
     executor: Literal["local", "ray"] = "local"
@@ -294,6 +298,7 @@ def eval_cmd(args: Eval) -> None:
         prompts=args.prompts,
         n_action_steps=args.n_action_steps,
         inference_steps=args.inference_steps,
+        tasks_per_batch=args.tasks_per_batch,
     )
     # Every argument is checked (checkpoints read, agent options tried, task sets resolved) before anything is
     # evaluated or written.

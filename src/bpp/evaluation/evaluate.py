@@ -66,29 +66,40 @@ def _init_worker(checkpoint: Checkpoint, benchmark: Benchmark, store_folder, pro
         _WORKER["benchmark"] = benchmark
         _WORKER["store"] = EpisodeStore(local_path(store_folder), benchmark.derived_keys)
         _WORKER["protocol"] = protocol
-    except Exception as err:  # noqa: BLE001 - re-raised by _run_task, in the parent
+    except Exception as err:  # noqa: BLE001 - re-raised by _run_tasks, in the parent
         _WORKER["error"] = err
 
 
-def _run_task(job: tuple[int, bool]) -> TaskResult:
+def _run_tasks(job: tuple[tuple[int, bool], ...]) -> list[TaskResult]:
+    """The rollouts of a batch of tasks ((task, video) pairs), stepping together through one agent."""
     if "error" in _WORKER:
         raise _WORKER["error"]
-    task, video = job
     agent, benchmark, store, protocol = (_WORKER[k] for k in ("agent", "benchmark", "store", "protocol"))
-    plan = protocol.plan(store, task, benchmark)
-    # The first rollout's final frame goes into the report's grid; all of its frames only into a video.
-    record = [("all" if video else "last") if r == 0 else False for r in range(len(plan))]
+    plans = [protocol.plan(store, task, benchmark) for task, _ in job]
+    # A task's first rollout's final frame goes into the report's grid; all of its frames only into a video.
+    record = [
+        ("all" if video else "last") if r == 0 else False
+        for (_, video), plan in zip(job, plans, strict=True)
+        for r in range(len(plan))
+    ]
+    plan = [row for task_plan in plans for row in task_plan]
     results, attention = run_prompted(agent, benchmark, store, plan, protocol.max_steps, record)
-    rows = rollout_rows(benchmark, plan, results)
-    first = results[0]
-    return TaskResult(
-        task,
-        str(store.tasks[task]["id"]),
-        rows,
-        last_frame=first.frames[-1] if first.frames else None,
-        frames=first.frames if video else None,
-        attention=None if attention is None else attention[0],
-    )
+    out, start = [], 0
+    for (task, video), task_plan in zip(job, plans, strict=True):
+        mine = results[start : start + len(task_plan)]
+        first = mine[0]
+        out.append(
+            TaskResult(
+                task,
+                str(store.tasks[task]["id"]),
+                rollout_rows(benchmark, task_plan, mine),
+                last_frame=first.frames[-1] if first.frames else None,
+                frames=first.frames if video else None,
+                attention=None if attention is None else attention[start],
+            )
+        )
+        start += len(task_plan)
+    return out
 
 
 def run_protocol(
@@ -106,25 +117,31 @@ def run_protocol(
     """Evaluate `checkpoint` on `tasks` of `store`; tasks are spread over `workers` processes (0: all cores) or an
     :class:`~bpp.executor.Executor` (e.g. a Ray cluster, whose nodes get the store's contents).
 
-    Each worker runs a task's rollouts as one batch through one agent (so results do not depend on where a task
-    runs), with ``OMP_NUM_THREADS`` torch threads if set, else the cores it has to itself. With a `journal`, the
-    tasks it holds are not run again, and every task that finishes is added to it.
+    Each worker runs the rollouts of ``protocol.tasks_per_batch`` consecutive tasks of `tasks` as one batch through
+    one agent (so results do not depend on where a task runs), with ``OMP_NUM_THREADS`` torch threads if set, else
+    the cores it has to itself. With a `journal`, the tasks it holds are not run again (a batch runs whole if any of
+    its tasks is missing), and every task that finishes is added to it.
     """
     assert protocol.max_steps > 0, "resolve the benchmark's max_steps first (evaluate does)"
     out: dict[int, TaskResult] = journal.load() if journal is not None else {}
     executor = as_executor(workers)
-    jobs = [(t, i < video_tasks) for i, t in enumerate(tasks) if t not in out]
+    size = protocol.tasks_per_batch
+    batches = [[(t, i < video_tasks) for i, t in enumerate(tasks)][b : b + size] for b in range(0, len(tasks), size)]
+    jobs = [tuple(batch) for batch in batches if any(t not in out for t, _ in batch)]
+    rerun = {t for job in jobs for t, _ in job}
+    out = {t: result for t, result in out.items() if t not in rerun}  # a batch's tasks run (and count) together
     args = (checkpoint, benchmark, executor.share(store.path), protocol, executor.threads(len(jobs)))
     bar = tqdm(total=len(tasks) * protocol.rollouts, initial=len(out) * protocol.rollouts, desc=desc, unit="rollout",
                disable=not progress)  # fmt: skip
     # spawned workers: this process may already hold torch threads, which fork does not copy safely.
-    results = executor.map(_run_task, jobs, initializer=_init_worker, initargs=args, start_method="spawn")
+    results = executor.map(_run_tasks, jobs, initializer=_init_worker, initargs=args, start_method="spawn")
     with bar, contextlib.closing(results):
-        for result in results:
-            if journal is not None:
-                journal.add(result)
-            out[result.task] = result
-            bar.update(len(result.rollouts))
+        for batch in results:
+            for result in batch:
+                if journal is not None:
+                    journal.add(result)
+                out[result.task] = result
+                bar.update(len(result.rollouts))
             bar.set_postfix(score=f"{np.mean([r.mean for r in out.values()]):.2f}")
     return [out[t] for t in tasks]
 
@@ -283,6 +300,10 @@ def _overrides(protocol: Protocol) -> str:
 
 
 # ------------------------------------------------------------------------------------------- one call
+RECORDED_BEFORE = {"tasks_per_batch": 1}
+"""The protocol fields results recorded before those fields existed were evaluated with."""
+
+
 def evaluate(
     checkpoint: Checkpoint | str | Path,
     task_set: TaskSet,
@@ -315,7 +336,7 @@ def evaluate(
         reuse
         and previous is not None
         and previous.get("fingerprint") == fingerprint
-        and previous.get("protocol") == asdict(protocol)
+        and {**RECORDED_BEFORE, **previous.get("protocol", {})} == asdict(protocol)
         and [t.get("task") for t in previous.get("tasks", [])] == tasks
         and isinstance(previous.get("summary"), dict)
         and "score_mean" in previous["summary"]

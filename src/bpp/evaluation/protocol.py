@@ -41,6 +41,11 @@ class Protocol:
     """Actions executed per inference (0: the checkpoint's Ta)."""
     inference_steps: int = 0
     """Denoising steps per inference of a diffusion decoder (0: the checkpoint's own)."""
+    tasks_per_batch: int = 1
+    """Tasks whose rollouts step together as one batch through the policy, in the order of the evaluated task list
+    (the batches depend on that list, never on the workers). More is faster on a CPU, whose kernels do more per call
+    on larger batches; a task's scores then depend in their last bits on the tasks batched with it. A benchmark that
+    keeps a simulator per rollout (LIBERO) keeps that many more in memory."""
 
     def __post_init__(self):
         check_fields(
@@ -51,6 +56,7 @@ class Protocol:
             ("prompts", self.prompts in PROMPT_CHOICES, f"one of {', '.join(PROMPT_CHOICES)}"),
             ("n_action_steps", self.n_action_steps >= 0, ">= 0 (0: the checkpoint's)"),
             ("inference_steps", self.inference_steps >= 0, ">= 0 (0: the checkpoint's)"),
+            ("tasks_per_batch", self.tasks_per_batch >= 1, ">= 1"),
         )
 
     def agent_options(self) -> dict:
