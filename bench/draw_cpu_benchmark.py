@@ -66,13 +66,13 @@ ENTRY = "entry.json"
 """A run's scores, training time and budget, in its folder of --out."""
 
 
-def _kept_entry(folder: Path, steps: int, batch: int) -> dict | None:
-    """The run's kept scores if they are of this budget (a run trained longer or with other batches is not it)."""
+def _kept_entry(folder: Path, wanted: dict) -> dict | None:
+    """The run's kept scores if they are of this budget and evaluation (`wanted`: the fields that must match)."""
     path = folder / ENTRY
     if not path.is_file():
         return None
     entry = json.loads(path.read_text())
-    return entry if (entry["steps"], entry["batch_size"]) == (steps, batch) else None
+    return entry if all(entry.get(key) == value for key, value in wanted.items()) else None
 
 
 def _paired(a: str, b: str, drawings: dict[str, dict[str, float]]) -> str:
@@ -146,7 +146,10 @@ def main() -> None:
         protocol = Protocol(rollouts=args.rollouts, n_action_steps=args.n_action_steps if replans else 0)
         for seed in args.seeds:
             run = args.runs / f"{method}-{label}-s{seed}"
-            kept = _kept_entry(args.out / run.name, steps[method], batch[method])
+            wanted = {"run": str(run), "steps": steps[method], "batch_size": batch[method]}
+            wanted |= {"n_action_steps": protocol.n_action_steps, "rollouts": args.rollouts}
+            wanted |= {"human_tasks": args.human_tasks, "train_tasks": args.train_tasks}
+            kept = _kept_entry(args.out / run.name, wanted)
             if kept is not None and not args.train_only:
                 results[f"{method}/s{seed}"] = kept
                 continue
@@ -174,6 +177,7 @@ def main() -> None:
             entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
             entry["batch_size"] = batch[method]
             entry["n_action_steps"] = protocol.n_action_steps
+            entry |= {"rollouts": args.rollouts, "human_tasks": args.human_tasks, "train_tasks": args.train_tasks}
             checkpoint = Checkpoint.load(run, use_ema=True)
             for name, num in (("human", args.human_tasks), ("train", args.train_tasks)):
                 _, task_set, tasks = resolve_tasks(name, checkpoint, data_dir=args.data_dir, num_tasks=num)

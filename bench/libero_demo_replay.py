@@ -7,10 +7,10 @@ first state (with its fixtures) must pass through its stored states and reach it
 
 For every demonstration: whether the replay reached LIBERO's goal, whether its states equal the stored ones bit for
 bit, and how far its final state ends from the stored one. Variants: `stored` (the actions as stored, in the scene
-rebuilt from the seed and fixtures), `float32` (the actions rounded to float32, how they were stored before: the
-physics is chaotic, so the rounding alone changes outcomes) and `file` (the actions as stored, in the scene its
-exported ``model_file`` compiles, as LIBERO's own replay loads it). Physics only: about 5 s per demonstration and
-variant on one core. Needs the `libero` extra.
+rebuilt from the seed and fixtures), `float32` (the actions rounded to float32: the physics is chaotic, so the
+rounding alone changes outcomes) and `file` (the actions as stored, in the scene its exported ``model_file``
+compiles, as LIBERO's own replay loads it). Physics only: about 5 s per demonstration and variant on one core.
+Needs the `libero` extra.
 """
 
 from __future__ import annotations

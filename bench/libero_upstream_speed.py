@@ -10,7 +10,8 @@ round, so that a busy moment of a shared machine hits both:
 - upstream: LIBERO's ``ControlEnv`` (physics only, as bpp's `cpu` preset simulates), built as LIBERO builds it; per
   demonstration ``env.seed(seed)`` and ``env.reset()`` (LIBERO's reset: the model rebuilt and compiled), 10 steps
   with a zero action (LIBERO's evaluation waits as many), ``set_init_state`` with the first stored state, then the
-  demonstration's actions through robosuite's step.
+  demonstration's actions through robosuite's step. LIBERO's reset places the fixtures for the seed as the
+  demonstration's reset did; the constants MuJoCo derives from their poses stay LIBERO's own.
 - bpp: ``make_env``, then per demonstration its scene (``reset_scene``: the soft reset, the stored fixtures), the
   same 10 steps, ``seat`` with the first stored state, the same actions through bpp's step. Its replays must pass
   through the stored states bit for bit.
@@ -199,7 +200,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--store", type=Path, help="a LIBERO-Gen store (default: generate task 0 here, timed)")
     parser.add_argument("--demos", type=int, default=3, help="demonstrations to generate without --store")
-    parser.add_argument("--episodes", type=int, nargs="+", help="demonstrations replayed (default: all, one task)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        nargs="+",
+        help="demonstrations replayed, of one task (default: all the store's, if it holds one task)",
+    )
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_upstream_speed.json"))
     parser.add_argument("--side", choices=["upstream", "bpp"], help=argparse.SUPPRESS)

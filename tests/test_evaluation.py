@@ -9,6 +9,7 @@ import torch
 
 import bpp.benchmarks.draw.rollouts as draw_rollouts
 import bpp.core.prompting as prompting
+import bpp.evaluation.evaluate as evaluation
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.core.contract import TaskSet
 from bpp.data.contexts import CONTROL_CHUNK, prompt_steps, task_context
@@ -156,7 +157,7 @@ def test_evaluate_reuses_results_only_under_the_same_protocol(debug_store, tmp_p
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
     assert "reusing" not in capsys.readouterr().out
     data = json.loads(results.read_text())
-    del data["protocol"]["tasks_per_batch"]  # recorded before tasks were batched together: one task a batch
+    del data["protocol"]["tasks_per_batch"]  # a record without the field: one task a batch
     results.write_text(json.dumps(data))
     evaluate(run, TaskSet(debug_store, "debug"), [2], out, control, workers=1, videos=0, progress=False)
     assert "reusing" in capsys.readouterr().out
@@ -169,8 +170,6 @@ def test_tasks_batched_together_give_the_same_results_on_any_number_of_workers(d
     """With tasks_per_batch, consecutive tasks of the list step together (batches fixed by the list, not by the
     workers): one worker or two give the same results file, and they are the rollouts of one task at a time to the
     last bits of the policy's arithmetic."""
-    import bpp.evaluation.evaluate as evaluation
-
     run = tmp_path / "run"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=2, batch_size=4, workers=0, warmup_steps=1)
     train(cfg, config("bpp"), progress=False)
@@ -191,8 +190,6 @@ def test_tasks_batched_together_give_the_same_results_on_any_number_of_workers(d
 
 
 def test_an_interrupted_evaluation_resumes_with_the_tasks_it_had_finished(debug_store, tmp_path, monkeypatch):
-    import bpp.evaluation.evaluate as evaluation
-
     run = tmp_path / "run"
     cfg = TrainConfig(data=debug_store.path, out=run, method="bpp", steps=1, batch_size=4, workers=0, warmup_steps=1)
     train(cfg, config("bpp"), progress=False)

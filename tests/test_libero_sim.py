@@ -377,6 +377,10 @@ def _env_of_task(folder, task, name: str = "task"):
     return make_env(path)
 
 
+STAT = ("meaninertia", "meanmass", "meansize", "extent", "center")
+"""The model's statistics, which MuJoCo also derives when it compiles a scene."""
+
+
 def _assert_same_scene(a, b) -> None:
     """The same simulator state, fixture poses, changeable parts of the model (bodies' poses, sites' colours, the
     constants derived from the poses) and gripper command, bit for bit."""
@@ -388,6 +392,10 @@ def _assert_same_scene(a, b) -> None:
         np.testing.assert_array_equal(getattr(a.env.sim.model, name), getattr(b.env.sim.model, name), err_msg=name)
     for name in COMPILED_CONSTANTS:
         np.testing.assert_array_equal(getattr(a.env.sim.model._model, name), getattr(b.env.sim.model._model, name))
+    for name in STAT:
+        np.testing.assert_array_equal(
+            getattr(a.env.sim.model._model.stat, name), getattr(b.env.sim.model._model.stat, name)
+        )
     np.testing.assert_array_equal(a.env.robots[0].gripper.current_action, b.env.robots[0].gripper.current_action)
 
 
@@ -502,12 +510,14 @@ def test_a_drawer_demonstration_replays_in_the_scene_its_file_compiles(tmp_path)
     try:
         demo = demonstrate(env, task, seed=0)  # it fails, pushing the drawer (step 190)
         built = {name: getattr(env.env.sim.model._model, name).copy() for name in COMPILED_CONSTANTS}
+        built_stat = [np.asarray(getattr(env.env.sim.model._model.stat, name)).tolist() for name in STAT]
         sim_end = env.env.sim.get_state().flatten()
         xml = scene_xml(env, 0, fixture_poses(env))
         env.env.reset_from_xml_string(xml)
         compiled = env.env.sim.model._model
         for name in COMPILED_CONSTANTS:
             np.testing.assert_array_equal(built[name], getattr(compiled, name), err_msg=name)
+        assert built_stat == [np.asarray(getattr(compiled.stat, name)).tolist() for name in STAT]
         seat(env, demo.states[0])
         actions = demo.actions if demo.executed is None else demo.executed
         for t, action in enumerate(actions):

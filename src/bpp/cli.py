@@ -259,9 +259,9 @@ class Eval:
     inference_steps: int = 0
     """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
     tasks_per_batch: int = 1
-    """Tasks whose rollouts step together through the policy, in the order evaluated: faster on a CPU (DrawAnything:
-    8); each task's scores then depend in their last bits on the tasks batched with it. LIBERO keeps a simulator per
-    rollout in memory."""
+    """Tasks whose rollouts step together through the policy, in the order evaluated: faster on a CPU (e.g. 8); each
+    task's scores then depend in their last bits on the tasks batched with it. A benchmark that keeps a simulator per
+    rollout keeps that many more in memory."""
     workers: int = 0
     """Processes (0: one per core), for the rollouts and for generating a named task set or --files the first time."""
     executor: Literal["local", "ray"] = "local"

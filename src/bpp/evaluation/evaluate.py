@@ -296,6 +296,8 @@ def _overrides(protocol: Protocol) -> str:
         text += f", {protocol.n_action_steps} actions per inference"
     if protocol.inference_steps:
         text += f", {protocol.inference_steps} denoising steps"
+    if protocol.tasks_per_batch > 1:
+        text += f", {protocol.tasks_per_batch} tasks a batch"
     return text
 
 
@@ -336,7 +338,8 @@ def evaluate(
         reuse
         and previous is not None
         and previous.get("fingerprint") == fingerprint
-        and {**RECORDED_BEFORE, **previous.get("protocol", {})} == asdict(protocol)
+        and isinstance(previous.get("protocol"), dict)
+        and {**RECORDED_BEFORE, **previous["protocol"]} == asdict(protocol)
         and [t.get("task") for t in previous.get("tasks", [])] == tasks
         and isinstance(previous.get("summary"), dict)
         and "score_mean" in previous["summary"]

@@ -45,7 +45,7 @@ class Protocol:
     """Tasks whose rollouts step together as one batch through the policy, in the order of the evaluated task list
     (the batches depend on that list, never on the workers). More is faster on a CPU, whose kernels do more per call
     on larger batches; a task's scores then depend in their last bits on the tasks batched with it. A benchmark that
-    keeps a simulator per rollout (LIBERO) keeps that many more in memory."""
+    keeps a simulator per rollout keeps that many more in memory."""
 
     def __post_init__(self):
         check_fields(

@@ -210,8 +210,9 @@ class _SoftReset:
     - the fixtures' bodies at the pose the MJCF declares (none: the origin). LIBERO samples their placement at every
       reset and writes it into the compiled model, after placing the objects that stand in a fixture's region (a bowl
       in the cabinet's drawer) from where the region's site is in the model as it was before.
-    - what MuJoCo derived from the bodies' poses when it compiled the model (:data:`COMPILED_CONSTANTS`), which
-      :func:`derive_constants` recomputes for a demonstration's fixtures.
+    - what MuJoCo derives from the bodies' poses when it compiles the model (``mj_setConst``: inverse weights, the
+      mass matrix at the reference pose, cameras' offsets, the model's statistics), recomputed with the fixtures
+      at the origin after :func:`derive_constants` recomputed it for a demonstration's fixtures.
     - the sites' colours as a new model has them: LIBERO shows a stove's burner when the stove is on, setting the
       colour after each step, and a state rendered right after a reset would show the last episode's. (The stove's
       flag that decides it needs nothing: LIBERO sets it from the knob's joint right before each use.)
@@ -227,9 +228,6 @@ class _SoftReset:
     body_pos: np.ndarray
     body_quat: np.ndarray
     site_rgba: np.ndarray
-    constants: dict[str, np.ndarray]
-    """:data:`COMPILED_CONSTANTS` as the build derived them (fixtures at the origin), put back after
-    :func:`derive_constants` changed them."""
     initializers: list
     """The joint initializers one model build appends."""
 
@@ -248,8 +246,7 @@ class _SoftReset:
             index = model.body_name2id(fixture.root_body)
             body_pos[index], body_quat[index] = 0.0, (1.0, 0.0, 0.0, 0.0)
         initializers = list(inner.object_property_initializers if initializers is None else initializers)
-        constants = {name: getattr(model._model, name).copy() for name in COMPILED_CONSTANTS}
-        return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), constants, initializers)
+        return cls(inner.sim, body_pos, body_quat, model.site_rgba.copy(), initializers)
 
     def reset(self, inner) -> dict:
         # robosuite: the libero extra
@@ -260,8 +257,9 @@ class _SoftReset:
             inner.object_property_initializers.extend(self.initializers)
             model = inner.sim.model
             model.body_pos[:], model.body_quat[:], model.site_rgba[:] = self.body_pos, self.body_quat, self.site_rgba
-            for name, value in self.constants.items():
-                getattr(model._model, name)[:] = value
+            if inner in _DERIVED:  # as compiling the model (the fixtures at the origin now) derives them
+                _set_constants(model._model)
+                _DERIVED.discard(inner)
             for robot in inner.robots:
                 robot.gripper.current_action = np.zeros(robot.gripper.dof)
             inner.hard_reset = False
@@ -633,21 +631,34 @@ COMPILED_CONSTANTS = (
     "tendon_invweight0",
     "actuator_length0",
     "actuator_acc0",
+    "dof_length",
+    "eq_data",
 )
-"""The model's fields MuJoCo derives from the bodies' poses when it compiles a scene (``mj_setConst``)."""
+"""The model's arrays MuJoCo derives from the bodies' poses when it compiles a scene (``mj_setConst``), besides its
+statistics (``stat``)."""
 
 
-def derive_constants(env) -> None:
-    """Recompute what MuJoCo derives from the bodies' poses at compile time (:data:`COMPILED_CONSTANTS`: the inverse
-    weights its constraint solver scales contacts by, the cameras' and lights' offsets) for where the fixtures stand
-    now, as compiling the scene's MJCF (an export's ``model_file``) gives them. LIBERO compiles a scene with its
-    fixtures at the origin and then moves them, so its model keeps the origin's: a drawer joint's inverse weight
-    differed from the file's by 6e-17, and a demonstration whose hand pushed the drawer left its file's replay there."""
+_DERIVED: weakref.WeakSet = weakref.WeakSet()
+"""The LIBERO envs whose constants :func:`derive_constants` recomputed since their last reset."""
+
+
+def _set_constants(model) -> None:
     # MuJoCo: the libero extra
     import mujoco
 
-    model = env.env.sim.model._model
     mujoco.mj_setConst(model, mujoco.MjData(model))  # a data of its own: the simulator's state is left as it is
+
+
+def derive_constants(env) -> None:
+    """Recompute what MuJoCo derives from the bodies' poses when it compiles a scene (``mj_setConst``: among them
+    :data:`COMPILED_CONSTANTS`, the inverse weights its constraint solver scales contacts by and the cameras' and
+    lights' offsets, and the model's statistics) for where the fixtures stand now, as compiling the scene's MJCF (an
+    export's ``model_file``) gives them. LIBERO compiles a scene with its fixtures at the origin and then moves them,
+    so its model keeps the origin's: a drawer joint's inverse weight then differs from the file's by about 6e-17, and
+    a replay in the file leaves a demonstration where its hand pushes the drawer. The next :func:`reset_env` derives
+    them again with the fixtures at the origin, as LIBERO's reset does."""
+    _set_constants(env.env.sim.model._model)
+    _DERIVED.add(env.env)
 
 
 def place_fixtures(env, names: list[str], poses) -> None:

