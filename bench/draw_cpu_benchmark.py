@@ -185,7 +185,7 @@ def main() -> None:
                 data = evaluate(checkpoint, task_set, tasks, out, protocol, args.workers)
                 entry[name] = data["summary"]["score_mean"]  # the best Chamfer distance, px
                 entry[f"{name}_median_rollout"] = data["summary"]["score_median_rollout"]
-                entry[f"{name}_per_task"] = {t["task"]: t["score_mean"] for t in data["tasks"]}
+                entry[f"{name}_per_task"] = {str(t["task"]): t["score_mean"] for t in data["tasks"]}  # as JSON keeps it
             results[f"{method}/s{seed}"] = entry
             write_json_atomic(args.out / run.name / ENTRY, entry)
     write_json_atomic(args.out / "results.json", results)
