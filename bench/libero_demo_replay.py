@@ -25,7 +25,7 @@ import numpy as np
 from bpp.benchmarks.libero.dataset import episode_fixtures
 from bpp.benchmarks.libero.export import scene_xml
 from bpp.benchmarks.libero.rollouts import task_problem
-from bpp.benchmarks.libero.sim import make_env, replay, seat
+from bpp.benchmarks.libero.sim import make_env, replay, replay_from
 from bpp.cli import main as bpp
 from bpp.data.store import EpisodeStore
 
@@ -33,13 +33,7 @@ from bpp.data.store import EpisodeStore
 def replay_in_file(env, seed: int, states, actions, fixtures) -> tuple[np.ndarray, bool]:
     """:func:`replay`, in the scene the demonstration's exported ``model_file`` compiles."""
     env.env.reset_from_xml_string(scene_xml(env, seed, fixtures))
-    seat(env, states[0])
-    sim = env.env.sim
-    seen = [sim.get_state().flatten()]
-    for action in actions:
-        env.step(np.asarray(action, dtype=np.float64))
-        seen.append(sim.get_state().flatten())
-    return np.stack(seen), bool(env.env._check_success())
+    return replay_from(env, states[0], actions)
 
 
 def replay_store(store: EpisodeStore, variant: str) -> list[dict]:

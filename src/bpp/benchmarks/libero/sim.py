@@ -702,7 +702,12 @@ def replay(env, seed: int, states, actions, fixtures: tuple[list[str], np.ndarra
     its first simulator state and execute every action. Returns the simulator states before each action (as stored)
     and after the last one, and whether LIBERO's goal holds at the end."""
     reset_scene(env, seed, fixtures)
-    seat(env, states[0])
+    return replay_from(env, states[0], actions)
+
+
+def replay_from(env, state, actions):
+    """:func:`replay` in the scene `env` holds now: seated in simulator state `state`, then every action executed."""
+    seat(env, state)
     sim = env.env.sim
     seen = [sim.get_state().flatten()]
     for action in actions:
