@@ -224,3 +224,14 @@ def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold(tmp_path)
     data = tmp_path / "data"
     wrong = _bpp("run", "smoke", "--obs", "nope", "--data-dir", str(data), "--run-dir", str(tmp_path / "run"))
     assert wrong.returncode != 0 and "nope" in wrong.stderr and not data.exists()  # refused before any data is made
+
+
+def test_a_whole_run_on_every_core_leaves_the_thread_count_to_the_user_s_omp_setting(monkeypatch):
+    from bpp.runs import RUNS, _threads
+    from bpp.utils import usable_cores
+
+    assert RUNS["demo"].threads == -1 and RUNS["smoke"].threads == 0  # the main job runs alone; others leave a core
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert _threads(-1) == usable_cores() and _threads(0) == 0 and _threads(3) == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert _threads(-1) == 0  # training's auto rule then takes OMP_NUM_THREADS

@@ -72,8 +72,8 @@ class WholeRun:
     """Processes for data generation and evaluation (0: one per core)."""
     threads: int = 0
     """torch threads for training (0: auto, one fewer than the cores; -1: every core, for a run that has the machine
-    to itself: 1.4x faster on an idle 2-core machine, 3x slower beside another busy program; see docs/training.md,
-    "CPU threads")."""
+    to itself: faster on an idle machine, many times slower beside another busy program; see docs/training.md, "CPU
+    threads")."""
     loader_workers: int = -1
     """Data-loader processes for training (-1: auto, none on a CPU)."""
     seed: int = 0
