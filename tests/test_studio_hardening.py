@@ -373,17 +373,21 @@ def test_memory_freed_after_a_burst_of_threads_goes_back_to_the_system():
 def test_the_studio_releases_freed_memory_regularly_until_closed(tmp_path, monkeypatch):
     from bpp.benchmarks.draw.studio import engine
 
-    calls = []
+    # Studios other tests left open run the same loop with the patched module globals: count this one's thread only.
+    threads = []
     monkeypatch.setattr(engine, "RELEASE_EVERY_S", 0.02)
-    monkeypatch.setattr(engine, "release_memory", lambda: calls.append(time.monotonic()))
+    monkeypatch.setattr(engine, "release_memory", lambda: threads.append(threading.get_ident()))
+    before = set(threading.enumerate())
     studio = Studio([], tmp_path)
+    (mine,) = [t for t in threading.enumerate() if t not in before and t.name == "studio-memory"]
     time.sleep(0.3)
-    assert len(calls) >= 3
+    assert threads.count(mine.ident) >= 3
     studio.close()
-    time.sleep(0.1)
-    stopped = len(calls)
+    mine.join(timeout=1.0)
+    assert not mine.is_alive()
+    stopped = threads.count(mine.ident)
     time.sleep(0.2)
-    assert len(calls) == stopped
+    assert threads.count(mine.ident) == stopped
 
 
 def test_sessions_are_shared_fairly_between_addresses_and_busy_ones_are_never_evicted(tmp_path):
