@@ -189,6 +189,10 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     other = _bpp(*args, "--obs", "canvas")
     assert other.returncode != 0 and "holds a policy trained with another model" in other.stderr
     assert "Traceback" not in other.stderr
+    # A longer budget than the run in the folder (an earlier main job's): said so, with the way to reuse it.
+    longer = _bpp(*args, "--steps", "5")
+    assert longer.returncode != 0 and "holds a run of other length (train_config.steps: 3 in the run" in longer.stderr
+    assert "Traceback" not in longer.stderr
 
 
 @pytest.mark.slow

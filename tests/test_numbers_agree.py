@@ -100,8 +100,6 @@ NOT_MEASURED: dict[tuple[str, str], str] = {
     ("src/bpp/benchmarks/draw/studio/state.py", "0.1 px"): "the resolution polylines are rounded to: a setting",
     ("docs/libero-gen/combination.md", "15 of 20"): "how many of the appendix's 20 counts another reading of the "
     "published task list reproduces: a fact of published data",
-    ("docs/libero-gen/combination.md", "11 of 20"): "how many of the appendix's 20 counts another reading of the "
-    "published task list reproduces: a fact of published data",
 }
 """Claims that state a setting, a definition or a published fact rather than a measured result."""
 

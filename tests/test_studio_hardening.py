@@ -380,14 +380,13 @@ def test_the_studio_releases_freed_memory_regularly_until_closed(tmp_path, monke
     before = set(threading.enumerate())
     studio = Studio([], tmp_path)
     (mine,) = [t for t in threading.enumerate() if t not in before and t.name == "studio-memory"]
-    time.sleep(0.3)
-    assert threads.count(mine.ident) >= 3
-    studio.close()
+    try:
+        time.sleep(0.3)
+        assert threads.count(mine.ident) >= 3
+    finally:
+        studio.close()
     mine.join(timeout=1.0)
-    assert not mine.is_alive()
-    stopped = threads.count(mine.ident)
-    time.sleep(0.2)
-    assert threads.count(mine.ident) == stopped
+    assert not mine.is_alive()  # the loop ended with the studio: nothing more is released
 
 
 def test_sessions_are_shared_fairly_between_addresses_and_busy_ones_are_never_evicted(tmp_path):

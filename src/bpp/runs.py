@@ -71,9 +71,9 @@ class WholeRun:
     workers: int = 0
     """Processes for data generation and evaluation (0: one per core)."""
     threads: int = 0
-    """torch threads for training (0: auto, one fewer than the cores; -1: every core, for a run that has the machine
-    to itself: faster on an idle machine, many times slower beside another busy program; see docs/training.md, "CPU
-    threads")."""
+    """torch threads for training (0: auto, one fewer than the cores; -1: every core unless OMP_NUM_THREADS is set,
+    for a run that has the machine to itself: faster on an idle machine, slower beside another busy program; see
+    docs/training.md, "CPU threads")."""
     loader_workers: int = -1
     """Data-loader processes for training (-1: auto, none on a CPU)."""
     seed: int = 0
@@ -173,6 +173,13 @@ def whole_run(args: WholeRun, name: str = "") -> None:
         threads=_threads(args.threads),
         workers=args.loader_workers,
     )
+    if resume and not finished:
+        steps = [d for d in run_differences(run, tc, model_cfg) if d.startswith("train_config.steps:")]
+        if steps:  # e.g. a run of an earlier, shorter main job
+            raise UserError(
+                f"{run} holds a run of other length ({steps[0]}); pass --steps with its length to reuse it, or "
+                "another --run-dir to train anew"
+            )
     if finished:
         # Its model must be this one (how long or how it trained may differ: a finished run is reused as it is).
         differences = [d for d in run_differences(run, tc, model_cfg) if not d.startswith("train_config.")]

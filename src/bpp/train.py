@@ -169,8 +169,8 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
         if isinstance(old, dict) and isinstance(new, dict):
             for key in sorted(set(old) | set(new)):
                 compare(f"{path}.{key}" if path else key, old.get(key, absent), new.get(key, absent))
-        elif path in ("train_config.out", "train_config.resume"):
-            return  # where the run is now (it may have been moved), and whether this call resumes
+        elif path in ("train_config.out", "train_config.resume", "train_config.threads"):
+            return  # where the run is now (it may have been moved), whether this call resumes, and the cores it has
         elif path == "train_config.data" and old and new and old is not absent:
             if Path(old).resolve() != Path(new).resolve():
                 differences.append(f"{path}: {old!r} in the run, {new!r} now")
