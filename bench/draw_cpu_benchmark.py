@@ -174,10 +174,7 @@ def main() -> None:
             if args.train_only:
                 print(f"trained {run} ({seconds / 60:.1f} min of training)")
                 continue
-            entry = {"method": method, "seed": seed, "run": str(run), "steps": steps[method], "train_s": seconds}
-            entry["batch_size"] = batch[method]
-            entry["n_action_steps"] = protocol.n_action_steps
-            entry |= {"rollouts": args.rollouts, "human_tasks": args.human_tasks, "train_tasks": args.train_tasks}
+            entry = {"method": method, "seed": seed, **wanted, "train_s": seconds}  # what a later call matches on
             checkpoint = Checkpoint.load(run, use_ema=True)
             for name, num in (("human", args.human_tasks), ("train", args.train_tasks)):
                 _, task_set, tasks = resolve_tasks(name, checkpoint, data_dir=args.data_dir, num_tasks=num)

@@ -30,8 +30,8 @@ class ArmSubstep:
         import mujoco
 
         self.jac_site = mujoco.mj_jacSite
-        if _update_module(robot.controller) == "robosuite.controllers.base_controller":
-            self.full_mass_matrix = lambda model, data, out: mujoco.mj_fullM(model, out, data.qM)  # MuJoCo 2's call
+        if _update_module(robot.controller) == UPDATES[0]:  # robosuite's own, with MuJoCo 2's call
+            self.full_mass_matrix = lambda model, data, out: mujoco.mj_fullM(model, out, data.qM)
         else:  # LIBERO's package's port of it to MuJoCo 3
             self.full_mass_matrix = mujoco.mj_fullM
         controller, model = robot.controller, robot.sim.model
