@@ -283,6 +283,28 @@ def test_demonstrator_noise_perturbs_the_executed_position_actions_never_the_rec
             assert not error.any()
 
 
+def test_the_near_rim_side_is_the_side_facing_the_gripper_and_draws_as_the_random_one_does():
+    """``rim_side="near"`` makes the grasp side a function of the observed state; both settings consume the same
+    random draw, so the rest of a seed's demonstration (grasp height, carry height, path) is unchanged."""
+    from types import SimpleNamespace
+
+    from bpp.benchmarks.libero.demonstrator import DemoConfig, rim_side
+
+    across, bowl = np.array([0.0, 1.0]), np.array([0.1, 0.0, 0.9])
+    for eef_y, near in ((0.2, 1.0), (-0.2, -1.0)):
+        arm = SimpleNamespace(cfg=DemoConfig(rim_side="near"), obs={"robot0_eef_pos": np.array([0.0, eef_y, 1.1])})
+        assert {rim_side(arm, np.random.default_rng(s), bowl, across) for s in range(20)} == {near}
+    randoms = []
+    for setting in ("random", "near"):
+        arm = SimpleNamespace(cfg=DemoConfig(rim_side=setting), obs={"robot0_eef_pos": np.array([0.0, 0.2, 1.1])})
+        rng = np.random.default_rng(5)
+        sides = [rim_side(arm, rng, bowl, across) for _ in range(20)]
+        randoms.append(rng.random())  # the generator's next draw, after the sides
+        if setting == "random":
+            assert set(sides) == {-1.0, 1.0}
+    assert randoms[0] == randoms[1]
+
+
 def _goal_env(history: list[dict[str, bool]]):
     """A stand-in for a LIBERO env whose goal is (A) then (B); its predicates take `history`'s values in turn."""
     from types import SimpleNamespace

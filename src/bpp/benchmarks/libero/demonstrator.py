@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -62,6 +63,10 @@ class DemoConfig:
     """A bowl farther than this from the robot's shoulder, horizontally (m), is taken on its near rim: taken on the
     side, the lifted arm was stretched to its elbow's limit, and the controller could not bring it back."""
     max_steps: int = 600
+    rim_side: Literal["random", "near"] = "random"
+    """Which side of a bowl's rim the fingers take where the scene leaves the choice open: either, with even odds
+    (two ways to do one task, as people vary), or the side nearer the gripper when the demonstration starts (one
+    way, a function of the state a policy observes)."""
     action_noise: float = 0.0
     """Std of Gaussian noise added to the position part of each action the robot executes, not of the action
     recorded (DART: the demonstrator is closed-loop, so the stored demonstrations show it correcting the push)."""
@@ -199,11 +204,11 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     arm = Arm.start(env, seed, cfg)
     bowl = BOWLS[task.bowl - 1]
     start = np.asarray(arm.obs[f"{bowl}_pos"], dtype=float).copy()
-    side = rng.choice([-1.0, 1.0])  # which side of the rim the fingers take
     narrow, level = task.pick in NARROW_PICKS, level_axis(arm.obs[f"{bowl}_quat"])
     across = np.array([0.0, 1.0]) if level is None else level  # the fingers' axis
     if narrow:
         across = drawer_width_axis(env)
+    side = rim_side(arm, rng, start, across)  # which side of the rim the fingers take
     sim = env.env.sim
     inward = (sim.data.body_xpos[sim.model.body_name2id("robot0_link1")] - start)[:2]
     far = not narrow and level is None and np.linalg.norm(inward) > cfg.far_reach
@@ -239,6 +244,15 @@ def demonstrate(env, task: PickPlace, seed: int, cfg: DemoConfig = DemoConfig())
     except _OutOfSteps:
         pass
     return arm.result()
+
+
+def rim_side(arm: Arm, rng: np.random.Generator, bowl: np.ndarray, across: np.ndarray) -> float:
+    """The side of the rim (+1 or -1 along the horizontal `across`) the fingers take, by ``DemoConfig.rim_side``.
+    The random draw is made either way, so that the seed's later draws do not depend on the setting."""
+    drawn = rng.choice([-1.0, 1.0])
+    if arm.cfg.rim_side == "random":
+        return float(drawn)
+    return 1.0 if (arm.obs["robot0_eef_pos"] - bowl)[:2] @ across >= 0.0 else -1.0
 
 
 def turn_on(arm: Arm, rng: np.random.Generator, stove: str = "flat_stove_1") -> None:
@@ -385,7 +399,8 @@ def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarr
     above the grasp, and a bowl put into the drawer (15 cm deep inside, the bowl about 12 cm wide) leaves room for the
     fingers only along its width (docs/libero-gen/demonstrator.md)."""
     if obj.startswith("akita_black_bowl"):
-        across, side = np.array([0.0, 1.0]), rng.choice([-1.0, 1.0])
+        across = np.array([0.0, 1.0])
+        side = rim_side(arm, rng, arm.obs[f"{obj}_pos"], across)
         drawer = open_drawer_body(arm.env)
         if drawer is not None:  # the rim on the side away from it, fingers across its width (see the docstring)
             across = drawer_width_axis(arm.env, drawer)
