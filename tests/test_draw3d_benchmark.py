@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from types import SimpleNamespace
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports MuJoCo
 
@@ -27,6 +28,8 @@ import_optional("cv2", "iphumi")
 iio = import_optional("imageio.v3", "iphumi")
 
 from bpp.benchmarks.draw3d.benchmark import BENCHMARK  # noqa: E402
+from bpp.benchmarks.draw3d.rollouts import relative_step  # noqa: E402
+from bpp.core.poses import invert, pose_to_vector, vector_to_pose  # noqa: E402
 from bpp.core.registry import get_benchmark  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
 
@@ -47,7 +50,9 @@ def store(tmp_path_factory):
 def test_a_generated_store_holds_demonstrations_that_match_their_drawings(store):
     assert get_benchmark("draw3d") is BENCHMARK and store.benchmark == "draw3d"
     assert store.num_tasks == 2 and store.num_episodes == 4
-    assert set(store.keys) == {"tip_pose", "canvas_pose", "ink_length", "pen_down", "action"}
+    assert set(store.keys) == {
+        "tip_pose", "canvas_pose", "tip_in_canvas", "ink_length", "pen_down", "action", "target_in_canvas"
+    }  # fmt: skip
     assert np.all(np.asarray(store.column("chamfer")) < 3.0)  # kept demonstrations are within the threshold
     for task in store.tasks:  # tries and failures are recorded per task
         assert (
@@ -60,6 +65,24 @@ def test_a_generated_store_holds_demonstrations_that_match_their_drawings(store)
         BENCHMARK.frames(store, 0, "wrist", 96)
     goal = BENCHMARK.frames(store, 0, "scene", 64, last_only=True)  # the Goal-Image baseline's goal
     assert goal.shape == (1, 64, 64, 3) and goal.min() < goal.max()
+
+
+def test_the_canvas_frame_columns_are_the_base_frame_ones_seen_from_the_measured_canvas(store):
+    """``tip_in_canvas`` is the tip's pose in the measured canvas's frame; ``target_in_canvas`` holds the commanded
+    poses the relative actions lead to, so that executing a target as a relative step gives back the stored action."""
+    episode = store.episode(1, ["tip_pose", "canvas_pose", "tip_in_canvas", "action", "target_in_canvas"])
+    canvas = vector_to_pose(episode["canvas_pose"][0])
+    seen = pose_to_vector(invert(canvas) @ vector_to_pose(episode["tip_pose"]))
+    assert np.abs(seen - episode["tip_in_canvas"]).max() < 1e-5
+    targets = episode["target_in_canvas"]
+    assert (targets[:, 9] == episode["action"][:, 9]).all()
+    scene = SimpleNamespace(target=canvas @ vector_to_pose(targets[0, :9]))
+    for target, action in zip(targets[1:], episode["action"][1:], strict=True):
+        step = relative_step(scene, canvas, target, "target_in_canvas")
+        assert np.abs(step - action).max() < 1e-4  # float32 storage
+        scene.target = scene.target @ vector_to_pose(step[:9])
+    with pytest.raises(ValueError, match="not 'tip_pose'"):
+        relative_step(scene, canvas, targets[0], "tip_pose")
 
 
 def test_the_paper_mixture_is_two_generated_parts_merged(store, tmp_path):
@@ -89,6 +112,17 @@ def test_bpp_trains_on_it_and_bpp_eval_draws_on_new_canvas_placements(store, tmp
     assert all(np.isfinite(row["score"]) and row["canvas_pose_error_mm"] < 10 for row in rows)
     assert all(row["photo_found_canvas"] == 0 or abs(row["chamfer_from_photo"] - row["score"]) < 2 for row in rows)
     assert (out / "grid.png").is_file()
+
+
+def test_bpp_acts_in_the_measured_canvas_frame_with_the_canvas_observations(store, tmp_path):
+    run = tmp_path / "run"
+    _bpp("train", "--data", str(store.path), "--out", str(run), "--preset", "debug", "--obs", "canvas", "--steps",
+         "2", "--batch-size", "4", "--workers", "0")  # fmt: skip
+    out = tmp_path / "eval"
+    _bpp("eval", str(run), "--tasks", "train", "--num-tasks", "1", "--rollouts", "1", "--max-steps", "20",
+         "--workers", "1", "--videos", "0", "--out", str(out))  # fmt: skip
+    rows = json.loads((out / "results.json").read_text())["rollouts"]
+    assert all(row["steps"] == 20 and np.isfinite(row["score"]) for row in rows)
 
 
 def test_goal_image_trains_on_the_state_preset_with_the_final_photo_as_its_goal(store, tmp_path):

@@ -39,6 +39,15 @@ OBSERVATIONS: Mapping[str, ObservationPreset] = {
         description="the pen tip's pose, whether it touches, the canvas pose measured from a photo, the ink drawn so "
         "far (m); for CPUs",
     ),
+    "canvas": ObservationPreset(
+        proprio_keys=("tip_in_canvas", "pen_down"),
+        lowdim_keys=("ink_length",),
+        action_key="target_in_canvas",
+        goal_camera="scene",
+        description="in the frame of the canvas measured from a photo: the pen tip's pose, whether it touches, the "
+        "ink drawn so far (m), and actions as the commanded pen pose in that frame (a CPU stand-in for the wrist "
+        "camera's view of the canvas; the counterpart of DrawAnything-Sim's board)",
+    ),
     "wrist": ObservationPreset(
         proprio_keys=("tip_pose",),
         image_keys=("wrist",),

@@ -7,8 +7,10 @@ executes the plan. A demonstration whose photo gives no pose (a marker unclear) 
 drawing is counted as a failure and not stored; the task is demonstrated again with the next placement.
 
 Per step: ``tip_pose`` (9: the pen tip's pose in the robot's base frame, position and 6-D rotation), ``canvas_pose``
-(9: the measured canvas pose, constant over the episode), ``ink_length`` (1, m) and ``pen_down`` (1), optionally
-``wrist`` (the wrist camera), and ``action`` (10: the relative pen step and a zero gripper command).
+(9: the measured canvas pose, constant over the episode), ``tip_in_canvas`` (9: the pen tip's pose in the measured
+canvas's frame), ``ink_length`` (1, m) and ``pen_down`` (1), optionally ``wrist`` (the wrist camera); ``action`` (10:
+the relative pen step and a zero gripper command) and ``target_in_canvas`` (10: the same step as the commanded pen pose
+it leads to, in the measured canvas's frame, and the gripper command).
 """
 
 from __future__ import annotations
@@ -148,6 +150,8 @@ def demonstrate_task(job: tuple) -> tuple[list, dict]:
         n = len(recorded.actions)
         steps = {
             "tip_pose": recorded.tip,
+            "tip_in_canvas": recorded.tip_in_canvas,
+            "target_in_canvas": np.concatenate([recorded.targets_in_canvas, np.zeros((n, 1), np.float32)], axis=1),
             "canvas_pose": np.repeat(pose_to_vector(measured)[None].astype(np.float32), n, axis=0),
             "ink_length": recorded.ink_length,
             "pen_down": recorded.pen_down,

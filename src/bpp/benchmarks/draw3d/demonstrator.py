@@ -139,6 +139,10 @@ class Recorded:
     so far and whether the pen touches; the actions; the ink; and optionally camera frames."""
 
     tip: np.ndarray
+    tip_in_canvas: np.ndarray
+    """The pen tip's pose in the frame of the canvas pose the plan was made in (9 per step)."""
+    targets_in_canvas: np.ndarray
+    """The commanded pen pose each action leads to, in that frame (9 per step): the actions as absolute poses."""
     ink_length: np.ndarray
     pen_down: np.ndarray
     actions: np.ndarray
@@ -160,17 +164,23 @@ def execute(
     scene.ink.strokes.clear()
     scene.ink.down = False
     actions = actions_of(plan)
-    tips, lengths, downs = [], [], []
+    to_canvas = invert(canvas_estimate)
+    tips, tips_in_canvas, targets, lengths, downs = [], [], [], [], []
     frames: dict[str, list] = {camera: [] for camera in cameras}
     for action in actions:
-        tips.append(pose_to_vector(scene.tip_pose()))
+        tip = scene.tip_pose()
+        tips.append(pose_to_vector(tip))
+        tips_in_canvas.append(pose_to_vector(to_canvas @ tip))
         lengths.append(scene.ink.length)
         downs.append(float(scene.ink.down))
         for camera in cameras:
             frames[camera].append(scene.render(camera))
         scene.step(action)
+        targets.append(pose_to_vector(to_canvas @ scene.target))
     return Recorded(
         tip=np.asarray(tips, dtype=np.float32),
+        tip_in_canvas=np.asarray(tips_in_canvas, dtype=np.float32),
+        targets_in_canvas=np.asarray(targets, dtype=np.float32),
         ink_length=np.asarray(lengths, dtype=np.float32)[:, None],
         pen_down=np.asarray(downs, dtype=np.float32)[:, None],
         actions=actions,

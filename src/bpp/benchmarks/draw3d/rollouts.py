@@ -1,9 +1,10 @@
 """DrawAnything-Real's evaluation: a policy drawing on the simulated arm, rollouts in lockstep.
 
 Each rollout places the canvas at a new random placement, measures its pose from the scene camera's photo (the
-policy observes the measured pose, as a lab's would), moves the pen unrecorded to a random start in front of the
-canvas, then lets the policy act for ``max_steps`` control steps. The score is DrawAnything's Chamfer distance
-between the ink on the canvas and the task's drawing (:func:`bpp.benchmarks.draw3d.demonstrator.ink_chamfer`).
+policy observes the measured pose, or observes and acts in its frame, as a lab's would), moves the pen unrecorded to
+a random start in front of the canvas, then lets the policy act for ``max_steps`` control steps. The score is
+DrawAnything's Chamfer distance between the ink on the canvas and the task's drawing
+(:func:`bpp.benchmarks.draw3d.demonstrator.ink_chamfer`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, i
 from bpp.benchmarks.draw3d.photo import photo_chamfer
 from bpp.benchmarks.draw3d.scene import HOME_QPOS, Scene, canvas_transform
 from bpp.core.contract import RolloutResult, frames_to_record
-from bpp.core.poses import pose_to_vector
+from bpp.core.poses import invert, pose_to_vector, vector_to_pose
 from bpp.data.store import EpisodeStore
 from bpp.drawing.drawing import task_drawing
 
@@ -38,15 +39,28 @@ def _scenes(count: int, image_size: int) -> list:
     return _SCENES[:count]
 
 
-def _observe(scene, canvas_vector: np.ndarray, keys: Sequence[str]) -> dict[str, np.ndarray]:
+def _observe(scene, canvas: np.ndarray, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """The observation `keys` of `scene`, whose canvas was measured at `canvas` (``T_base_canvas``)."""
     values = {
         "tip_pose": lambda: pose_to_vector(scene.tip_pose()).astype(np.float32),
-        "canvas_pose": lambda: canvas_vector,
+        "tip_in_canvas": lambda: pose_to_vector(invert(canvas) @ scene.tip_pose()).astype(np.float32),
+        "canvas_pose": lambda: pose_to_vector(canvas).astype(np.float32),
         "ink_length": lambda: np.array([scene.ink.length], np.float32),
         "pen_down": lambda: np.array([float(scene.ink.down)], np.float32),
         "wrist": lambda: scene.render("wrist"),
     }
     return {key: values[key]() for key in keys}
+
+
+def relative_step(scene, canvas: np.ndarray, action: np.ndarray, key: str) -> np.ndarray:
+    """The scene's action (the commanded pose's step) for a policy's `action` of kind `key`: ``action`` is that
+    step already; ``target_in_canvas`` is the commanded pose to go to, in the frame of the measured `canvas`."""
+    if key == "action":
+        return action
+    if key != "target_in_canvas":
+        raise ValueError(f"draw3d executes actions of key action or target_in_canvas, not {key!r}")
+    target = canvas @ vector_to_pose(action[:9])
+    return np.append(pose_to_vector(invert(scene.target) @ target), action[9:])
 
 
 def _from_photo(scene, strokes) -> dict:
@@ -80,7 +94,7 @@ def run_rollouts(
         scene.ink.down = False
         task = int(store.column("task_index")[int(rollout["target_episode"])])
         drawings.append(task_drawing(store, task))
-        canvases.append(pose_to_vector(measured).astype(np.float32))
+        canvases.append(measured)
         extras.append({"canvas_from_photo": from_photo, "canvas_pose_error_mm": pose_error(measured, truth)[0] * 1e3})
     record = [frames_to_record(r) for r in record_frames]
     frames: list[list] = [[] for _ in rollouts]
@@ -90,7 +104,7 @@ def run_rollouts(
         for i, scene in enumerate(scenes):
             if record[i] == "all" and t % FRAME_EVERY == 0:
                 frames[i].append(scene.render("scene", FRAME_SIZE))
-            scene.step(actions[i])
+            scene.step(relative_step(scene, canvases[i], actions[i], spec.action_key))
     results = []
     for i, scene in enumerate(scenes):
         if record[i]:
