@@ -18,6 +18,7 @@ from bpp.benchmarks.libero import dataset
 from bpp.benchmarks.libero.benchmark import BENCHMARK, _render
 from bpp.benchmarks.libero.demonstrator import DemoConfig
 from bpp.benchmarks.libero.export import CAMERA_NAMES, EXTRA_ATTRS, LIBERO_ATTRS, LIBERO_DATASETS, LIBERO_TAG
+from bpp.benchmarks.libero.sim import delta_actions
 from bpp.benchmarks.libero.suites import combination
 from bpp.cli import main
 from bpp.core.registry import open_store
@@ -48,6 +49,10 @@ def test_generation_stores_only_demonstrations_that_libero_accepts(store):
     assert {"action", "proprio", "object_state", "sim_state", "agentview"} <= set(store.keys)
     assert store.array("action").shape[1] == 7 and np.abs(store.array("action")).max() <= 1.0
     assert store.column(dataset.GOAL_KEY).shape == (2, 32, 32, 3)
+    # action_abs: the controller's position goal, which gives back the action from where the gripper was
+    eef = store.array("proprio")[:, dataset.PROPRIO_LAYOUT["eef_pos"]]
+    np.testing.assert_allclose(delta_actions(store.array("action_abs"), eef), store.array("action"), atol=1e-4)
+    assert not np.allclose(store.array("action_abs")[:, :3], eef)  # the gripper is told to move
     assert not list(store.path.parent.glob(".*journal*"))  # the journal is gone once the store is written
 
 
@@ -204,6 +209,7 @@ def test_a_second_generation_into_the_same_store_is_refused_before_it_touches_th
         ("language", "state"),
         ("icrt", "state"),
         ("bpp", "state-eef"),
+        ("bpp", "state-abs"),
         ("bpp", "image"),
     ],
 )

@@ -41,6 +41,15 @@ STATE_EEF = replace(
         "choice) instead of all 39 proprioception features (joint angles and velocities left out); otherwise as state"
     ),
 )
+STATE_ABS = replace(
+    STATE,
+    action_key="action_abs",
+    description=(
+        "state only, acting with the controller's position goal (the gripper's position plus the OSC_POSE delta, "
+        "in metres) instead of the delta: a chunk of actions stays anchored where the demonstration went, as "
+        "Diffusion Policy's position control; otherwise as state"
+    ),
+)
 IMAGE = ObservationPreset(
     image_keys=("agentview", "eye_in_hand"),
     proprio_keys=("proprio",),
@@ -67,7 +76,12 @@ class LiberoGen:
     default_data_dir = Path("data/libero")
     derived_keys = dataset.DERIVED_KEYS
     """``eef``: the gripper's pose and opening out of the robot's proprioception (the ``state-eef`` observations)."""
-    observations: Mapping[str, ObservationPreset] = {"state": STATE, "state-eef": STATE_EEF, "image": IMAGE}
+    observations: Mapping[str, ObservationPreset] = {
+        "state": STATE,
+        "state-eef": STATE_EEF,
+        "state-abs": STATE_ABS,
+        "image": IMAGE,
+    }
     metric = Metric(
         "success",
         lower_is_better=False,

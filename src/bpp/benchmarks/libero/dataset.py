@@ -5,7 +5,8 @@
 Each task's problem is loaded without camera observations (physics only: rendering is about 10x slower than
 physics on a CPU). The scripted demonstrator tries seeds until the task has ``demos_per_task`` demonstrations
 that LIBERO's own predicate accepts, or ``max_tries`` have been spent; failures are counted, never stored. Per
-step the store keeps the action (7-D OSC_POSE deltas and the gripper), LIBERO's ``robot0_proprio-state`` (39) and
+step the store keeps the action (7-D OSC_POSE deltas and the gripper; also as ``action_abs``, its position part the
+controller's position goal), LIBERO's ``robot0_proprio-state`` (39) and
 ``object-state`` (70) vectors, and the full simulator state, so that any camera can be rendered later from the
 stored state. Per demonstration it keeps the final agent-view frame (the Goal-Image baseline's goal) and, if
 ``cameras`` are named, every step's frames, rendered from the stored states.
@@ -35,6 +36,7 @@ from bpp.benchmarks.libero.demonstrator import DemoConfig, demonstrate_task
 from bpp.benchmarks.libero.sim import (
     CAMERAS,
     GOAL_BASE,
+    absolute_actions,
     fixture_row,
     libero_problem,
     make_env,
@@ -58,6 +60,9 @@ FIXTURE_KEY = "fixture_pose"
 """Per-episode column: (8, 7) where the episode's reset put its scene's fixtures (position, wxyz quaternion), one row
 per name in the task's ``info["fixtures"]``, NaN below them. With the episode's first ``sim_state`` it rebuilds the
 exact scene (:func:`bpp.benchmarks.libero.sim.replay`)."""
+ABSOLUTE_KEY = "action_abs"
+"""Per-step key: the action with its position part as the controller's position goal (:func:`~bpp.benchmarks.libero.
+sim.absolute_actions`), what the ``state-abs`` observations act with."""
 STEP_KEYS = ("action", "proprio", "object_state", "sim_state")
 PROPRIO_LAYOUT = {
     "joint_pos": range(0, 7),
@@ -237,6 +242,7 @@ def _task_job(job) -> tuple[dict, dict[str, np.ndarray]]:
                     continue
                 episode = {
                     "action": demo.actions.astype(np.float64),  # exactly what was commanded: the physics is chaotic
+                    ABSOLUTE_KEY: absolute_actions(demo.actions, demo.observations["robot0_eef_pos"]),
                     "proprio": demo.observations["robot0_proprio-state"].astype(np.float32),
                     "object_state": demo.observations["object-state"].astype(np.float32),
                     "sim_state": demo.states.astype(np.float64),
@@ -322,7 +328,7 @@ def _generate(cfg: LiberoDataConfig, out: Path, workers, overwrite: bool, progre
 def _write_store(cfg: LiberoDataConfig, tasks, journal: Path, out: Path, overwrite: bool, timing: dict) -> dict:
     """The store from the journal's tasks, in the split's order; returns the generation report and its timing."""
     tries, successes, missing, stored = Counter(), Counter(), [], 0
-    stats_keys = ("action", "proprio", "object_state")
+    stats_keys = ("action", ABSOLUTE_KEY, "proprio", "object_state")
     original = cfg.original
     with EpisodeWriter(
         out, benchmark=BENCHMARK, config=to_dict(cfg), overwrite=overwrite, stats_keys=stats_keys

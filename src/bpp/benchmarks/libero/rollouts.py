@@ -22,9 +22,17 @@ from pathlib import Path
 import numpy as np
 
 from bpp.benchmarks.libero.bddl import objects, parse, section
-from bpp.benchmarks.libero.dataset import DERIVED_KEYS
+from bpp.benchmarks.libero.dataset import ABSOLUTE_KEY, DERIVED_KEYS
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
-from bpp.benchmarks.libero.sim import CAMERAS, GoalOrder, initial_states, make_env, render_now, reset_env
+from bpp.benchmarks.libero.sim import (
+    CAMERAS,
+    GoalOrder,
+    delta_actions,
+    initial_states,
+    make_env,
+    render_now,
+    reset_env,
+)
 from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.data.store import EpisodeStore, with_derived
 from bpp.errors import UserError
@@ -93,9 +101,11 @@ def run_rollouts(
     unknown = sorted(set(cameras) - set(CAMERAS))
     if unknown:
         raise UserError(f"LIBERO-Gen has no camera {unknown}; its cameras: {', '.join(CAMERAS)}")
+    if spec.action_key not in ("action", ABSOLUTE_KEY):
+        raise UserError(f"LIBERO-Gen executes actions of key action or {ABSOLUTE_KEY}, not {spec.action_key!r}")
     n = len(rollouts)
     record = [frames_to_record(r) for r in (record_frames if record_frames is not None else [False] * n)]
-    envs, obs, heights, orders, ordered = [], [], [], [], []
+    envs, obs, eef, heights, orders, ordered = [], [], [], [], [], []
     with tempfile.TemporaryDirectory(prefix="libero-eval-") as folder:
         problems: dict[int, Path] = {}
         starts: dict[int, object] = {}  # LIBERO's own initial states of a task (None for generated tasks)
@@ -122,6 +132,7 @@ def run_rollouts(
                 for _ in range(SETTLE_STEPS):  # as the demonstrations start: objects settled
                     raw, *_ = env.step(np.zeros(7))
                 obs.append(observe(env, raw, cameras, spec.image_size))
+                eef.append(raw["robot0_eef_pos"])
                 heights.append(_Heights(raw, *lifts[task]))
                 orders.append(GoalOrder.of(env))
                 ordered.append(in_order[task])
@@ -136,7 +147,11 @@ def run_rollouts(
             while not done.all():
                 actions = agent.act_batch({k: np.stack([o[k] for o in obs]) for k in agent.obs_keys})
                 for i in np.flatnonzero(~done):
-                    raw, _, goal, _ = envs[i].step(np.clip(np.asarray(actions[i], dtype=np.float64), -1.0, 1.0))
+                    action = np.asarray(actions[i], dtype=np.float64)
+                    if spec.action_key == ABSOLUTE_KEY:
+                        action = delta_actions(action, eef[i])
+                    raw, _, goal, _ = envs[i].step(np.clip(action, -1.0, 1.0))
+                    eef[i] = raw["robot0_eef_pos"]
                     steps[i] += 1
                     heights[i].update(raw)
                     obs[i] = observe(envs[i], raw, cameras, spec.image_size)

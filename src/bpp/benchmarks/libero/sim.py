@@ -117,6 +117,27 @@ HORIZON = 100_000
 """Steps after which robosuite ends an episode and refuses further actions (its default is 1000): our callers keep
 their own limits (a Chain demonstration: 1200 steps; a Chain rollout: 1100), so it must not cut them first."""
 
+POSITION_SCALE = 0.05
+"""Metres per unit of an OSC_POSE action's position part: robosuite's controller sets its goal to the gripper's
+position plus the action times this (its output_max over its input_max), LIBERO's setting."""
+
+
+def absolute_actions(actions: np.ndarray, eef_pos: np.ndarray) -> np.ndarray:
+    """OSC_POSE actions (..., 7) taken at gripper positions (..., 3) -> the same with the position part replaced by
+    the position goal it gives the controller (m, the world frame of ``robot0_eef_pos``); rotation and gripper
+    unchanged."""
+    out = np.array(actions, dtype=np.float64)
+    out[..., :3] = np.asarray(eef_pos, dtype=np.float64) + POSITION_SCALE * out[..., :3]
+    return out
+
+
+def delta_actions(actions: np.ndarray, eef_pos: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`absolute_actions`: position goals back to OSC_POSE deltas from `eef_pos`, clipped to the
+    controller's [-1, 1] (a goal more than 5 cm away is approached at full speed)."""
+    out = np.array(actions, dtype=np.float64)
+    out[..., :3] = np.clip((out[..., :3] - np.asarray(eef_pos, dtype=np.float64)) / POSITION_SCALE, -1.0, 1.0)
+    return out
+
 
 def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int = 128, render: bool = False):
     """A LIBERO env for the BDDL problem file `problem`: physics only without `cameras`, else rendering those
