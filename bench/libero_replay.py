@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bpp.benchmarks.libero.dataset import PROPRIO_LAYOUT
+from bpp.benchmarks.libero.dataset import ABSOLUTE_KEY, PROPRIO_LAYOUT
 from bpp.benchmarks.libero.demonstrator import SETTLE_STEPS
 from bpp.benchmarks.libero.rollouts import observe, task_problem
-from bpp.benchmarks.libero.sim import make_env, reset_env
+from bpp.benchmarks.libero.sim import delta_actions, make_env, reset_env
 from bpp.checkpoint import Checkpoint
 from bpp.core.registry import get_benchmark
 from bpp.data.contexts import task_context
@@ -67,6 +67,8 @@ def replay(model, store: EpisodeStore, episode: int, every: int, max_steps: int)
                         f"t={t:3d} gripper {np.round(obs['proprio'][EEF], 3)} offset {np.round(offset, 3)} "
                         f"action {np.round(action, 2)} demo {np.round(demo['action'][k], 2)}"
                     )
+                if agent.data_spec.action_key == ABSOLUTE_KEY:  # a position goal: the delta from where the gripper is
+                    action = delta_actions(action, raw["robot0_eef_pos"])
                 raw, *_ = env.step(np.clip(action, -1.0, 1.0))
                 obs = observe(env, raw, (), 0)
                 if env.env._check_success():

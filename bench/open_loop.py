@@ -49,7 +49,7 @@ def main() -> None:
             continue
         other = int(np.flatnonzero(tasks != tasks[episode])[episode % max(1, int((tasks != tasks[episode]).sum()))])
         rows = store.episode_slice(episode)
-        actions = store["action"][rows][: args.steps]
+        actions = store[spec.action_key][rows][: args.steps]
         observations = {k: store[k][rows][: args.steps] for k in keys}
         for name, prompt in (("same task", int(same[0])), ("another task", other)):
             agent = PolicyAgent(model)

@@ -179,6 +179,7 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     core_only = Path(__file__).with_name("core_only.py")
     first = subprocess.run([sys.executable, str(core_only), *args], capture_output=True, text=True, timeout=300)
     assert first.returncode == 0, first.stderr[-3000:]
+    assert "[core-only] not found: transformers" in first.stderr  # diffusers looks for it: the hiding works
     report = (tmp_path / "out" / "report.md").read_text()
     assert "| Chamfer distance, mean over tasks | **" in report and "rollout_" in report and "paper | BPP" in report
     assert " px px" not in report and "| rollouts under 5 px |" in report

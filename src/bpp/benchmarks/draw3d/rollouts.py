@@ -22,6 +22,7 @@ from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.core.poses import invert, pose_to_vector, vector_to_pose
 from bpp.data.store import EpisodeStore
 from bpp.drawing.drawing import task_drawing
+from bpp.errors import UserError
 
 FRAME_EVERY = 10
 """A recorded rollout keeps one scene-camera frame every this many steps (and the last)."""
@@ -78,6 +79,8 @@ def run_rollouts(
     """See :meth:`bpp.core.contract.Benchmark.run_rollouts`."""
 
     spec = agent.data_spec
+    if spec.action_key not in ("action", "target_in_canvas"):
+        raise UserError(f"draw3d executes actions of key action or target_in_canvas, not {spec.action_key!r}")
     keys = list(agent.obs_keys)
     scenes = _scenes(len(rollouts), spec.image_size)
     drawings, canvases, extras = [], [], []

@@ -128,6 +128,7 @@ class LiberoDataConfig:
             ("image_size", 8 <= self.image_size <= 512, "in [8, 512] px"),
             ("goal_size", self.goal_size == 0 or 8 <= self.goal_size <= 512, "0 or in [8, 512] px"),
             ("demo.action_noise", 0.0 <= self.demo.action_noise <= 1.0, "in [0, 1] (action units)"),
+            ("demo.rim_side", self.demo.rim_side in ("random", "near"), "random or near"),
             ("demo.max_steps", self.demo.max_steps >= 1, ">= 1"),
         )
         if self.where is not None:

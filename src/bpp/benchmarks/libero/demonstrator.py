@@ -399,13 +399,13 @@ def grasp_offset(arm: Arm, rng: np.random.Generator, obj: str) -> tuple[np.ndarr
     above the grasp, and a bowl put into the drawer (15 cm deep inside, the bowl about 12 cm wide) leaves room for the
     fingers only along its width (docs/libero-gen/demonstrator.md)."""
     if obj.startswith("akita_black_bowl"):
-        across = np.array([0.0, 1.0])
-        side = rim_side(arm, rng, arm.obs[f"{obj}_pos"], across)
+        across, away = np.array([0.0, 1.0]), 0.0
         drawer = open_drawer_body(arm.env)
         if drawer is not None:  # the rim on the side away from it, fingers across its width (see the docstring)
             across = drawer_width_axis(arm.env, drawer)
             away = (arm.obs[f"{obj}_pos"] - drawer)[:2] @ across
-            side = np.sign(away) if abs(away) > 0.01 else side
+        side = rim_side(arm, rng, arm.obs[f"{obj}_pos"], across)
+        side = np.sign(away) if abs(away) > 0.01 else side
         rim = side * arm.cfg.rim_offset * across + rng.normal(0.0, arm.cfg.jitter, 2)
         return np.r_[rim, rng.uniform(*arm.cfg.grasp_height)], across
     sim = arm.env.env.sim

@@ -36,10 +36,11 @@ import numpy as np
 from tqdm import tqdm
 
 from bpp.benchmarks.libero.bddl import parse, section
-from bpp.benchmarks.libero.dataset import BENCHMARK, FIXTURE_KEY, GOAL_KEY
+from bpp.benchmarks.libero.dataset import ABSOLUTE_KEY, BENCHMARK, FIXTURE_KEY, GOAL_KEY, PROPRIO_LAYOUT
 from bpp.benchmarks.libero.rollouts import observe
 from bpp.benchmarks.libero.sim import (
     CAMERAS,
+    absolute_actions,
     fixture_row,
     has_initial_states,
     libero_problem,
@@ -213,7 +214,7 @@ def import_files(
         benchmark=BENCHMARK,
         config={"imported": [str(p) for p in paths], "goal_size": goal_size},
         overwrite=overwrite,
-        stats_keys=("action", "proprio", "object_state"),
+        stats_keys=("action", ABSOLUTE_KEY, "proprio", "object_state"),
     ) as writer:
         bar = tqdm(paths, desc=f"importing into {Path(out).name}", unit="file", disable=not progress)
         for path in bar:
@@ -236,6 +237,7 @@ def import_files(
                             columns[GOAL_KEY] = render_now(env, CAMERAS["agentview"], goal_size)
                         steps = {
                             "action": demo.labels,
+                            ABSOLUTE_KEY: absolute_actions(demo.labels, proprio[:, PROPRIO_LAYOUT["eef_pos"]]),
                             "proprio": proprio,
                             "object_state": object_state,
                             "sim_state": demo.states,
