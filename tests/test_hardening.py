@@ -422,3 +422,17 @@ def test_a_store_with_one_demonstration_per_task_is_refused_before_the_model_is_
     with pytest.raises(UserError, match="the most any task has is 1.*--demos-per-task 2"):
         train(run, config("bpp"), progress=False)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_store_without_a_key_the_policy_uses_is_refused_before_the_model_is_built(debug_store, tmp_path, monkeypatch):
+    """A store generated before a key was added (LIBERO's action_abs, draw3d's target_in_canvas) is named with what
+    it lacks and what to do, not reported later as missing normalisation statistics."""
+
+    def built(*args, **kwargs):
+        raise AssertionError("the model was built before the store was checked")
+
+    monkeypatch.setattr(bpp.train, "build_training", built)
+    run = TrainConfig(data=debug_store.path, out=tmp_path / "run", method="bpp", steps=1, batch_size=4)
+    with pytest.raises(UserError, match=r"acts with \['action_abs'\], which the store lacks.*generate it again"):
+        train(run, config("bpp", action_key="action_abs"), progress=False)
+    assert not (tmp_path / "run").exists()
