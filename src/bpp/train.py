@@ -22,7 +22,7 @@ from bpp.checkpoint import load_training_state, resolve_checkpoint, save_checkpo
 from bpp.core.contract import device_frames
 from bpp.core.registry import get_benchmark, open_store
 from bpp.data.frame_refs import render_batch
-from bpp.data.prompt_dataset import PromptBatchDataset, finite_statistics, trainable_tasks
+from bpp.data.prompt_dataset import PromptBatchDataset, finite_statistics, stored_keys, trainable_tasks
 from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
@@ -204,21 +204,6 @@ def _recorded_model_config(run: Path) -> dict | None:
     return config if isinstance(config, dict) else None
 
 
-def _stored_keys(store, model_cfg) -> None:
-    """Refuse a store without the per-step keys the model observes or acts with (cameras may be rendered from stored
-    states, so they are not looked for), before anything is built."""
-    obs = getattr(model_cfg, "obs", None)
-    if obs is None:  # a method of another shape: its data loader checks what it reads
-        return
-    missing = [k for k in (*obs.proprio_keys, *obs.lowdim_keys, model_cfg.action_key) if k not in store.keys]
-    if missing:
-        raise UserError(
-            f"{store.path}: the policy observes or acts with {missing}, which the store lacks (it has "
-            f"{', '.join(store.keys)}); a store generated before a key was added lacks it: generate it again, or "
-            "choose another --obs"
-        )
-
-
 def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     """Train `cfg.method` with `model_cfg` on `cfg.data`; returns the final checkpoint folder."""
     rank, world, device = _setup_distributed(cfg.device)
@@ -241,7 +226,9 @@ def train(cfg: TrainConfig, model_cfg, progress: bool = True) -> Path:
     store = open_store(cfg.data)
     benchmark = get_benchmark(store.benchmark)
     trainable_tasks(store)  # refused now, not after the model is built (or loaded, or compiled)
-    _stored_keys(store, model_cfg)
+    obs = getattr(model_cfg, "obs", None)  # a method of another shape: its data loader checks what it reads
+    if obs is not None:
+        stored_keys(store, [*obs.proprio_keys, *obs.lowdim_keys, model_cfg.action_key])
     finite_statistics(store)
     method = get_method(cfg.method)
     torch.manual_seed(cfg.seed)

@@ -86,6 +86,19 @@ def trainable_tasks(store: EpisodeStore, tasks: Sequence[int] | None = None) -> 
     return usable
 
 
+def stored_keys(store: EpisodeStore, keys: Sequence[str]) -> None:
+    """Refuse a store without one of the per-step `keys` a policy observes or acts with (cameras may be rendered
+    from stored states, so callers leave them out), naming what it lacks, so that a command can refuse it before it
+    builds or loads anything."""
+    missing = [k for k in keys if k not in store.keys]
+    if missing:
+        raise UserError(
+            f"{store.path}: the policy observes or acts with {missing}, which the store lacks (it has "
+            f"{', '.join(store.keys)}); a store generated before a key was added lacks it: generate it again, or "
+            "choose another --obs"
+        )
+
+
 def finite_statistics(store: EpisodeStore) -> None:
     """Refuse a store whose normalisation statistics hold a NaN or an infinity (a store written before stores
     refused non-finite values): training on it would end with NaN weights."""
@@ -148,9 +161,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
     ):
         self.store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
         self.spec = spec
-        missing = [k for k in [*spec.lowdim_keys, spec.action_key] if k not in self.store.keys]
-        if missing:
-            raise UserError(f"{self.store.path}: the policy needs keys {missing}, the store has {self.store.keys}")
+        stored_keys(self.store, [*spec.lowdim_keys, spec.action_key])
         self.frame_refs = frame_refs
         if frame_refs:
             frames = reference_source

@@ -10,6 +10,7 @@ DrawAnything's Chamfer distance between the ink on the canvas and the task's dra
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,6 +25,8 @@ from bpp.data.store import EpisodeStore
 from bpp.drawing.drawing import task_drawing
 from bpp.errors import UserError
 
+ACTION_KEYS = ("action", "target_in_canvas")
+"""The action keys a draw3d policy may act with: relative pen steps, or pen poses in the measured canvas's frame."""
 FRAME_EVERY = 10
 """A recorded rollout keeps one scene-camera frame every this many steps (and the last)."""
 FRAME_SIZE = 256
@@ -40,12 +43,25 @@ def _scenes(count: int, image_size: int) -> list:
     return _SCENES[:count]
 
 
-def _observe(scene, canvas: np.ndarray, keys: Sequence[str]) -> dict[str, np.ndarray]:
-    """The observation `keys` of `scene`, whose canvas was measured at `canvas` (``T_base_canvas``)."""
+@dataclass(frozen=True)
+class _Canvas:
+    """A rollout's canvas as measured from its photo (``T_base_canvas``), with what each step reads of it."""
+
+    pose: np.ndarray
+    inverse: np.ndarray
+    vector: np.ndarray
+
+    @classmethod
+    def measured(cls, pose: np.ndarray) -> _Canvas:
+        return cls(pose, invert(pose), pose_to_vector(pose).astype(np.float32))
+
+
+def _observe(scene, canvas: _Canvas, keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """The observation `keys` of `scene`, whose canvas was measured at `canvas`."""
     values = {
         "tip_pose": lambda: pose_to_vector(scene.tip_pose()).astype(np.float32),
-        "tip_in_canvas": lambda: pose_to_vector(invert(canvas) @ scene.tip_pose()).astype(np.float32),
-        "canvas_pose": lambda: pose_to_vector(canvas).astype(np.float32),
+        "tip_in_canvas": lambda: pose_to_vector(canvas.inverse @ scene.tip_pose()).astype(np.float32),
+        "canvas_pose": lambda: canvas.vector,
         "ink_length": lambda: np.array([scene.ink.length], np.float32),
         "pen_down": lambda: np.array([float(scene.ink.down)], np.float32),
         "wrist": lambda: scene.render("wrist"),
@@ -58,8 +74,8 @@ def relative_step(scene, canvas: np.ndarray, action: np.ndarray, key: str) -> np
     step already; ``target_in_canvas`` is the commanded pose to go to, in the frame of the measured `canvas`."""
     if key == "action":
         return action
-    if key != "target_in_canvas":
-        raise ValueError(f"draw3d executes actions of key action or target_in_canvas, not {key!r}")
+    if key not in ACTION_KEYS:
+        raise ValueError(f"draw3d executes actions of key {' or '.join(ACTION_KEYS)}, not {key!r}")
     target = canvas @ vector_to_pose(action[:9])
     return np.append(pose_to_vector(invert(scene.target) @ target), action[9:])
 
@@ -79,8 +95,8 @@ def run_rollouts(
     """See :meth:`bpp.core.contract.Benchmark.run_rollouts`."""
 
     spec = agent.data_spec
-    if spec.action_key not in ("action", "target_in_canvas"):
-        raise UserError(f"draw3d executes actions of key action or target_in_canvas, not {spec.action_key!r}")
+    if spec.action_key not in ACTION_KEYS:
+        raise UserError(f"draw3d executes actions of key {' or '.join(ACTION_KEYS)}, not {spec.action_key!r}")
     keys = list(agent.obs_keys)
     scenes = _scenes(len(rollouts), spec.image_size)
     drawings, canvases, extras = [], [], []
@@ -97,7 +113,7 @@ def run_rollouts(
         scene.ink.down = False
         task = int(store.column("task_index")[int(rollout["target_episode"])])
         drawings.append(task_drawing(store, task))
-        canvases.append(measured)
+        canvases.append(_Canvas.measured(measured))
         extras.append({"canvas_from_photo": from_photo, "canvas_pose_error_mm": pose_error(measured, truth)[0] * 1e3})
     record = [frames_to_record(r) for r in record_frames]
     frames: list[list] = [[] for _ in rollouts]
@@ -107,7 +123,7 @@ def run_rollouts(
         for i, scene in enumerate(scenes):
             if record[i] == "all" and t % FRAME_EVERY == 0:
                 frames[i].append(scene.render("scene", FRAME_SIZE))
-            scene.step(relative_step(scene, canvases[i], actions[i], spec.action_key))
+            scene.step(relative_step(scene, canvases[i].pose, actions[i], spec.action_key))
     results = []
     for i, scene in enumerate(scenes):
         if record[i]:
