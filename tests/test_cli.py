@@ -236,11 +236,20 @@ def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold(tmp_path)
 
 
 def test_a_whole_run_on_every_core_leaves_the_thread_count_to_the_user_s_omp_setting(monkeypatch):
-    from bpp.runs import RUNS, _threads
+    import torch
+
+    from bpp.runs import RUNS
+    from bpp.train import cpu_plan
+    from bpp.train_config import TrainConfig
     from bpp.utils import usable_cores
 
     assert RUNS["demo"].threads == -1 and RUNS["smoke"].threads == 0  # the main job runs alone; others leave a core
+    cpu, gpu = torch.device("cpu"), torch.device("cuda")
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    assert _threads(-1) == usable_cores() and _threads(0) == 0 and _threads(3) == 3
+    plan = {n: cpu_plan(TrainConfig(data="", threads=n, workers=0), cpu)[1] for n in (-1, 0, 3)}
+    assert plan == {-1: usable_cores(), 0: max(1, usable_cores() - 1), 3: 3}
+    assert cpu_plan(TrainConfig(data="", threads=-1, workers=0), gpu)[1] == 0  # torch's own count beside a GPU
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    assert _threads(-1) == 0  # training's auto rule then takes OMP_NUM_THREADS
+    # torch's default count then takes OMP_NUM_THREADS
+    assert cpu_plan(TrainConfig(data="", threads=-1, workers=0), cpu)[1] == 0
+    assert cpu_plan(TrainConfig(data="", threads=3, workers=0), cpu)[1] == 3

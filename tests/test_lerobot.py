@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from bpp.benchmarks.lerobot.benchmark import BENCHMARK
-from bpp.benchmarks.lerobot.export import export_store
+from bpp.benchmarks.lerobot.export import action_feature, export_store
 from bpp.cli import main
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore, EpisodeWriter
@@ -395,9 +395,12 @@ def test_a_drawanything_store_exports_to_a_dataset_lerobot_loads_and_imports_bac
     assert dataset.num_episodes == 4 and dataset.num_frames == n and dataset.fps == 10
     assert list(dataset.meta.tasks.index) == [t["id"] for t in debug_store.tasks[:2]]  # no instructions: the ids
     assert dataset.meta.features["observation.images.image"]["dtype"] == "video"
+    # The board-frame actions are actions to LeRobot too: a policy trained on the dataset must not observe them.
+    assert dataset.meta.features["action.on_board"]["shape"] == dataset.meta.features["action"]["shape"]
+    assert not [name for name in dataset.meta.features if name.startswith("observation.action")]
     table = dataset.hf_dataset.with_format("arrow")[:]
     for key in debug_store.keys:  # every per-step array, as LeRobot reads it
-        name = "action" if key == "action" else f"observation.{key}"
+        name = "action" if key == "action" else action_feature(key) if "action" in key else f"observation.{key}"
         values = np.asarray(table.column(name).to_pylist()).reshape(n, -1)
         np.testing.assert_array_equal(values, debug_store.array(key)[:n].reshape(n, -1), err_msg=key)
     main(["lerobot", "import", str(out), "--out", str(tmp_path / "back.zarr"), "--image-size", "32"])
@@ -438,7 +441,7 @@ def test_lerobots_own_loader_returns_every_exported_array(debug_store, tmp_path,
             image = (item["observation.images.image"].numpy().transpose(1, 2, 0) * 255).round().astype(np.uint8)
             np.testing.assert_array_equal(image, frames[t])
             for key, values in steps.items():
-                name = "action" if key == "action" else f"observation.{key}"
+                name = "action" if key == "action" else action_feature(key) if "action" in key else f"observation.{key}"
                 got = item[name].numpy().reshape(-1)  # LeRobot's items are float32 tensors, also of float64 columns
                 np.testing.assert_array_equal(got, values[t].reshape(-1).astype(got.dtype), err_msg=key)
     assert index == len(dataset)
@@ -455,6 +458,8 @@ def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(
         for seed in range(2):
             steps = {
                 "action": rng.uniform(-1, 1, (12, 7)).astype(np.float32),
+                "action_abs": rng.uniform(-1, 1, (12, 7)).astype(np.float32),
+                "executed_action": rng.uniform(-1, 1, (12, 7)).astype(np.float32),
                 "proprio": rng.normal(size=(12, 39)).astype(np.float32),
                 "object_state": rng.normal(size=(12, 70)).astype(np.float32),
                 "sim_state": rng.normal(size=(12, 92)),
@@ -473,6 +478,9 @@ def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(
     assert features["observation.state"]["shape"] == (39 + 70,)  # the default observation's proprio, object_state
     assert features["observation.sim_state"]["dtype"] == "float64"
     assert "observation.eef" not in features  # derived from the proprioception, not stored
+    # Position goals and the executed (noisy) actions are actions, not observations, to LeRobot's policies.
+    assert features["action.abs"]["shape"] == features["action.executed_action"]["shape"] == (7,)
+    assert not [name for name in features if name.startswith("observation.") and "action" in name]
     table = dataset.hf_dataset.with_format("arrow")[:]
     state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float32)
     np.testing.assert_array_equal(state, np.concatenate([store.array("proprio"), store.array("object_state")], 1))

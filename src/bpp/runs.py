@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +20,7 @@ from bpp.core.registry import DEFAULT_BENCHMARK, get_benchmark
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.errors import UserError
 from bpp.policies.registry import get_method
-from bpp.utils import check_fields, usable_cores, write_text_atomic
+from bpp.utils import check_fields, write_text_atomic
 
 
 @dataclass(frozen=True)
@@ -170,7 +169,7 @@ def whole_run(args: WholeRun, name: str = "") -> None:
         seed=args.seed,
         resume=resume,
         save_every=500,
-        threads=_threads(args.threads),
+        threads=args.threads,
         workers=args.loader_workers,
     )
     if resume and not finished:
@@ -204,14 +203,6 @@ def whole_run(args: WholeRun, name: str = "") -> None:
     if benchmark.name == DEFAULT_BENCHMARK:
         studio = f"bpp studio --runs {args.run_dir.parent}"
         print(f"[{label}] prompt it yourself: `{studio}` opens a page where you draw a prompt")
-
-
-def _threads(threads: int) -> int:
-    """The training's torch threads for a whole run's `threads` (-1: every usable core, unless OMP_NUM_THREADS says
-    otherwise)."""
-    if threads != -1:
-        return threads
-    return 0 if os.environ.get("OMP_NUM_THREADS") else usable_cores()
 
 
 def _training_data(args: WholeRun, benchmark, stage) -> EpisodeStore:

@@ -56,9 +56,9 @@ def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
     cores = usable_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", "1"))  # shared by torchrun's processes
     gpu_workers = min(2, cores - 2) if cfg.frames_on == "device" else cores - 2  # references take little building
     workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else max(1, gpu_workers))
-    threads = cfg.threads
-    if not threads and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
-        threads = max(1, cores - 1 - workers)
+    threads = max(cfg.threads, 0)
+    if cfg.threads <= 0 and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
+        threads = cores if cfg.threads == -1 else max(1, cores - 1 - workers)
     return workers, threads
 
 

@@ -61,7 +61,8 @@ class TrainConfig:
     """torch CPU threads per process (0: auto; on a CPU, OMP_NUM_THREADS if set, else the usable cores, shared by
     the processes of a torchrun on this machine, minus one and minus the loader workers, at least 1: torch's threads
     wait for each other at every operation, so with as many threads as cores any other busy program slowed training
-    2.6 to 20 times here, while one core left free costs about a third alone; see BENCHMARKS.md)."""
+    2.6 to 20 times here, while one core left free costs about a third alone; see BENCHMARKS.md. -1: all those
+    cores, for a run that has the machine to itself; OMP_NUM_THREADS, if set, still decides)."""
     frame_cache_gb: float = 4.0
     """Image observations a training process keeps once its benchmark has rendered or read them, shared evenly by
     its loader processes. Where all of the dataset's frames fit a loader's share (the CPU preset's 64x64 frames of
@@ -103,7 +104,7 @@ class TrainConfig:
             ("log_every", self.log_every >= 1, ">= 1"),
             ("save_every", self.save_every >= 1, ">= 1"),
             ("keep_checkpoints", self.keep_checkpoints >= 0, ">= 0 (0: keep all)"),
-            ("threads", self.threads >= 0, ">= 0 (0: auto)"),
+            ("threads", self.threads >= -1, ">= -1 (0: auto, -1: every core)"),
             ("frame_cache_gb", self.frame_cache_gb >= 0, ">= 0"),
             ("pad_to_multiple", self.pad_to_multiple >= -1, ">= -1 (-1: auto, 0: no extra padding)"),
             ("compile", self.compile in COMPILE_MODES, f"one of {COMPILE_MODES}"),

@@ -8,6 +8,10 @@ What becomes what:
 * each episode an episode, each task a LeRobot task: its instruction (``--task-text instruction``, the default; a
   task without one gives its id) or its id;
 * the action key (the benchmark's default observation's, or ``--action``) becomes ``action``;
+* another action-like key (an action key of another of the benchmark's observation presets, or a key naming an
+  action, such as LIBERO-Gen's ``action_abs`` and ``executed_action``) becomes ``action.K``, without a leading
+  ``action_`` (``action.abs``), LeRobot's own namespace for action features: LeRobot's policies read
+  ``action`` only, and a future action must not reach them as an observation;
 * every other stored per-step key ``K`` becomes ``observation.K`` (float64 stays float64), and ``observation.state``
   is the concatenation of ``--state`` keys (default: the keys the benchmark's default observation preset reads)
   unless the store has a key named ``state``;
@@ -135,7 +139,7 @@ def export_store(
     features = {_name(origin, action, "action"): _vector_feature(store, action, origin)}
     names = {action: _name(origin, action, "action")}
     for key in numeric:
-        names[key] = _name(origin, key, f"observation.{key}")
+        names[key] = _name(origin, key, action_feature(key) if _action_like(benchmark, key) else f"observation.{key}")
         features[names[key]] = _vector_feature(store, key, origin)
     concat = []
     if "observation.state" not in features:
@@ -204,6 +208,17 @@ def export_store(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out
+
+
+def _action_like(benchmark, key: str) -> bool:
+    """Whether a stored key holds actions: an observation preset's action key, or a key whose name says action."""
+    return "action" in key or any(preset.action_key == key for preset in benchmark.observations.values())
+
+
+def action_feature(key: str) -> str:
+    """The LeRobot name of an action-like key that is not the exported action: ``action_abs`` -> ``action.abs``,
+    ``target_in_canvas`` -> ``action.target_in_canvas`` (an import turns the dot back into an underscore)."""
+    return "action." + key.removeprefix("action_")
 
 
 def _stored_size(store: EpisodeStore, cameras: Sequence[str]) -> int:
