@@ -4,38 +4,50 @@ their own requirements, cannot be imported. ``python tests/core_only.py demo ...
 
 A full install of the core alone into a new environment takes minutes and gigabytes (torch and its CUDA wheels);
 this checks the same thing the imports decide: that what the core command runs imports nothing an extra brings.
+``python tests/core_only.py --import EXTRA MODULE ...`` imports the modules with the core and one extra visible, as
+``pip install .[EXTRA]`` would have installed them (tests/test_extras.py).
 """
 
 from __future__ import annotations
 
+import importlib
 import importlib.abc
 import importlib.machinery
 import importlib.metadata as metadata
+import os
+import site
 import sys
 
 from packaging.markers import default_environment
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
+SITES = {os.path.abspath(p) for p in (*site.getsitepackages(), site.getusersitepackages())}
+"""The folders installed distributions' top-level modules live in: a refused module found only there is not found."""
 
-def core_closure(root: str = "bpp") -> set[str]:
-    """The distributions `root` needs without extras, and theirs, transitively (canonical names)."""
-    environment = {**default_environment(), "extra": ""}
-    seen, todo = set(), [root]
+
+def core_closure(root: str = "bpp", extras: tuple[str, ...] = ()) -> set[str]:
+    """The distributions `root` needs with its `extras` (none: the core), and theirs, transitively, extras named in
+    a requirement (``bpp[libero,iphumi]``) followed too (canonical names)."""
+    seen, todo = set(), [(root, frozenset(extras))]
     while todo:
-        name = canonicalize_name(todo.pop())
-        if name in seen:
+        name, wanted = todo.pop()
+        name = canonicalize_name(name)
+        if (name, wanted) in seen:
             continue
-        seen.add(name)
+        seen.add((name, wanted))
         try:
             requires = metadata.requires(name) or []
         except metadata.PackageNotFoundError:
             continue  # a requirement whose marker holds here but that is not installed: nothing to follow
         for line in requires:
             requirement = Requirement(line)
-            if requirement.marker is None or requirement.marker.evaluate(environment):
-                todo.append(requirement.name)
-    return seen
+            holds = requirement.marker is None or any(
+                requirement.marker.evaluate({**default_environment(), "extra": extra}) for extra in ("", *wanted)
+            )
+            if holds:
+                todo.append((requirement.name, frozenset(requirement.extras)))
+    return {name for name, _ in seen}
 
 
 class OutsideCore(importlib.abc.MetaPathFinder):
@@ -53,8 +65,12 @@ class OutsideCore(importlib.abc.MetaPathFinder):
 
     def find_spec(self, name, path=None, target=None):
         if name.partition(".")[0] in self.refused:
-            print(f"[core-only] not found: {name}", file=sys.stderr)
-            return None
+            # A copy a package ships inside itself and puts on sys.path (Ray's vendored psutil) is its own.
+            elsewhere = [p for p in (sys.path if path is None else path) if os.path.abspath(p) not in SITES]
+            spec = self.finder.find_spec(name, elsewhere, target)
+            if spec is None:
+                print(f"[core-only] not found: {name}", file=sys.stderr)
+            return spec
         return self.finder.find_spec(name, path, target)
 
     def find_distributions(self, *args, **kwargs):
@@ -67,13 +83,18 @@ class OutsideCore(importlib.abc.MetaPathFinder):
         self.finder.invalidate_caches()
 
 
-def install() -> None:
-    """Put the restricted finder in place of Python's path finder."""
+def install(extras: tuple[str, ...] = ()) -> None:
+    """Put the restricted finder in place of Python's path finder: the core's distributions and `extras`' seen."""
     finder = next(f for f in sys.meta_path if f is importlib.machinery.PathFinder)
-    sys.meta_path[sys.meta_path.index(finder)] = OutsideCore(core_closure(), finder)
+    sys.meta_path[sys.meta_path.index(finder)] = OutsideCore(core_closure("bpp", extras), finder)
 
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["--import"]:  # --import EXTRA MODULE ...: import each module with the core and EXTRA only
+        install((sys.argv[2],))
+        for module in sys.argv[3:]:
+            importlib.import_module(module)
+        sys.exit(0)
     install()
     from bpp.cli import main
 

@@ -24,14 +24,10 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
+from google_crc32c import value as _crc32c  # what zarr's own crc32c codec uses (a requirement of zarr since 3.1)
 
 from bpp.errors import UserError
 from bpp.utils import read_json
-
-try:  # the package zarr's own crc32c codec uses: google-crc32c since zarr 3.1, crc32c before
-    from google_crc32c import value as _crc32c
-except ModuleNotFoundError:
-    from crc32c import crc32c as _crc32c
 
 FORMAT = "bpp-episodes"
 VERSION = 3

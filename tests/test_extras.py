@@ -1,0 +1,68 @@
+"""Each extra brings what bpp imports from it: every third-party module bpp's source imports (at the top of a module
+or inside a function) imports in a process that sees only the core's distributions and that one extra's, followed
+through their own requirements, as ``pip install .[EXTRA]`` into a new environment would have installed them. A
+missing or wrong requirement, bpp's or a dependency's own (an upstream package that forgets one of its imports), fails
+here instead of on a user's machine."""
+
+from __future__ import annotations
+
+import ast
+import importlib.metadata as metadata
+import subprocess
+import sys
+from functools import cache
+from pathlib import Path
+
+import pytest
+from packaging.utils import canonicalize_name
+
+from core_only import core_closure
+
+SRC = Path(__file__).parents[1] / "src" / "bpp"
+EXTRAS = ("studio", "serve", "language", "libero", "iphumi", "ray", "draw3d")
+"""The extras `all` holds that bpp's source imports from (dev and docs are the tests' and the docs' own); lerobot has
+an environment of its own (tests/test_lerobot_install.py)."""
+
+ELSEWHERE = {"lerobot", "av", "datasets", "pyarrow", "openpi_client"}
+"""Modules of environments other than this one: LeRobot's (the lerobot extra, LeRobot's own requirements) and the
+robot computer's (openpi's client, requirements-robot.lock); their tests install and import them there."""
+
+
+@cache
+def imported_modules() -> frozenset[str]:
+    """Every module bpp's source imports by absolute name that is neither bpp's nor the standard library's."""
+    found = set()
+    for path in SRC.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                found.update(alias.name for alias in node.names)
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                found.add(node.module)
+    return frozenset(m for m in found if m.partition(".")[0] not in {"bpp", *sys.stdlib_module_names})
+
+
+def providers(module: str) -> set[str]:
+    """The installed distributions that provide `module`'s top-level package (canonical names)."""
+    return {canonicalize_name(d) for d in metadata.packages_distributions().get(module.partition(".")[0], [])}
+
+
+def test_every_third_party_module_bpp_imports_comes_from_the_core_or_one_extra():
+    core = core_closure()
+    reachable = set(core).union(*(core_closure("bpp", (extra,)) for extra in (*EXTRAS, "lerobot")))
+    undeclared = sorted(
+        m for m in imported_modules() if not providers(m) & reachable and m.partition(".")[0] not in ELSEWHERE
+    )
+    assert not undeclared, f"imported by bpp but brought by no requirement of the core or of an extra: {undeclared}"
+    assert "fastapi" in imported_modules() and "torch" in imported_modules()  # the scan sees both kinds of import
+
+
+@pytest.mark.parametrize("extra", EXTRAS)
+def test_an_extra_alone_brings_every_module_bpp_imports_from_it(extra):
+    core, closure = core_closure(), core_closure("bpp", (extra,))
+    modules = sorted(m for m in imported_modules() if providers(m) & (closure - core))
+    assert modules, f"bpp imports nothing the {extra} extra brings"
+    script = Path(__file__).with_name("core_only.py")
+    done = subprocess.run(
+        [sys.executable, str(script), "--import", extra, *modules], capture_output=True, text=True, timeout=240
+    )
+    assert done.returncode == 0, f"with the core and {extra} only, importing {modules}:\n{done.stderr[-3000:]}"
