@@ -14,16 +14,24 @@ import importlib
 import importlib.abc
 import importlib.machinery
 import importlib.metadata as metadata
-import os
 import site
 import sys
+from pathlib import Path
 
 from packaging.markers import default_environment
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-SITES = {os.path.abspath(p) for p in (*site.getsitepackages(), site.getusersitepackages())}
-"""The folders installed distributions' top-level modules live in: a refused module found only there is not found."""
+SITES = [Path(p).resolve() for p in (*site.getsitepackages(), site.getusersitepackages())]
+"""The folders installed distributions' top-level modules live in."""
+
+
+def vendored(folder: str) -> bool:
+    """Whether `folder` lies inside an installed package (``site-packages/ray/thirdparty_files``): the copies of other
+    packages it holds are that package's own, as pip installed it. Not a site folder itself, nor a folder elsewhere
+    (a source checkout, PYTHONPATH)."""
+    path = Path(folder).resolve()
+    return any(path != site and path.is_relative_to(site) for site in SITES)
 
 
 def core_closure(root: str = "bpp", extras: tuple[str, ...] = ()) -> set[str]:
@@ -66,7 +74,7 @@ class OutsideCore(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         if name.partition(".")[0] in self.refused:
             # A copy a package ships inside itself and puts on sys.path (Ray's vendored psutil) is its own.
-            elsewhere = [p for p in (sys.path if path is None else path) if os.path.abspath(p) not in SITES]
+            elsewhere = [p for p in (sys.path if path is None else path) if vendored(p)]
             spec = self.finder.find_spec(name, elsewhere, target)
             if spec is None:
                 print(f"[core-only] not found: {name}", file=sys.stderr)
@@ -84,7 +92,8 @@ class OutsideCore(importlib.abc.MetaPathFinder):
 
 
 def install(extras: tuple[str, ...] = ()) -> None:
-    """Put the restricted finder in place of Python's path finder: the core's distributions and `extras`' seen."""
+    """Put the restricted finder in place of Python's path finder, so that only the core's and `extras`' distributions
+    are seen."""
     finder = next(f for f in sys.meta_path if f is importlib.machinery.PathFinder)
     sys.meta_path[sys.meta_path.index(finder)] = OutsideCore(core_closure("bpp", extras), finder)
 

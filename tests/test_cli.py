@@ -4,11 +4,16 @@ import textwrap
 from pathlib import Path
 
 import pytest
+import torch
 
 from bpp import cli
 from bpp.cli import StoreInfo, main
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
+from bpp.runs import RUNS
+from bpp.train import cpu_plan
+from bpp.train_config import TrainConfig
+from bpp.utils import usable_cores
 
 
 def _bpp(*args, cwd=None):
@@ -235,19 +240,13 @@ def test_every_named_run_has_its_line_in_the_help_and_fields_that_hold(tmp_path)
     assert wrong.returncode != 0 and "nope" in wrong.stderr and not data.exists()  # refused before any data is made
 
 
-def test_a_whole_run_on_every_core_leaves_the_thread_count_to_the_user_s_omp_setting(monkeypatch):
-    import torch
-
-    from bpp.runs import RUNS
-    from bpp.train import cpu_plan
-    from bpp.train_config import TrainConfig
-    from bpp.utils import usable_cores
-
+def test_the_thread_plan_takes_every_core_for_a_whole_run_and_leaves_the_count_to_omp_num_threads(monkeypatch):
     assert RUNS["demo"].threads == -1 and RUNS["smoke"].threads == 0  # the main job runs alone; others leave a core
     cpu, gpu = torch.device("cpu"), torch.device("cuda")
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     plan = {n: cpu_plan(TrainConfig(data="", threads=n, workers=0), cpu)[1] for n in (-1, 0, 3)}
     assert plan == {-1: usable_cores(), 0: max(1, usable_cores() - 1), 3: 3}
+    assert cpu_plan(TrainConfig(data="", threads=-1, workers=1), cpu) == (1, max(1, usable_cores() - 1))
     assert cpu_plan(TrainConfig(data="", threads=-1, workers=0), gpu)[1] == 0  # torch's own count beside a GPU
     monkeypatch.setenv("OMP_NUM_THREADS", "1")
     # torch's default count then takes OMP_NUM_THREADS

@@ -1,8 +1,8 @@
-"""Each extra brings what bpp imports from it: every third-party module bpp's source imports (at the top of a module
-or inside a function) imports in a process that sees only the core's distributions and that one extra's, followed
-through their own requirements, as ``pip install .[EXTRA]`` into a new environment would have installed them. A
-missing or wrong requirement, bpp's or a dependency's own (an upstream package that forgets one of its imports), fails
-here instead of on a user's machine."""
+"""Each extra brings what bpp imports from it: every module bpp's source imports (at the top of a module or inside a
+function) from a distribution an extra adds to the core imports in a process that sees only the core's and that
+extra's installed distributions, followed through their own requirements (the versions of this environment, not a
+fresh resolve). A requirement missing from bpp's lists, or from a dependency's own (an upstream package that forgets
+one of its imports), fails here instead of on a user's machine."""
 
 from __future__ import annotations
 
@@ -33,6 +33,11 @@ MARKERS = {"draw3d": ("libero", "iphumi")}
 
 
 @cache
+def _distributions() -> dict[str, list[str]]:
+    return metadata.packages_distributions()
+
+
+@cache
 def imported_modules() -> frozenset[str]:
     """Every module bpp's source imports by absolute name that is neither bpp's nor the standard library's."""
     found = set()
@@ -47,7 +52,12 @@ def imported_modules() -> frozenset[str]:
 
 def providers(module: str) -> set[str]:
     """The installed distributions that provide `module`'s top-level package (canonical names)."""
-    return {canonicalize_name(d) for d in metadata.packages_distributions().get(module.partition(".")[0], [])}
+    return {canonicalize_name(d) for d in _distributions().get(module.partition(".")[0], [])}
+
+
+def test_every_extra_bpp_declares_is_checked_here_or_in_its_own_environment():
+    declared = set(metadata.metadata("bpp").get_all("Provides-Extra"))
+    assert declared == {*EXTRAS, "dev", "docs", "all", "lerobot"}
 
 
 def test_every_third_party_module_bpp_imports_comes_from_the_core_or_one_extra():
@@ -62,6 +72,7 @@ def test_every_third_party_module_bpp_imports_comes_from_the_core_or_one_extra()
     assert "fastapi" in imported_modules() and "torch" in imported_modules()  # the scan sees both kinds of import
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "extra",
     [pytest.param(e, marks=[getattr(pytest.mark, m) for m in MARKERS.get(e, (e,))]) for e in EXTRAS],

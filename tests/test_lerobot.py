@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 
 from bpp.benchmarks.lerobot.benchmark import BENCHMARK
-from bpp.benchmarks.lerobot.export import action_feature, export_store
+from bpp.benchmarks.lerobot.export import _action_like, action_feature, export_store
 from bpp.cli import main
 from bpp.data.spec import DataSpec
 from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.errors import UserError
 from bpp.recorded.replay import replayed_episode, run_rollouts
 from helpers import import_optional
 
@@ -484,3 +485,40 @@ def test_a_libero_gen_store_with_its_cameras_exports_to_a_dataset_lerobot_loads(
     table = dataset.hf_dataset.with_format("arrow")[:]
     state = np.asarray(table.column("observation.state").to_pylist(), dtype=np.float32)
     np.testing.assert_array_equal(state, np.concatenate([store.array("proprio"), store.array("object_state")], 1))
+
+
+def test_action_like_keys_are_named_as_actions_and_names_that_would_clash_are_refused(tmp_path, capsys):
+    """Which keys are actions (an observation preset's action key, a name with the word action) and what they are
+    called: the store's own action too, when --action exports another key."""
+    presets = SimpleNamespace(observations={"canvas": SimpleNamespace(action_key="target_in_canvas")})
+    assert [k for k in ("target_in_canvas", "executed_action", "transaction", "tip") if _action_like(presets, k)] == [
+        "target_in_canvas",
+        "executed_action",
+    ]
+    assert [action_feature(k) for k in ("action_abs", "target_in_canvas", "action")] == [
+        "action.abs",
+        "action.target_in_canvas",
+        "action.action",
+    ]
+    rng = np.random.default_rng(0)
+    path = tmp_path / "libero.zarr"
+    with EpisodeWriter(path, benchmark="libero_gen", stats_keys=("action",)) as writer:
+        task = writer.add_task("train-000", {"problem": "(define)"}, instruction="put the bowl on the plate")
+        steps = {k: rng.uniform(-1, 1, (6, 7)).astype(np.float32) for k in ("action", "action_abs", "proprio")}
+        writer.add_episode(steps, task, seed=0)
+    store = EpisodeStore(path)
+    export_store(store, tmp_path / "abs", action="action_abs", cameras=[], state=["proprio"], progress=False)
+    lib = library.dataset_library()
+    with library.offline_and_quiet(tmp_path / "abs"):
+        table = lib.LeRobotDataset("bpp/abs", root=tmp_path / "abs").hf_dataset.with_format("arrow")[:]
+    for name, key in (("action", "action_abs"), ("action.action", "action"), ("observation.proprio", "proprio")):
+        np.testing.assert_array_equal(np.asarray(table.column(name).to_pylist()), store.array(key), err_msg=name)
+    path = tmp_path / "clash.zarr"
+    with EpisodeWriter(path, benchmark="libero_gen", stats_keys=("action",)) as writer:
+        task = writer.add_task("train-000", {"problem": "(define)"}, instruction="put the bowl on the plate")
+        writer.add_episode({k: np.zeros((4, 7), np.float32) for k in ("action", "action_abs", "action_action")}, task)
+    with pytest.raises(
+        UserError, match="keys action and action_action would both be the LeRobot feature 'action.action'"
+    ):
+        export_store(EpisodeStore(path), tmp_path / "clash", action="action_abs", cameras=[], progress=False)
+    assert not (tmp_path / "clash").exists()

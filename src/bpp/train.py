@@ -58,7 +58,7 @@ def cpu_plan(cfg: TrainConfig, device: torch.device) -> tuple[int, int]:
     workers = cfg.workers if cfg.workers >= 0 else (0 if device.type == "cpu" else max(1, gpu_workers))
     threads = max(cfg.threads, 0)
     if cfg.threads <= 0 and device.type == "cpu" and not os.environ.get("OMP_NUM_THREADS"):  # the user's choice stands
-        threads = cores if cfg.threads == -1 else max(1, cores - 1 - workers)
+        threads = max(1, cores - workers) if cfg.threads == -1 else max(1, cores - 1 - workers)
     return workers, threads
 
 

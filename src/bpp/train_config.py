@@ -61,8 +61,9 @@ class TrainConfig:
     """torch CPU threads per process (0: auto; on a CPU, OMP_NUM_THREADS if set, else the usable cores, shared by
     the processes of a torchrun on this machine, minus one and minus the loader workers, at least 1: torch's threads
     wait for each other at every operation, so with as many threads as cores any other busy program slowed training
-    2.6 to 20 times here, while one core left free costs about a third alone; see BENCHMARKS.md. -1: all those
-    cores, for a run that has the machine to itself; OMP_NUM_THREADS, if set, still decides)."""
+    2.6 to 20 times here, while one core left free costs about a third alone; see BENCHMARKS.md. -1: on a CPU, those
+    cores minus the loader workers, for a run that has the machine to itself; OMP_NUM_THREADS, if set, still decides;
+    beside a GPU, torch's default)."""
     frame_cache_gb: float = 4.0
     """Image observations a training process keeps once its benchmark has rendered or read them, shared evenly by
     its loader processes. Where all of the dataset's frames fit a loader's share (the CPU preset's 64x64 frames of

@@ -55,7 +55,8 @@ def lerobot_import(args: LeRobotImport) -> None:
 @dataclass(frozen=True)
 class LeRobotExport:
     """Export a store (any benchmark's) as a LeRobot v3 dataset, written with LeRobot's own library: episodes, task
-    texts, actions, per-step keys as observation.* features, cameras as videos, fps.
+    texts, actions, other action-like keys as action.* features and other per-step keys as observation.* features,
+    cameras as videos, fps.
 
     Examples:
       bpp lerobot export data/libero/train.zarr --out exports/libero-train --cameras agentview eye_in_hand
@@ -75,7 +76,8 @@ class LeRobotExport:
     vcodec: str = "libsvtav1"
     """The video codec: libsvtav1 (AV1, LeRobot's default; frames of 32 px or more) or h264."""
     action: str = ""
-    """The per-step key exported as action (default: the benchmark's default observation's action key)."""
+    """The per-step key exported as action (default: the benchmark's default observation's action key); the other
+    action keys become action.* features."""
     state: tuple[str, ...] | None = None
     """Keys concatenated into observation.state (default: those the benchmark's default observation reads; not
     written if the store has a key named state, which becomes observation.state itself)."""

@@ -8,10 +8,12 @@ What becomes what:
 * each episode an episode, each task a LeRobot task: its instruction (``--task-text instruction``, the default; a
   task without one gives its id) or its id;
 * the action key (the benchmark's default observation's, or ``--action``) becomes ``action``;
-* another action-like key (an action key of another of the benchmark's observation presets, or a key naming an
-  action, such as LIBERO-Gen's ``action_abs`` and ``executed_action``) becomes ``action.K``, without a leading
-  ``action_`` (``action.abs``), LeRobot's own namespace for action features: LeRobot's policies read
-  ``action`` only, and a future action must not reach them as an observation;
+* another action-like key (an action key of another of the benchmark's observation presets, or a key with the word
+  action in its name, such as LIBERO-Gen's ``action_abs`` and ``executed_action``) becomes ``action.K``, without a
+  leading ``action_`` (``action.abs``; the store's own ``action`` when another key is the action: ``action.action``),
+  LeRobot's own namespace for action features: LeRobot's policies read ``action`` only, and a future action must not
+  reach them as an observation. An import names them by its own rule (``action.abs`` -> ``action_abs``, but
+  ``action.executed_action`` -> ``action_executed_action``);
 * every other stored per-step key ``K`` becomes ``observation.K`` (float64 stays float64), and ``observation.state``
   is the concatenation of ``--state`` keys (default: the keys the benchmark's default observation preset reads)
   unless the store has a key named ``state``;
@@ -141,6 +143,10 @@ def export_store(
     for key in numeric:
         names[key] = _name(origin, key, action_feature(key) if _action_like(benchmark, key) else f"observation.{key}")
         features[names[key]] = _vector_feature(store, key, origin)
+    clashes = sorted({name for name in names.values() if list(names.values()).count(name) > 1})
+    if clashes:
+        both = [k for k, name in names.items() if name == clashes[0]]
+        raise UserError(f"{store.path}: keys {' and '.join(both)} would both be the LeRobot feature {clashes[0]!r}")
     concat = []
     if "observation.state" not in features:
         concat = list(_default_state(store, store.keys) if state is None else state)
@@ -211,13 +217,14 @@ def export_store(
 
 
 def _action_like(benchmark, key: str) -> bool:
-    """Whether a stored key holds actions: an observation preset's action key, or a key whose name says action."""
-    return "action" in key or any(preset.action_key == key for preset in benchmark.observations.values())
+    """Whether a stored key holds actions: an observation preset's action key, or a key with the word action in its
+    name (``executed_action``, not ``transaction``)."""
+    return "action" in key.split("_") or any(preset.action_key == key for preset in benchmark.observations.values())
 
 
 def action_feature(key: str) -> str:
     """The LeRobot name of an action-like key that is not the exported action: ``action_abs`` -> ``action.abs``,
-    ``target_in_canvas`` -> ``action.target_in_canvas`` (an import turns the dot back into an underscore)."""
+    ``target_in_canvas`` -> ``action.target_in_canvas``, ``action`` -> ``action.action``."""
     return "action." + key.removeprefix("action_")
 
 
