@@ -28,9 +28,10 @@ $(CORE): pyproject.toml $(LOCK) | $(BIN)/python
 	$(BIN)/pip install --quiet -c $(LOCK) -e .
 	touch $@
 
-# What `make test-fast` uses: the light extras, without LIBERO, Chromium and the robot and LeRobot environments.
+# What `make test-fast` uses: the light extras its tests import, without LIBERO, Ray (its tests are all slow), Chromium
+# and the robot and LeRobot environments.
 $(FAST): $(CORE)
-	$(BIN)/pip install --quiet -c $(LOCK) -e ".[studio,serve,language,iphumi,ray,dev]"
+	$(BIN)/pip install --quiet -c $(LOCK) -e ".[studio,serve,language,iphumi,dev]"
 	touch $@
 
 # Every extra but lerobot: the studio, transformers (the Language baseline's pretrained encoder), LIBERO (2.1 GB), tests,

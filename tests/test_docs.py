@@ -153,6 +153,25 @@ def test_nothing_points_outside_the_repository_at_shared():
     assert not problems, "\n".join(problems)
 
 
+_TRACKER_NOTE = re.compile(r"(?i:\bissue\s*#?\s*\d+|\bin" + r" progress\b)|\b(?:TO" + r"DO|FIX" + r"ME|X" + r"XX)\b")
+"""Notes that belong in an issue tracker, not in the project's files (spelt in pieces so as not to match here)."""
+
+
+def test_no_tracker_notes_in_the_code_docs_or_benchmarks():
+    problems = []
+    for path in [*_text_files(), ROOT / "README.md", ROOT / "BENCHMARKS.md"]:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (UnicodeDecodeError, OSError):
+            continue  # not text
+        problems += [
+            f"{_rel(path)}:{number}: {line.strip()}"
+            for number, line in enumerate(text.splitlines(), 1)
+            if _TRACKER_NOTE.search(line)
+        ]
+    assert not problems, "\n".join(problems)
+
+
 @pytest.mark.parametrize("doc", DOCUMENTS, ids=_rel)
 def test_named_bench_scripts_exist(doc):
     missing = [
