@@ -2,13 +2,14 @@
 succeed where the policy was judged? A policy's failures on states where the demonstrator fails too are a ceiling of
 the data, not of learning.
 
-    python bench/libero_demo_ceiling.py outputs/libero/one-task-150-near-abs-8k-val \\
-        data/libero/one-task-150-near-abs.zarr
+    python bench/libero_demo_ceiling.py outputs/libero/one-task-150-near-abs-v2-8k-val \\
+        data/libero/one-task-150-near-abs-v2.zarr
 
 For every rollout of the evaluation (its task and ``init_seed``), the demonstrator of the store's configuration (its
 rim side; without action noise unless ``--noise``) demonstrates the task once from that initial state (its own draws
 seeded by ``init_seed`` too), and LIBERO's predicate judges it. Prints, per rollout, the policy's result and the
-demonstrator's, and the two success counts side by side.
+demonstrator's, and the two success counts side by side. Generated tasks only: LIBERO's own tasks start from its
+initial-state files, which the demonstrator does not load.
 """
 
 from __future__ import annotations
@@ -46,6 +47,8 @@ def main() -> None:
     store = EpisodeStore(args.store)
     cfg = data_config(store)
     demo_cfg = dataclasses.replace(cfg.demo, action_noise=args.noise)
+    if any(task["info"].get("initial_states") for task in store.tasks):
+        parser.error(f"{args.store} holds LIBERO's own tasks, which start from its initial-state files")
     tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
     policy, demos = [], []
     with tempfile.TemporaryDirectory(prefix="libero-ceiling-") as folder:
