@@ -137,19 +137,21 @@ def _text_files():
                 yield path
 
 
-def test_nothing_points_outside_the_repository_at_shared():
-    needle = "../" + "shared"  # spelt in two pieces, so that this file does not match itself
-    problems = []
-    for path in _text_files():
+def _lines_where(matches, paths) -> list[str]:
+    """``path:number: line`` for every line of the text files among `paths` that `matches`."""
+    found = []
+    for path in paths:
         try:
             text = path.read_text(encoding="utf-8")
         except (UnicodeDecodeError, OSError):
             continue  # not text
-        problems += [
-            f"{_rel(path)}:{number}: {line.strip()}"
-            for number, line in enumerate(text.splitlines(), 1)
-            if needle in line
-        ]
+        found += [f"{_rel(path)}:{n}: {line.strip()}" for n, line in enumerate(text.splitlines(), 1) if matches(line)]
+    return found
+
+
+def test_nothing_points_outside_the_repository_at_shared():
+    needle = "../" + "shared"  # spelt in two pieces, so that this file does not match itself
+    problems = _lines_where(lambda line: needle in line, _text_files())
     assert not problems, "\n".join(problems)
 
 
@@ -158,17 +160,8 @@ _TRACKER_NOTE = re.compile(r"(?i:\bissue\s*#?\s*\d+|\bin" + r" progress\b)|\b(?:
 
 
 def test_no_tracker_notes_in_the_code_docs_or_benchmarks():
-    problems = []
-    for path in [*_text_files(), ROOT / "README.md", ROOT / "BENCHMARKS.md"]:
-        try:
-            text = path.read_text(encoding="utf-8")
-        except (UnicodeDecodeError, OSError):
-            continue  # not text
-        problems += [
-            f"{_rel(path)}:{number}: {line.strip()}"
-            for number, line in enumerate(text.splitlines(), 1)
-            if _TRACKER_NOTE.search(line)
-        ]
+    paths = [*_text_files(), ROOT / "README.md", ROOT / "BENCHMARKS.md"]
+    problems = _lines_where(_TRACKER_NOTE.search, paths)
     assert not problems, "\n".join(problems)
 
 

@@ -31,6 +31,7 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
+from collections import Counter
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -143,10 +144,10 @@ def export_store(
     for key in numeric:
         names[key] = _name(origin, key, action_feature(key) if _action_like(benchmark, key) else f"observation.{key}")
         features[names[key]] = _vector_feature(store, key, origin)
-    clashes = sorted({name for name in names.values() if list(names.values()).count(name) > 1})
-    if clashes:
-        both = [k for k, name in names.items() if name == clashes[0]]
-        raise UserError(f"{store.path}: keys {' and '.join(both)} would both be the LeRobot feature {clashes[0]!r}")
+    clash = next((name for name, n in Counter(names.values()).items() if n > 1), None)
+    if clash is not None:
+        both = [k for k, name in names.items() if name == clash]
+        raise UserError(f"{store.path}: keys {' and '.join(both)} would both be the LeRobot feature {clash!r}")
     concat = []
     if "observation.state" not in features:
         concat = list(_default_state(store, store.keys) if state is None else state)
