@@ -2,7 +2,8 @@
 #   make demo       the main job, end to end, on built-in defaults (the core package only)
 #   make test       lint, format check, the docs build and the whole test suite (every extra; what CI runs)
 # and, for everyday work, `make test-fast` (no slow, LIBERO, browser, LeRobot or robot-side tests, and only the
-# extras the rest use), `make docs`, `make lock`.
+# extras the rest use), `make test-floors` (the store's tests on zarr's lowest supported release), `make docs`,
+# `make lock`.
 PYTHON ?= python3
 VENV   := .venv
 BIN    := $(VENV)/bin
@@ -17,7 +18,7 @@ FAST   := $(VENV)/.fast-installed
 ALL    := $(VENV)/.all-installed
 XDIST  := --numprocesses auto --maxprocesses 4 --dist loadfile
 
-.PHONY: install install-all demo test test-fast lint format docs lock
+.PHONY: install install-all demo test test-fast test-floors lint format docs lock
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -92,6 +93,15 @@ test: lint docs
 
 test-fast: $(FAST)
 	$(BIN)/pytest -q -m "not slow and not libero and not browser and not lerobot and not openpi" $(XDIST)
+
+# The store's tests against zarr's lowest declared release (pyproject.toml), installed beside .venv's own in .floors/
+# and put first on the path, so that the range's lower bound stays one the store works with.
+ZARR_FLOOR := $(shell sed -n 's/.*"zarr>=\([0-9.]*\),.*/\1/p' pyproject.toml)
+test-floors: $(ALL)
+	rm -rf .floors
+	$(BIN)/pip install --quiet --target .floors --no-deps "zarr==$(ZARR_FLOOR)" "crc32c>=2.7,<3"
+	PYTHONPATH=.floors $(BIN)/python -c "import zarr; assert zarr.__version__ == '$(ZARR_FLOOR)', zarr.__file__"
+	PYTHONPATH=.floors $(BIN)/pytest -q -p no:cacheprovider tests/test_store.py tests/test_store_integrity.py
 
 # Re-resolve the locks from pyproject.toml's ranges, keeping their versions where they still fit (add --upgrade to
 # move to the newest). The locks are for CPython 3.11 on Linux x86-64; elsewhere pip resolves the ranges in
