@@ -1,0 +1,100 @@
+"""Chosen rollouts of a LIBERO-Gen evaluation run again, filmed: where does a policy go wrong on the initial states it
+fails from, and what does the scripted demonstrator do from the same states?
+
+    python bench/libero_rerun.py outputs/libero/one-task-150-near-abs-v2-12k-val \\
+        data/libero/one-task-150-near-abs-v2.zarr --rollouts 4 19 20 --out outputs/bench/libero_rerun
+
+Each chosen rollout (its index in the evaluation's ``results.json``) starts from its own initial state with its own
+prompt and sampling seed, as the evaluation ran it; its agent-view frames every --every steps go into one contact
+sheet per rollout (``rollout_<i>.png``). With --demonstrator, the store's demonstrator (its settings, no action noise)
+then demonstrates the task from the same initial state, filmed the same way (``demonstrator_<i>.png``). Printed per
+rollout: the outcome, the step at which each first closed its gripper and where, and the bowl's final position.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from bpp.benchmarks.libero import rollouts
+from bpp.benchmarks.libero.dataset import problem_text, task_id
+from bpp.benchmarks.libero.demonstrator import demonstrate_task
+from bpp.benchmarks.libero.rollouts import run_rollouts
+from bpp.benchmarks.libero.sim import make_env, render_states
+from bpp.checkpoint import Checkpoint
+from bpp.core.registry import get_benchmark
+from bpp.data.contexts import task_context
+from bpp.data.store import EpisodeStore
+from bpp.media import contact_sheet
+from bpp.policies.agent import PolicyAgent
+from bpp.utils import read_json
+from libero_demo_ceiling import data_config
+
+
+def policy_rollout(agent: PolicyAgent, store: EpisodeStore, row: dict, every: int, columns: int, out: Path) -> None:
+    benchmark = get_benchmark(store.benchmark)
+    context = task_context(store, int(row["prompt_episode"]), agent.data_spec, benchmark.frames)
+    agent.reset(context, seed=int(row["seed"]))
+    result = run_rollouts(agent, store, [row], record_frames=["all"])[0]
+    picked = list(range(0, len(result.frames), every))  # frame i: after step i (0: the settled initial state)
+    if picked[-1] != len(result.frames) - 1:
+        picked.append(len(result.frames) - 1)
+    frames, steps = [result.frames[i] for i in picked], picked
+    title = f"policy, rollout {row['rollout']}: {'success' if result.score >= 1 else 'failure'} in {result.steps} steps"
+    contact_sheet(frames, [f"step {s}" for s in steps], out / f"rollout_{row['rollout']}.png", columns, title)
+    print(f"rollout {row['rollout']}: policy {title.split(': ')[1]}; recorded {result.extra}")
+
+
+def demonstrator_rollout(store: EpisodeStore, row: dict, every: int, columns: int, out: Path) -> None:
+    cfg = data_config(store)
+    demo_cfg = dataclasses.replace(cfg.demo, action_noise=0.0)
+    tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
+    task = tasks[row["task_id"]]
+    with tempfile.TemporaryDirectory(prefix="libero-rerun-") as folder:
+        problem = Path(folder) / "task.bddl"
+        problem.write_text(problem_text(task, cfg.original))
+        env = make_env(problem, render=True)
+        try:
+            demo = demonstrate_task(env, task, int(row["init_seed"]), demo_cfg)
+            picked = list(range(0, len(demo.states), every))
+            frames = list(render_states(env, demo.states[picked], "agentview", rollouts.VIDEO_SIZE))
+        finally:
+            env.close()
+    closes = int(np.argmax(demo.actions[:, -1] > 0)) if (demo.actions[:, -1] > 0).any() else None
+    verdict = "success" if demo.success else "failure"
+    title = f"demonstrator, rollout {row['rollout']}'s initial state: {verdict} in {len(demo.actions)} steps"
+    contact_sheet(frames, [f"step {i}" for i in picked], out / f"demonstrator_{row['rollout']}.png", columns, title)
+    print(f"rollout {row['rollout']}: demonstrator {verdict} in {len(demo.actions)} steps, closes at step {closes}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("results", type=Path, help="an evaluation's output folder (its results.json)")
+    parser.add_argument("store", type=Path, help="the store it evaluated on (its prompts)")
+    parser.add_argument("--rollouts", type=int, nargs="+", required=True, help="indices in results.json")
+    parser.add_argument("--every", type=int, default=25, help="a frame every this many steps")
+    parser.add_argument("--demonstrator", action="store_true", help="also film the demonstrator from each state")
+    parser.add_argument("--size", type=int, default=128, help="frames' size (px)")
+    parser.add_argument("--columns", type=int, default=8)
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_rerun"))
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    rollouts.VIDEO_SIZE = args.size  # the evaluation's frame size, for these films only
+    results = read_json(args.results / "results.json", "results file")
+    store = EpisodeStore(args.store)
+    agent = PolicyAgent(Checkpoint.load(results["checkpoint"], use_ema=True).build_model())
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = {int(row["rollout"]): row for row in results["rollouts"]}
+    for index in args.rollouts:
+        policy_rollout(agent, store, rows[index], args.every, args.columns, args.out)
+        if args.demonstrator:
+            demonstrator_rollout(store, rows[index], args.every, args.columns, args.out)
+
+
+if __name__ == "__main__":
+    main()
