@@ -41,10 +41,11 @@ def policy_rollout(agent: PolicyAgent, store: EpisodeStore, row: dict, every: in
     context = task_context(store, int(row["prompt_episode"]), agent.data_spec, benchmark.frames)
     agent.reset(context, seed=int(row["seed"]))
     result = run_rollouts(agent, store, [row], record_frames=["all"])[0]
-    picked = list(range(0, len(result.frames), every))  # frame i: after step i (0: the settled initial state)
-    if picked[-1] != len(result.frames) - 1:
-        picked.append(len(result.frames) - 1)
-    frames, steps = [result.frames[i] for i in picked], picked
+    # Frame i shows the scene after step i * VIDEO_STRIDE (0: the settled initial state); the last, the end.
+    stride = rollouts.VIDEO_STRIDE
+    picked = list(range(0, len(result.frames) - 1, max(1, every // stride)))
+    frames = [result.frames[i] for i in picked] + [result.frames[-1]]
+    steps = [i * stride for i in picked] + [result.steps]
     title = f"policy, rollout {row['rollout']}: {'success' if result.score >= 1 else 'failure'} in {result.steps} steps"
     contact_sheet(frames, [f"step {s}" for s in steps], out / f"rollout_{row['rollout']}.png", columns, title)
     print(f"rollout {row['rollout']}: policy {title.split(': ')[1]}; recorded {result.extra}")
