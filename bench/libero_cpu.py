@@ -15,6 +15,14 @@ from its own initial state, at most 550 steps) on the held-out tasks and on --tr
 scripted demonstrations take up to about 1000 steps for two steps, so its rollouts run to --max-steps (default
 1100) and the report gives success within 550 steps (the paper's limit) and within --max-steps. Re-running reuses
 finished stores, runs and evaluations and resumes killed training.
+
+One scene instead (the ladder's rungs b and c): a store of its training tasks, its held-out tasks as a store of
+prompts, position goals, and the same initial states for every seed:
+
+    OMP_NUM_THREADS=1 python bench/libero_cpu.py --train-store data/libero/s9-train-50.zarr \
+        --held-out data/libero/s9-test-10.zarr --obs state-abs --eval-seed 0 --rollouts 50 --train-tasks 15 \
+        --train-rollouts 10 --steps bpp=12000 goal_image=12000 language=12000 icrt=2600 --seeds 0 1 2 \
+        --runs runs/libero/s9 --out outputs/bench/libero_s9 --lane 0 --lanes 2 &    # and --lane 1
 """
 
 from __future__ import annotations
@@ -29,7 +37,7 @@ import numpy as np
 from bpp.benchmarks.libero.benchmark import BENCHMARK
 from bpp.benchmarks.libero.dataset import PRESETS, generate
 from bpp.checkpoint import Checkpoint
-from bpp.data.store import stored_with
+from bpp.data.store import EpisodeStore, stored_with
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
@@ -50,7 +58,10 @@ PAPER_LIMIT = 550
 
 
 def training_store(args):
-    """The training store of --data-preset (`cpu`: the one `bpp libero generate --preset cpu` writes by default)."""
+    """--train-store, else the training store of --data-preset (`cpu`: the one `bpp libero generate --preset cpu`
+    writes by default), generated on first use."""
+    if args.train_store:
+        return EpisodeStore(args.train_store)
     default = SUITES[args.suite][0]
     name = f"{args.suite}-train" + ("" if args.data_preset == default else f"-{args.data_preset}")
     path = args.data_dir / f"{name}.zarr"
@@ -76,17 +87,18 @@ def run_method(method: str, seed: int, args) -> None:
     store = training_store(args)
     run = args.runs / f"{method}-s{seed}"
     longest = PRESETS[args.data_preset].demo.max_steps
-    model_cfg = long_prompts(get_method(method).config("cpu", "state", BENCHMARK), longest, args.max_steps)
+    model_cfg = long_prompts(get_method(method).config("cpu", args.obs, BENCHMARK), longest, args.max_steps)
     steps, batch = args.method_steps[method], args.method_batch[method]
-    seconds = train_run(method, "cpu", "state", store, run, steps, seed, batch_size=batch, tasks_per_batch=8,
+    seconds = train_run(method, "cpu", args.obs, store, run, steps, seed, batch_size=batch, tasks_per_batch=8,
                         threads=1, model_cfg=model_cfg)  # fmt: skip
     write_json_atomic(run / "train.json", {"train_s": seconds, "steps": steps, "batch": batch})
     checkpoint = Checkpoint.load(run, use_ema=True)
     for name, tasks, count, rollouts in (
-        ("held-out", SUITES[args.suite][1], 0, args.rollouts),
+        ("held-out", args.held_out or SUITES[args.suite][1], 0, args.rollouts),
         ("train", "train", args.train_tasks, args.train_rollouts),
     ):
-        protocol = Protocol(rollouts=rollouts, seed=seed, max_steps=args.max_steps)
+        eval_seed = seed if args.eval_seed < 0 else args.eval_seed
+        protocol = Protocol(rollouts=rollouts, seed=eval_seed, max_steps=args.max_steps)
         _, task_set, indices = resolve_tasks(tasks, checkpoint, data_dir=args.data_dir, num_tasks=count)
         evaluate(checkpoint, task_set, indices, args.out / f"{method}-s{seed}" / name, protocol, workers=1, videos=2)
 
@@ -162,7 +174,7 @@ def report(args) -> str:
         header.insert(4, "held-out: first step done (%)")
     suite = args.suite.capitalize()
     text = (
-        f"LIBERO-Gen {suite}, `state` observations (not the paper's cameras), `cpu` size presets trained with "
+        f"LIBERO-Gen {suite}, `{args.obs}` observations (not the paper's cameras), `cpu` size presets trained with "
         f"one thread, seeds {args.seeds}, {args.rollouts} rollouts per held-out task and {args.train_rollouts} per "
         f"training task (the paper: 50 x 3 seeds, at most {PAPER_LIMIT} steps); success rate (%), mean over tasks ± "
         f"s.e. over tasks.\n\n" + markdown_table(header, rows)
@@ -190,6 +202,10 @@ def main() -> None:
     parser.add_argument("--max-steps", type=int, default=0, help="rollout limit (0: the suite's, 550 or 1100)")
     parser.add_argument("--data-preset", choices=sorted(PRESETS), default="", help="training data (default: suite's)")
     parser.add_argument("--data-dir", type=Path, default=Path("data/libero"))
+    parser.add_argument("--train-store", type=Path, help="a store to train on instead of --data-preset's")
+    parser.add_argument("--held-out", default="", help="the held-out tasks: a named task set or a store path")
+    parser.add_argument("--obs", default="state", help="the methods' observation preset (e.g. state-abs)")
+    parser.add_argument("--eval-seed", type=int, default=-1, help="initial states' seed (-1: each run's seed)")
     parser.add_argument("--runs", type=Path, help="default: runs/libero_cpu (Chain: runs/libero_chain_cpu)")
     parser.add_argument("--out", type=Path, help="default: outputs/bench/libero_cpu (Chain: ..._chain_cpu)")
     parser.add_argument("--prepare-only", action="store_true")
@@ -205,7 +221,8 @@ def main() -> None:
         return
     if args.prepare_only:
         training_store(args)
-        BENCHMARK.task_set(task_set, args.data_dir)
+        if not args.held_out:
+            BENCHMARK.task_set(task_set, args.data_dir)
         return
     jobs = [(m, s) for s in args.seeds for m in args.methods][args.lane :: args.lanes]
     for method, seed in jobs:

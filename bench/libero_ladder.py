@@ -26,6 +26,8 @@ from bpp.utils import read_json  # noqa: E402
 Z95 = 1.959964
 GOALS = {"a": 90, "b": 70}
 """Each rung's success goal (%), by the letter its label starts with (the later rungs compare methods)."""
+COLOURS = {"BPP": "tab:blue", "Language": "tab:green", "Goal-Image": "tab:orange", "ICRT": "tab:purple"}
+"""A bar's colour by its method (others grey)."""
 
 
 def wilson(successes: int, n: int) -> tuple[float, float]:
@@ -74,10 +76,10 @@ def main() -> None:
     print("\n".join(lines))
 
     fig, ax = plt.subplots(figsize=(max(4.5, 1.6 + 1.4 * len(stats)), 3.8))
-    for i, ((rung, _method), s) in enumerate(stats.items()):
+    for i, ((rung, method), s) in enumerate(stats.items()):
         rate = s["successes"] / max(1, s["rollouts"])
         low, high = wilson(s["successes"], s["rollouts"])
-        ax.bar(i, 100 * rate, color="tab:blue", alpha=0.8)
+        ax.bar(i, 100 * rate, color=COLOURS.get(method, "tab:grey"), alpha=0.8)
         ax.errorbar(i, 100 * rate, yerr=[[100 * (rate - low)], [100 * (high - rate)]], color="black", capsize=4)
         goal = GOALS.get(rung[:1])
         if goal is not None:
