@@ -25,7 +25,7 @@ from bpp.utils import read_json  # noqa: E402
 
 Z95 = 1.959964
 GOALS = {"a": 90, "b": 70}
-"""Each rung's success goal (%), by the letter its label starts with (the later rungs compare methods)."""
+"""Each rung's success goal for BPP (%), by the letter its label starts with (the later rungs compare methods)."""
 COLOURS = {"BPP": "tab:blue", "Language": "tab:green", "Goal-Image": "tab:orange", "ICRT": "tab:purple"}
 """A bar's colour by its method (others grey)."""
 
@@ -41,11 +41,16 @@ def wilson(successes: int, n: int) -> tuple[float, float]:
 
 
 def pooled(folders: list[Path]) -> dict:
-    """Successes, rollouts and the failed rollouts that lifted their object, over `folders`' results."""
+    """Successes, rollouts and the failed rollouts that lifted their object or another, over `folders`' results."""
     rows = [row for folder in folders for row in read_json(folder / "results.json", "results file")["rollouts"]]
-    wins = sum(row["score"] >= 1.0 for row in rows)
-    lifted = sum(row["score"] < 1.0 and bool(row.get("lifted")) for row in rows)
-    return {"successes": wins, "rollouts": len(rows), "failed_lifted": lifted, "folders": len(folders)}
+    failed = [row for row in rows if row["score"] < 1.0]
+    return {
+        "successes": len(rows) - len(failed),
+        "rollouts": len(rows),
+        "failed_lifted": sum(bool(row.get("lifted")) for row in failed),
+        "failed_lifted_other": sum(bool(row.get("lifted_other")) for row in failed),
+        "folders": len(folders),
+    }
 
 
 def main() -> None:
@@ -61,7 +66,8 @@ def main() -> None:
     stats = {key: pooled(folders) for key, folders in groups.items()}
 
     lines = [
-        "| rung | method | evaluations | success | 95% interval (Wilson) | failed rollouts that lifted the object |",
+        "| rung | method | evaluations | success | 95% interval (Wilson) | failed rollouts that lifted "
+        "the object / another |",
         "| --- | --- | ---: | ---: | --- | ---: |",
     ]
     for (rung, method), s in stats.items():
@@ -69,7 +75,8 @@ def main() -> None:
         rate = s["successes"] / max(1, s["rollouts"])
         lines.append(
             f"| {rung} | {method} | {s['folders']} | {s['successes']} / {s['rollouts']} ({rate:.0%}) | "
-            f"{low:.0%}-{high:.0%} | {s['failed_lifted']} of {s['rollouts'] - s['successes']} |"
+            f"{low:.0%}-{high:.0%} | {s['failed_lifted']} of {s['rollouts'] - s['successes']} / "
+            f"{s['failed_lifted_other']} |"
         )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ladder.md").write_text("\n".join(lines) + "\n")
@@ -82,7 +89,7 @@ def main() -> None:
         ax.bar(i, 100 * rate, color=COLOURS.get(method, "tab:grey"), alpha=0.8)
         ax.errorbar(i, 100 * rate, yerr=[[100 * (rate - low)], [100 * (high - rate)]], color="black", capsize=4)
         goal = GOALS.get(rung[:1])
-        if goal is not None:
+        if goal is not None and method == "BPP":  # the rungs' goals are BPP's
             ax.hlines(goal, i - 0.45, i + 0.45, color="tab:red", linestyle="--", linewidth=1.2)
     ax.set_xticks(range(len(stats)), [f"{rung}\n{method}" for rung, method in stats], fontsize=8)
     ax.set_ylabel("success (%), 95% Wilson interval")
