@@ -72,7 +72,7 @@ class RolloutResult:
     """One scored rollout, as a benchmark's runner returns it."""
 
     score: float
-    """The metric's per-rollout score (e.g. the best distance to the target reached; 1 for a success, 0 for a failure)."""
+    """The metric's per-rollout score (e.g. the best distance to the target reached; 1 a success, 0 a failure)."""
     steps: int
     """Environment steps taken."""
     extra: dict = field(default_factory=dict)
