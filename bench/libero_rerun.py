@@ -4,11 +4,12 @@ fails from, and what does the scripted demonstrator do from the same states?
     python bench/libero_rerun.py outputs/libero/one-task-150-near-abs-v2-12k-val \\
         data/libero/one-task-150-near-abs-v2.zarr --rollouts 4 19 20 --out outputs/bench/libero_rerun
 
-Each chosen rollout (its index in the evaluation's ``results.json``) starts from its own initial state with its own
-prompt and sampling seed, as the evaluation ran it; its agent-view frames every --every steps go into one contact
-sheet per rollout (``rollout_<i>.png``). With --demonstrator, the store's demonstrator (its settings, no action noise)
-then demonstrates the task from the same initial state, filmed the same way (``demonstrator_<i>.png``). Printed per
-rollout: the outcome, the step at which each first closed its gripper and where, and the bowl's final position.
+Each chosen rollout (its position in the evaluation's ``results.json`` rollouts) starts from its own initial state
+with its own prompt and sampling seed, as the evaluation ran it; its agent-view frames every --every steps go into one
+contact sheet per rollout (``rollout_<i>.png``). With --demonstrator, the store's demonstrator (its settings, no
+action noise) then demonstrates the task from the same initial state, filmed the same way (``demonstrator_<i>.png``).
+Printed per rollout: each one's outcome and length, what the policy's rollout recorded (whether it lifted the right
+object or another), and the step at which the demonstrator first closed its gripper.
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ from bpp.utils import read_json
 from libero_demo_ceiling import data_config
 
 
-def policy_rollout(agent: PolicyAgent, store: EpisodeStore, row: dict, every: int, columns: int, out: Path) -> None:
+def policy_rollout(
+    agent: PolicyAgent, store: EpisodeStore, index: int, row: dict, every: int, columns: int, out: Path
+) -> None:
     benchmark = get_benchmark(store.benchmark)
     context = task_context(store, int(row["prompt_episode"]), agent.data_spec, benchmark.frames)
     agent.reset(context, seed=int(row["seed"]))
@@ -46,12 +49,13 @@ def policy_rollout(agent: PolicyAgent, store: EpisodeStore, row: dict, every: in
     picked = list(range(0, len(result.frames) - 1, max(1, every // stride)))
     frames = [result.frames[i] for i in picked] + [result.frames[-1]]
     steps = [i * stride for i in picked] + [result.steps]
-    title = f"policy, rollout {row['rollout']}: {'success' if result.score >= 1 else 'failure'} in {result.steps} steps"
-    contact_sheet(frames, [f"step {s}" for s in steps], out / f"rollout_{row['rollout']}.png", columns, title)
-    print(f"rollout {row['rollout']}: policy {title.split(': ')[1]}; recorded {result.extra}")
+    verdict = f"{'success' if result.score >= 1 else 'failure'} in {result.steps} steps"
+    title = f"policy, rollout {index} ({row['task_id']}): {verdict}"
+    contact_sheet(frames, [f"step {s}" for s in steps], out / f"rollout_{index}.png", columns, title)
+    print(f"rollout {index}: policy {verdict}; recorded {result.extra}")
 
 
-def demonstrator_rollout(store: EpisodeStore, row: dict, every: int, columns: int, out: Path) -> None:
+def demonstrator_rollout(store: EpisodeStore, index: int, row: dict, every: int, columns: int, out: Path) -> None:
     cfg = data_config(store)
     demo_cfg = dataclasses.replace(cfg.demo, action_noise=0.0)
     tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
@@ -68,16 +72,16 @@ def demonstrator_rollout(store: EpisodeStore, row: dict, every: int, columns: in
             env.close()
     closes = int(np.argmax(demo.actions[:, -1] > 0)) if (demo.actions[:, -1] > 0).any() else None
     verdict = "success" if demo.success else "failure"
-    title = f"demonstrator, rollout {row['rollout']}'s initial state: {verdict} in {len(demo.actions)} steps"
-    contact_sheet(frames, [f"step {i}" for i in picked], out / f"demonstrator_{row['rollout']}.png", columns, title)
-    print(f"rollout {row['rollout']}: demonstrator {verdict} in {len(demo.actions)} steps, closes at step {closes}")
+    title = f"demonstrator, rollout {index}'s initial state: {verdict} in {len(demo.actions)} steps"
+    contact_sheet(frames, [f"step {i}" for i in picked], out / f"demonstrator_{index}.png", columns, title)
+    print(f"rollout {index}: demonstrator {verdict} in {len(demo.actions)} steps, closes at step {closes}")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", type=Path, help="an evaluation's output folder (its results.json)")
     parser.add_argument("store", type=Path, help="the store it evaluated on (its prompts)")
-    parser.add_argument("--rollouts", type=int, nargs="+", required=True, help="indices in results.json")
+    parser.add_argument("--rollouts", type=int, nargs="+", required=True, help="positions in results.json's rollouts")
     parser.add_argument("--every", type=int, default=25, help="a frame every this many steps")
     parser.add_argument("--demonstrator", action="store_true", help="also film the demonstrator from each state")
     parser.add_argument("--size", type=int, default=128, help="frames' size (px)")
@@ -88,13 +92,17 @@ def main() -> None:
     rollouts.VIDEO_SIZE = args.size  # the evaluation's frame size, for these films only
     results = read_json(args.results / "results.json", "results file")
     store = EpisodeStore(args.store)
+    if args.demonstrator and any(task["info"].get("initial_states") for task in store.tasks):
+        parser.error(f"{args.store} holds LIBERO's own tasks, which start from its initial-state files")
     agent = PolicyAgent(Checkpoint.load(results["checkpoint"], use_ema=True).build_model())
     args.out.mkdir(parents=True, exist_ok=True)
-    rows = {int(row["rollout"]): row for row in results["rollouts"]}
+    rows = results["rollouts"]
     for index in args.rollouts:
-        policy_rollout(agent, store, rows[index], args.every, args.columns, args.out)
+        if not 0 <= index < len(rows):
+            parser.error(f"--rollouts {index}: the evaluation has rollouts 0 to {len(rows) - 1}")
+        policy_rollout(agent, store, index, rows[index], args.every, args.columns, args.out)
         if args.demonstrator:
-            demonstrator_rollout(store, rows[index], args.every, args.columns, args.out)
+            demonstrator_rollout(store, index, rows[index], args.every, args.columns, args.out)
 
 
 if __name__ == "__main__":
