@@ -93,11 +93,11 @@ def run_method(method: str, seed: int, args) -> None:
                         threads=1, model_cfg=model_cfg)  # fmt: skip
     write_json_atomic(run / "train.json", {"train_s": seconds, "steps": steps, "batch": batch})
     checkpoint = Checkpoint.load(run, use_ema=True)
+    eval_seed = seed if args.eval_seed < 0 else args.eval_seed
     for name, tasks, count, rollouts in (
         ("held-out", args.held_out or SUITES[args.suite][1], 0, args.rollouts),
         ("train", "train", args.train_tasks, args.train_rollouts),
     ):
-        eval_seed = seed if args.eval_seed < 0 else args.eval_seed
         protocol = Protocol(rollouts=rollouts, seed=eval_seed, max_steps=args.max_steps)
         _, task_set, indices = resolve_tasks(tasks, checkpoint, data_dir=args.data_dir, num_tasks=count)
         evaluate(checkpoint, task_set, indices, args.out / f"{method}-s{seed}" / name, protocol, workers=1, videos=2)

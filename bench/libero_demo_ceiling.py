@@ -37,6 +37,17 @@ def data_config(store: EpisodeStore) -> LiberoDataConfig:
     return LiberoDataConfig(**conf, demo=DemoConfig(**demo))
 
 
+def demonstrator_for(store: EpisodeStore, noise: float) -> tuple[LiberoDataConfig, DemoConfig, dict]:
+    """The store's generation configuration, its demonstrator's settings with action noise `noise`, and its tasks by
+    id; a store of LIBERO's own tasks is refused (ValueError): they start from its initial-state files, which the
+    demonstrator does not load."""
+    if any(task["info"].get("initial_states") for task in store.tasks):
+        raise ValueError(f"{store.path} holds LIBERO's own tasks, which start from its initial-state files")
+    cfg = data_config(store)
+    tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
+    return cfg, dataclasses.replace(cfg.demo, action_noise=noise), tasks
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("results", type=Path, help="an evaluation's output folder (its results.json)")
@@ -45,11 +56,10 @@ def main() -> None:
     args = parser.parse_args()
     results = read_json(args.results / "results.json")
     store = EpisodeStore(args.store)
-    cfg = data_config(store)
-    demo_cfg = dataclasses.replace(cfg.demo, action_noise=args.noise)
-    if any(task["info"].get("initial_states") for task in store.tasks):
-        parser.error(f"{args.store} holds LIBERO's own tasks, which start from its initial-state files")
-    tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
+    try:
+        cfg, demo_cfg, tasks = demonstrator_for(store, args.noise)
+    except ValueError as error:
+        parser.error(str(error))
     policy, demos = [], []
     with tempfile.TemporaryDirectory(prefix="libero-ceiling-") as folder:
         envs = {}

@@ -15,17 +15,15 @@ object or another), and the step at which the demonstrator first closed its grip
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from bpp.benchmarks.libero import rollouts
-from bpp.benchmarks.libero.dataset import problem_text, task_id
+from bpp.benchmarks.libero.dataset import problem_text
 from bpp.benchmarks.libero.demonstrator import demonstrate_task
-from bpp.benchmarks.libero.rollouts import run_rollouts
+from bpp.benchmarks.libero.rollouts import VIDEO_STRIDE, run_rollouts
 from bpp.benchmarks.libero.sim import make_env, render_states
 from bpp.checkpoint import Checkpoint
 from bpp.core.registry import get_benchmark
@@ -34,31 +32,28 @@ from bpp.data.store import EpisodeStore
 from bpp.media import contact_sheet
 from bpp.policies.agent import PolicyAgent
 from bpp.utils import read_json
-from libero_demo_ceiling import data_config
+from libero_demo_ceiling import demonstrator_for
 
 
 def policy_rollout(
-    agent: PolicyAgent, store: EpisodeStore, index: int, row: dict, every: int, columns: int, out: Path
+    agent: PolicyAgent, store: EpisodeStore, index: int, row: dict, every: int, size: int, columns: int, out: Path
 ) -> None:
     benchmark = get_benchmark(store.benchmark)
     context = task_context(store, int(row["prompt_episode"]), agent.data_spec, benchmark.frames)
     agent.reset(context, seed=int(row["seed"]))
-    result = run_rollouts(agent, store, [row], record_frames=["all"])[0]
+    result = run_rollouts(agent, store, [row], record_frames=["all"], video_size=size)[0]
     # Frame i shows the scene after step i * VIDEO_STRIDE (0: the settled initial state); the last, the end.
-    stride = rollouts.VIDEO_STRIDE
-    picked = list(range(0, len(result.frames) - 1, max(1, every // stride)))
+    picked = list(range(0, len(result.frames) - 1, max(1, every // VIDEO_STRIDE)))
     frames = [result.frames[i] for i in picked] + [result.frames[-1]]
-    steps = [i * stride for i in picked] + [result.steps]
+    steps = [i * VIDEO_STRIDE for i in picked] + [result.steps]
     verdict = f"{'success' if result.score >= 1 else 'failure'} in {result.steps} steps"
     title = f"policy, rollout {index} ({row['task_id']}): {verdict}"
     contact_sheet(frames, [f"step {s}" for s in steps], out / f"rollout_{index}.png", columns, title)
     print(f"rollout {index}: policy {verdict}; recorded {result.extra}")
 
 
-def demonstrator_rollout(store: EpisodeStore, index: int, row: dict, every: int, columns: int, out: Path) -> None:
-    cfg = data_config(store)
-    demo_cfg = dataclasses.replace(cfg.demo, action_noise=0.0)
-    tasks = {task_id(cfg.split, index, task): task for index, task in cfg.tasks()}
+def demonstrator_rollout(demonstrator, index: int, row: dict, every: int, size: int, columns: int, out: Path) -> None:
+    cfg, demo_cfg, tasks = demonstrator
     task = tasks[row["task_id"]]
     with tempfile.TemporaryDirectory(prefix="libero-rerun-") as folder:
         problem = Path(folder) / "task.bddl"
@@ -67,7 +62,7 @@ def demonstrator_rollout(store: EpisodeStore, index: int, row: dict, every: int,
         try:
             demo = demonstrate_task(env, task, int(row["init_seed"]), demo_cfg)
             picked = list(range(0, len(demo.states), every))
-            frames = list(render_states(env, demo.states[picked], "agentview", rollouts.VIDEO_SIZE))
+            frames = list(render_states(env, demo.states[picked], "agentview", size))
         finally:
             env.close()
     closes = int(np.argmax(demo.actions[:, -1] > 0)) if (demo.actions[:, -1] > 0).any() else None
@@ -89,20 +84,23 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_rerun"))
     args = parser.parse_args()
     torch.set_num_threads(1)
-    rollouts.VIDEO_SIZE = args.size  # the evaluation's frame size, for these films only
     results = read_json(args.results / "results.json", "results file")
     store = EpisodeStore(args.store)
-    if args.demonstrator and any(task["info"].get("initial_states") for task in store.tasks):
-        parser.error(f"{args.store} holds LIBERO's own tasks, which start from its initial-state files")
+    demonstrator = None
+    if args.demonstrator:
+        try:
+            demonstrator = demonstrator_for(store, noise=0.0)
+        except ValueError as error:
+            parser.error(str(error))
     agent = PolicyAgent(Checkpoint.load(results["checkpoint"], use_ema=True).build_model())
     args.out.mkdir(parents=True, exist_ok=True)
     rows = results["rollouts"]
     for index in args.rollouts:
         if not 0 <= index < len(rows):
             parser.error(f"--rollouts {index}: the evaluation has rollouts 0 to {len(rows) - 1}")
-        policy_rollout(agent, store, index, rows[index], args.every, args.columns, args.out)
-        if args.demonstrator:
-            demonstrator_rollout(store, index, rows[index], args.every, args.columns, args.out)
+        policy_rollout(agent, store, index, rows[index], args.every, args.size, args.columns, args.out)
+        if demonstrator is not None:
+            demonstrator_rollout(demonstrator, index, rows[index], args.every, args.size, args.columns, args.out)
 
 
 if __name__ == "__main__":

@@ -91,11 +91,12 @@ def run_rollouts(
     rollouts: Sequence[Mapping],
     max_steps: int = 550,
     record_frames: Sequence[bool | str] | None = None,
+    video_size: int = VIDEO_SIZE,
 ) -> list[RolloutResult]:
     """Rollout i starts from the initial state LIBERO samples with ``rollouts[i]["init_seed"]`` in the problem of
     ``rollouts[i]["target_episode"]``'s task (for LIBERO's own tasks: its initial state number init_seed modulo
     their count, as LIBERO's evaluation uses them) and succeeds when that task's goal holds. `agent` must already
-    be reset with the rollouts' contexts."""
+    be reset with the rollouts' contexts. Recorded frames are `video_size` pixels square."""
     spec = agent.data_spec
     cameras = tuple(spec.image_keys)
     unknown = sorted(set(cameras) - set(CAMERAS))
@@ -137,7 +138,7 @@ def run_rollouts(
                 orders.append(GoalOrder.of(env))
                 ordered.append(in_order[task])
             frames = [
-                [render_now(env, "agentview", VIDEO_SIZE)] if rec == "all" else []
+                [render_now(env, "agentview", video_size)] if rec == "all" else []
                 for env, rec in zip(envs, record, strict=True)
             ]
             done = np.zeros(n, dtype=bool)
@@ -163,7 +164,7 @@ def run_rollouts(
                     success[i] = orders[i].done if ordered[i] else final[i]
                     done[i] = final[i] or steps[i] >= max_steps
                     if (record[i] == "all" and steps[i] % VIDEO_STRIDE == 0) or (record[i] and done[i]):
-                        frames[i].append(render_now(envs[i], "agentview", VIDEO_SIZE))
+                        frames[i].append(render_now(envs[i], "agentview", video_size))
         finally:
             for env in envs:
                 env.close()
