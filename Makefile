@@ -17,29 +17,34 @@ CORE   := $(VENV)/.core-installed
 FAST   := $(VENV)/.fast-installed
 ALL    := $(VENV)/.all-installed
 XDIST  := --numprocesses auto --maxprocesses 4 --dist loadfile
+# pip without byte-compiling every installed file (the environments hold about 600 MB of Python, much of it never
+# imported): Python compiles what is imported, once, on first import.
+PIPQ   := --quiet --no-compile
+# The three environments (.venv, .venv-robot, .venv-lerobot) build side by side, and lint beside the docs build.
+MAKEFLAGS += --jobs=3
 
 .PHONY: install install-all demo test test-fast test-floors lint format docs lock
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install $(PIPQ) --upgrade pip
 
 # The core package: all the main job needs.
 $(CORE): pyproject.toml $(LOCK) | $(BIN)/python
-	$(BIN)/pip install --quiet -c $(LOCK) -e .
+	$(BIN)/pip install $(PIPQ) -c $(LOCK) -e .
 	touch $@
 
 # What `make test-fast` uses: the light extras its tests import, without LIBERO, Ray (its tests are all slow), Chromium
 # and the robot and LeRobot environments.
 $(FAST): $(CORE)
-	$(BIN)/pip install --quiet -c $(LOCK) -e ".[studio,serve,language,iphumi,dev]"
+	$(BIN)/pip install $(PIPQ) -c $(LOCK) -e ".[studio,serve,language,iphumi,dev]"
 	touch $@
 
 # Every extra but lerobot: the studio, transformers (the Language baseline's pretrained encoder), LIBERO (2.1 GB), tests,
 # docs. The studio's browser test drives Debian's chromium (pip's playwright cannot download its own browser offline);
 # nothing else needs it. The lerobot extra has its own environment, .venv-lerobot (below).
 $(ALL): $(CORE) $(ROBOT)/.installed $(LEROBOT)/.installed
-	$(BIN)/pip install --quiet -c $(LOCK) -e ".[all]"
+	$(BIN)/pip install $(PIPQ) -c $(LOCK) -e ".[all]"
 	command -v chromium >/dev/null || apt-get install -y -q chromium >/dev/null || \
 		(apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null) || \
 		sudo apt-get install -y -q chromium >/dev/null || echo "warning: could not install chromium (apt)"
@@ -48,9 +53,9 @@ $(ALL): $(CORE) $(ROBOT)/.installed $(LEROBOT)/.installed
 # A robot computer's environment for the tests of `bpp serve`: openpi's client (numpy < 2) and bpp without torch.
 $(ROBOT)/.installed: $(ROBOT_LOCK) pyproject.toml
 	$(PYTHON) -m venv $(ROBOT)
-	$(ROBOT)/bin/pip install --quiet --upgrade pip
-	$(ROBOT)/bin/pip install --quiet -r $(ROBOT_LOCK)
-	$(ROBOT)/bin/pip install --quiet --no-deps -e .
+	$(ROBOT)/bin/pip install $(PIPQ) --upgrade pip
+	$(ROBOT)/bin/pip install $(PIPQ) -r $(ROBOT_LOCK)
+	$(ROBOT)/bin/pip install $(PIPQ) --no-deps -e .
 	touch $@
 
 # LeRobot's environment for the tests of `bpp lerobot import|export` (marker lerobot): LeRobot 0.4.4, the newest
@@ -61,11 +66,11 @@ $(ROBOT)/.installed: $(ROBOT_LOCK) pyproject.toml
 $(LEROBOT)/.installed: $(LEROBOT_LOCK) pyproject.toml
 	rm -rf $(LEROBOT)
 	$(PYTHON) -m venv $(LEROBOT)
-	$(LEROBOT)/bin/pip install --quiet --upgrade pip
-	$(LEROBOT)/bin/pip install --quiet -c $(LEROBOT_LOCK) lerobot
+	$(LEROBOT)/bin/pip install $(PIPQ) --upgrade pip
+	$(LEROBOT)/bin/pip install $(PIPQ) -c $(LEROBOT_LOCK) lerobot
 	$(LEROBOT)/bin/pip freeze --all > $(LEROBOT)/lerobot-first.txt
-	$(LEROBOT)/bin/pip install --quiet --dry-run --report $(LEROBOT)/bpp-plan.json -e ".[lerobot]"
-	$(LEROBOT)/bin/pip install --quiet -c $(LEROBOT_LOCK) -e ".[lerobot]" pytest pytest-xdist
+	$(LEROBOT)/bin/pip install $(PIPQ) --dry-run --report $(LEROBOT)/bpp-plan.json -e ".[lerobot]"
+	$(LEROBOT)/bin/pip install $(PIPQ) -c $(LEROBOT_LOCK) -e ".[lerobot]" pytest pytest-xdist
 	touch $@
 
 install: $(CORE)
@@ -99,7 +104,7 @@ test-fast: $(FAST)
 ZARR_FLOOR := $(shell sed -n 's/.*"zarr>=\([0-9.]*\),.*/\1/p' pyproject.toml)
 test-floors: $(ALL)
 	rm -rf .floors
-	$(BIN)/pip install --quiet --target .floors --no-deps "zarr==$(ZARR_FLOOR)" "crc32c>=2.7,<3"
+	$(BIN)/pip install $(PIPQ) --target .floors --no-deps "zarr==$(ZARR_FLOOR)" "crc32c>=2.7,<3"
 	PYTHONPATH=.floors $(BIN)/python -c "import zarr; assert zarr.__version__ == '$(ZARR_FLOOR)', zarr.__file__"
 	PYTHONPATH=.floors $(BIN)/pytest -q -p no:cacheprovider tests/test_store.py tests/test_store_integrity.py
 
@@ -107,7 +112,7 @@ test-floors: $(ALL)
 # move to the newest). The locks are for CPython 3.11 on Linux x86-64; elsewhere pip resolves the ranges in
 # pyproject.toml.
 lock: | $(BIN)/python
-	$(BIN)/pip install --quiet "uv>=0.9,<1"
+	$(BIN)/pip install $(PIPQ) "uv>=0.9,<1"
 	$(BIN)/uv pip compile pyproject.toml --extra all --python-version 3.11.7 --python-platform x86_64-manylinux_2_28 \
 		--annotation-style line -o $(LOCK)
 	$(BIN)/uv pip compile requirements-lerobot.in pyproject.toml --extra lerobot --python-version 3.11.7 \

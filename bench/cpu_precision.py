@@ -3,6 +3,7 @@
     python bench/cpu_precision.py                      # BPP, cpu size, board observations, batch 64, 8 tasks
     python bench/cpu_precision.py --obs board-image --rounds 5
     python bench/cpu_precision.py --limit              # what bounds the step: its convolutions, profiled
+    python bench/cpu_precision.py --profile --batch-size 256   # where each precision's step spends its time
 
 In one process on `--threads` torch threads (default 1): the cores' matrix-product rate in fp32 and bf16 (the
 yardstick), a 1D convolution at the action decoder's largest size with its backward in both precisions, then the
@@ -12,6 +13,9 @@ fp32 and under bf16 autocast with fp32 weights, alternated for `--rounds` rounds
 With --limit: the matrix-product rate in fp32, bf16 and fp16, every 1D convolution of the action decoder at its
 real sizes (forward and both gradients) in fp32, and a profile of 10 fp32 training steps: the share of a step spent
 in convolutions, and so the speed-up the step could reach if everything else took no time at all.
+
+With --profile: the operators that take most of `--steps` profiled steps in either precision, each with its time in
+both (what reduced precision speeds up on this CPU, and what it slows down).
 """
 
 from __future__ import annotations
@@ -64,6 +68,7 @@ def main() -> None:
     parser.add_argument("--tasks", type=int, default=500, help="procedural tasks in the store (the demo's 500)")
     parser.add_argument("--data-dir", type=Path, default=Path("data/bench-speed-history"))
     parser.add_argument("--limit", action="store_true", help="profile what bounds an fp32 step instead")
+    parser.add_argument("--profile", action="store_true", help="profile the step's operators in both precisions")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
@@ -86,6 +91,9 @@ def main() -> None:
     if args.limit:
         limit(cfg, model, ema, optimizer, batches, args.threads)
         return
+    if args.profile:
+        profile_precisions(cfg, model, ema, optimizer, batches, args.steps)
+        return
     print(
         f"matmul GFLOP/s on {args.threads} thread(s): fp32 {matmul_peak(torch.float32, args.threads):.1f}, "
         f"bf16 {matmul_peak(torch.bfloat16, args.threads):.1f}; decoder convolution with its gradients: "
@@ -106,6 +114,24 @@ def main() -> None:
     fp32 = float(np.median(rates["fp32"]))
     for name, values in rates.items():
         print(f"{name:>13}: median {np.median(values):6.1f} samples/s, {np.median(values) / fp32:.3f}x fp32")
+
+
+def profile_precisions(cfg, model, ema, optimizer, batches, steps: int, top: int = 8) -> None:
+    """Print the operators that take most of `steps` profiled training steps in fp32 or under bf16 autocast, with
+    their self CPU time (ms, all steps together) in both."""
+    times = {}
+    for name, amp in (("fp32", False), ("bf16", True)):
+        for step in range(3):
+            train_step(cfg, model, model, ema, optimizer, batches[step], step, amp)
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            for step in range(3, steps + 3):
+                train_step(cfg, model, model, ema, optimizer, batches[step], step, amp)
+        times[name] = {e.key: e.self_cpu_time_total / 1e3 for e in prof.key_averages()}
+    print(f"self CPU time of {steps} steps (ms): total fp32 {sum(times['fp32'].values()):.0f}, "
+          f"bf16 {sum(times['bf16'].values()):.0f}")  # fmt: skip
+    keys = sorted(set(times["fp32"]) | set(times["bf16"]), key=lambda k: -max(t.get(k, 0.0) for t in times.values()))
+    for key in keys[:top]:
+        print(f"{key[:64]:64s} fp32 {times['fp32'].get(key, 0.0):8.1f}  bf16 {times['bf16'].get(key, 0.0):8.1f}")
 
 
 def decoder_convolutions(model) -> tuple[list, list[tuple[int, int, int, int]]]:

@@ -41,8 +41,10 @@ def wilson(successes: int, n: int) -> tuple[float, float]:
 
 
 def pooled(folders: list[Path]) -> dict:
-    """Successes, rollouts and the failed rollouts that lifted their object or another, over `folders`' results."""
-    rows = [row for folder in folders for row in read_json(folder / "results.json", "results file")["rollouts"]]
+    """Successes, rollouts and the failed rollouts that lifted their object or another, over `folders`' results, and
+    each folder's successes (a seed's, when the folders are seeds)."""
+    per_folder = [read_json(folder / "results.json", "results file")["rollouts"] for folder in folders]
+    rows = [row for rollouts in per_folder for row in rollouts]
     failed = [row for row in rows if row["score"] < 1.0]
     return {
         "successes": len(rows) - len(failed),
@@ -50,6 +52,7 @@ def pooled(folders: list[Path]) -> dict:
         "failed_lifted": sum(bool(row.get("lifted")) for row in failed),
         "failed_lifted_other": sum(bool(row.get("lifted_other")) for row in failed),
         "folders": len(folders),
+        "each": [sum(row["score"] >= 1.0 for row in rollouts) for rollouts in per_folder],
     }
 
 
@@ -66,16 +69,16 @@ def main() -> None:
     stats = {key: pooled(folders) for key, folders in groups.items()}
 
     lines = [
-        "| rung | method | evaluations | success | 95% interval (Wilson) | failed rollouts that lifted "
-        "the object / another |",
-        "| --- | --- | ---: | ---: | --- | ---: |",
+        "| rung | method | evaluations | success | each evaluation's | 95% interval (Wilson) | failed rollouts that "
+        "lifted the object / another |",
+        "| --- | --- | ---: | ---: | ---: | --- | ---: |",
     ]
     for (rung, method), s in stats.items():
         low, high = wilson(s["successes"], s["rollouts"])
         rate = s["successes"] / max(1, s["rollouts"])
         lines.append(
             f"| {rung} | {method} | {s['folders']} | {s['successes']} / {s['rollouts']} ({rate:.0%}) | "
-            f"{low:.0%}-{high:.0%} | {s['failed_lifted']} of {s['rollouts'] - s['successes']} / "
+            f"{', '.join(map(str, s['each']))} | {low:.0%}-{high:.0%} | {s['failed_lifted']} of {s['rollouts'] - s['successes']} / "
             f"{s['failed_lifted_other']} |"
         )
     args.out.mkdir(parents=True, exist_ok=True)
