@@ -54,6 +54,32 @@ def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
         env.close()
 
 
+def test_an_env_that_renders_nothing_is_built_without_textures_and_steps_bit_for_bit_the_same(tmp_path):
+    from bpp.benchmarks.libero.sim import render_now, reset_env
+
+    task = next(t for t in combination().train if t.scene.name == "N1" and t.bowl == 1 and t.place == "bowl")
+    path = tmp_path / "task.bddl"
+    path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+    drawn, bare = make_env(path, render=True), make_env(path)
+    try:
+        assert bare.env.sim.model._model.ntex == 0 < drawn.env.sim.model._model.ntex
+        actions = np.random.default_rng(0).uniform(-1.0, 1.0, (40, 7))
+        paths = []
+        for env in (drawn, bare):
+            reset_env(env, 3)
+            paths.append(np.stack([env.step(a)[0]["robot0_eef_pos"] for a in actions]))
+        np.testing.assert_array_equal(paths[0], paths[1])  # every step's gripper, and the final state entire
+        np.testing.assert_array_equal(drawn.env.sim.get_state().flatten(), bare.env.sim.get_state().flatten())
+        with pytest.raises(ValueError, match="renders nothing"):
+            render_now(bare)
+        bare.seed(0)
+        bare.reset()  # LIBERO's own reset builds the model again: still without textures
+        assert bare.env.sim.model._model.ntex == 0
+    finally:
+        drawn.close()
+        bare.close()
+
+
 def test_a_suite_is_written_as_problems_and_an_index(tmp_path, capsys):
     import json
 
