@@ -78,8 +78,8 @@ def main() -> None:
         rate = s["successes"] / max(1, s["rollouts"])
         lines.append(
             f"| {rung} | {method} | {s['folders']} | {s['successes']} / {s['rollouts']} ({rate:.0%}) | "
-            f"{', '.join(map(str, s['each']))} | {low:.0%}-{high:.0%} | {s['failed_lifted']} of {s['rollouts'] - s['successes']} / "
-            f"{s['failed_lifted_other']} |"
+            f"{', '.join(map(str, s['each']))} | {low:.0%}-{high:.0%} | "
+            f"{s['failed_lifted']} of {s['rollouts'] - s['successes']} / {s['failed_lifted_other']} |"
         )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ladder.md").write_text("\n".join(lines) + "\n")

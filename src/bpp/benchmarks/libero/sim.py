@@ -147,8 +147,8 @@ def make_env(problem: str | Path, cameras: tuple[str, ...] = (), image_size: int
     cameras (LIBERO names, e.g. ``agentview``, ``robot0_eye_in_hand``) at `image_size` every step. With `render`
     and no cameras, steps render nothing but :func:`render_states` / :func:`render_now` can draw any camera on
     demand, through a renderer shared by every env of the same scene (:class:`SharedRenderer`); without either, it
-    cannot draw, and its model is compiled without textures. Takes seconds (it compiles the scene). Reset it with :func:`reset_env`: its own ``env.reset()`` is LIBERO's, which builds and
-    compiles the model again."""
+    cannot draw, and its model is compiled without textures. Takes seconds (it compiles the scene). Reset it with
+    :func:`reset_env`: its own ``env.reset()`` is LIBERO's, which builds and compiles the model again."""
     _libero()
     # LIBERO: the libero extra
     from libero.libero.envs.env_wrapper import ControlEnv, OffScreenRenderEnv
