@@ -44,15 +44,15 @@ def pooled(folders: list[Path]) -> dict:
     """Successes, rollouts and the failed rollouts that lifted their object or another, over `folders`' results, and
     each folder's successes (a seed's, when the folders are seeds)."""
     per_folder = [read_json(folder / "results.json", "results file")["rollouts"] for folder in folders]
-    rows = [row for rollouts in per_folder for row in rollouts]
-    failed = [row for row in rows if row["score"] < 1.0]
+    each = [sum(row["score"] >= 1.0 for row in rollouts) for rollouts in per_folder]
+    failed = [row for rollouts in per_folder for row in rollouts if row["score"] < 1.0]
     return {
-        "successes": len(rows) - len(failed),
-        "rollouts": len(rows),
+        "successes": sum(each),
+        "rollouts": sum(map(len, per_folder)),
         "failed_lifted": sum(bool(row.get("lifted")) for row in failed),
         "failed_lifted_other": sum(bool(row.get("lifted_other")) for row in failed),
         "folders": len(folders),
-        "each": [sum(row["score"] >= 1.0 for row in rollouts) for rollouts in per_folder],
+        "each": each,
     }
 
 

@@ -2,6 +2,8 @@
 problem LIBERO ships, a generated Combination problem loads in the simulator with a goal its predicates check, and
 bpp's reset and step of LIBERO's envs give what LIBERO's and robosuite's own give, bit for bit."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -27,11 +29,16 @@ def test_every_combination_task_is_written_from_its_scene():
         assert section(problem, ":goal")[1][1][1] == f"akita_black_bowl_{task.bowl}"
 
 
-def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
+def n1_problem(folder) -> Path:
+    """The BDDL file of Combination's scene-N1 task that puts bowl 1 into bowl 2 (on the plate), in `folder`."""
     task = next(t for t in combination().train if t.scene.name == "N1" and t.bowl == 1 and t.place == "bowl")
-    path = tmp_path / "task.bddl"
+    path = folder / "task.bddl"
     path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
-    env = make_env(path)  # physics only
+    return path
+
+
+def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
+    env = make_env(n1_problem(tmp_path))  # physics only
     try:
         env.seed(0)
         obs = env.reset()
@@ -57,9 +64,7 @@ def test_a_generated_problem_loads_and_its_goal_is_checked_by_libero(tmp_path):
 def test_an_env_that_renders_nothing_is_built_without_textures_and_steps_bit_for_bit_the_same(tmp_path):
     from bpp.benchmarks.libero.sim import render_now, reset_env
 
-    task = next(t for t in combination().train if t.scene.name == "N1" and t.bowl == 1 and t.place == "bowl")
-    path = tmp_path / "task.bddl"
-    path.write_text(combination_problem(task, spatial_problem(task.scene.base)))
+    path = n1_problem(tmp_path)
     drawn, bare = make_env(path, render=True), make_env(path)
     try:
         assert bare.env.sim.model._model.ntex == 0 < drawn.env.sim.model._model.ntex
@@ -68,7 +73,7 @@ def test_an_env_that_renders_nothing_is_built_without_textures_and_steps_bit_for
         for env in (drawn, bare):
             reset_env(env, 3)
             paths.append(np.stack([env.step(a)[0]["robot0_eef_pos"] for a in actions]))
-        np.testing.assert_array_equal(paths[0], paths[1])  # every step's gripper, and the final state entire
+        np.testing.assert_array_equal(paths[0], paths[1])  # every step's gripper, then the final state entire
         np.testing.assert_array_equal(drawn.env.sim.get_state().flatten(), bare.env.sim.get_state().flatten())
         with pytest.raises(ValueError, match="renders nothing"):
             render_now(bare)
