@@ -1,18 +1,36 @@
-"""Install recipes the guides give, run as written in a new virtual environment: a recipe that works only beside
+"""Install recipes the README and the guides give, checked as a new environment would run them.
+
+The robot computer's recipe is installed as written into a new virtual environment: a recipe that works only beside
 what another environment brought fails here (openpi's client imports ``typing_extensions`` without requiring it, and
-the robot environment `make test` builds has it from other packages). Needs the package index, as any install does;
-versions follow the lock the tests were measured with."""
+the robot environment `make test` builds has it from other packages). Every recipe that installs bpp is resolved by
+uv into an empty environment (an install of torch's wheels per recipe would take minutes and gigabytes): at the lock's
+versions it must bring exactly the distributions tests/test_extras.py imports bpp's modules with in isolation, and
+from the ranges alone it must resolve at all. Needs the package index, as any install does."""
 
 from __future__ import annotations
 
 import re
+import shlex
 import subprocess
+import sys
 import venv
+from functools import cache
 from pathlib import Path
 
 import pytest
+from packaging.utils import canonicalize_name
+
+from core_only import core_closure
+from helpers import OPTIONAL_PARTS
 
 ROOT = Path(__file__).resolve().parents[1]
+GUIDES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+UV = Path(sys.executable).with_name("uv")
+"""uv (the dev extra) resolves a recipe for an empty environment in a second, from its cache of the index."""
+PLATFORM = ["--python-version", "3.11.7", "--python-platform", "x86_64-manylinux_2_28"]
+"""The platform the locks are for (Makefile, `make lock`)."""
+ELSEWHERE = {("lerobot",): "tests/test_lerobot_install.py", ("openpi-client", "typing_extensions"): "the robot test"}
+"""Recipes of other projects' packages the guides give, and what installs them for real."""
 
 
 def robot_recipe() -> tuple[list[str], str]:
@@ -40,3 +58,87 @@ def test_the_robot_computers_recipe_runs_the_loop_s_imports_in_a_new_environment
     assert ran.returncode == 0, f"{imports}\n{ran.stderr[-2000:]}"
     check = "import importlib.util as u; print([m for m in ('torch', 'bpp') if u.find_spec(m)])"
     assert subprocess.run([python, "-c", check], capture_output=True, text=True).stdout.strip() == "[]"
+
+
+@cache
+def documented_recipes() -> tuple[tuple[str, tuple[str, ...]], ...]:
+    """Every ``pip install`` the README and the guides give: (where, its arguments), an elided ``...`` left out."""
+    found = []
+    for path in GUIDES:
+        for number, line in enumerate(path.read_text().splitlines(), 1):
+            for command in re.findall(r"pip install ([^`#\n]+)", line):
+                arguments = tuple(shlex.split(command))
+                if "..." not in arguments:
+                    found.append((f"{path.relative_to(ROOT)}:{number}", arguments))
+    return tuple(found)
+
+
+def targets(arguments: tuple[str, ...]) -> list[str]:
+    """What a recipe installs: its arguments that are neither options nor an option's file (`-c requirements.lock`)."""
+    files = {i + 1 for i, argument in enumerate(arguments) if argument in ("-c", "--constraint", "-r")}
+    return [a for i, a in enumerate(arguments) if not a.startswith("-") and i not in files]
+
+
+def bpp_extras(target: str) -> tuple[str, ...] | None:
+    """The extras a target installs bpp from the clone with (``.`` or ``.[a,b]``), or None for another target."""
+    found = re.fullmatch(r"\.(?:\[([a-z0-9,]+)\])?", target)
+    return None if found is None else tuple(sorted(filter(None, (found.group(1) or "").split(","))))
+
+
+def resolve(extras: tuple[str, ...], constraints: str | None, *more: str) -> dict[str, str]:
+    """What uv installs into an empty environment for bpp with `extras` (and `more` requirements): name -> version."""
+    command = [str(UV), "pip", "compile", "pyproject.toml", *PLATFORM, "--no-header", "--no-annotate", "--quiet"]
+    command += [f"--extra={extra}" for extra in extras] + (["-c", constraints] if constraints else [])
+    if more:
+        command += ["-"]
+    done = subprocess.run(command, cwd=ROOT, input="\n".join(more), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, f"{' '.join(command)}:\n{done.stderr[-3000:]}"
+    pins = (line.split("==") for line in done.stdout.splitlines() if "==" in line)
+    return {canonicalize_name(name): version.strip() for name, version in pins}
+
+
+def bpp_recipes() -> list[tuple[str, ...]]:
+    return sorted({bpp_extras(t) for _, args in documented_recipes() for t in targets(args)} - {None})
+
+
+def test_the_guides_recipes_are_found_and_each_is_checked_somewhere():
+    assert {(), ("language", "studio"), ("all",), ("lerobot",), ("ray",)} <= set(bpp_recipes()), bpp_recipes()
+    others = {tuple(targets(args)) for _, args in documented_recipes()}
+    others = {t for t in others if len(t) != 1 or bpp_extras(t[0]) is None}
+    assert others <= set(ELSEWHERE), f"recipes no test installs: {sorted(others - set(ELSEWHERE))}"
+
+
+def test_no_guide_installs_bpp_from_the_package_index():
+    # bpp is installed from its clone; a package of that name on the index is another project's.
+    wrong = [where for where, args in documented_recipes() for t in targets(args) if re.match(r"bpp\b", t)]
+    assert not wrong, f"these install the index's bpp, not this one: {wrong}"
+
+
+PARTS = {"all": ("studio", "serve", "language", "libero", "iphumi", "ray"), "draw3d": ("libero", "iphumi")}
+"""The extras that name other extras: the markers of optional parts (tests/helpers.py) their check needs."""
+
+
+def needs(extras: tuple[str, ...]) -> list[pytest.MarkDecorator]:
+    parts = {part for extra in extras for part in PARTS.get(extra, (extra,))}
+    return [getattr(pytest.mark, part) for part in sorted(parts) if part in OPTIONAL_PARTS]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "extras", [pytest.param(e, id=",".join(e) or "core", marks=needs(e)) for e in bpp_recipes() if e != ("lerobot",)]
+)
+def test_a_recipe_resolves_into_an_empty_environment_to_what_the_isolated_imports_used(extras):
+    locked = resolve(extras, "requirements.lock")
+    expected = core_closure("bpp", extras) - {"bpp"}
+    assert set(locked) == expected, (
+        f"bpp[{','.join(extras)}] brings {sorted(set(locked) - expected)} that the import check does not see, and the "
+        f"check sees {sorted(expected - set(locked))} that it does not bring"
+    )
+    assert resolve(extras, None), "the declared ranges resolve to nothing"
+
+
+@pytest.mark.slow
+def test_the_lerobot_recipe_resolves_beside_lerobot_at_its_lock():
+    # The guide installs LeRobot first, then bpp's extra on top; their environment is built for real by `make test`.
+    resolved = resolve(("lerobot",), "requirements-lerobot.lock", "lerobot")
+    assert resolved["lerobot"].startswith("0.4") and int(resolved["torch"].split(".")[1]) < 11
