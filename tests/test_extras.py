@@ -28,8 +28,9 @@ ELSEWHERE = {"lerobot", "av", "datasets", "pyarrow", "openpi_client"}
 """Modules of environments other than this one: LeRobot's (the lerobot extra, LeRobot's own requirements) and the
 robot computer's (openpi's client, requirements-robot.lock); their tests install and import them there."""
 
-MARKERS = {"draw3d": ("libero", "iphumi")}
-"""Markers of optional parts (tests/helpers.py) an extra's check needs installed: its own name, else these."""
+ALONE = ("studio", "language", "libero")
+"""The extras checked here in isolation; each of the others is a guide's recipe of its own (`pip install -e .[ray]`),
+installed for real into a new environment by tests/test_install_recipes.py."""
 
 
 @cache
@@ -75,7 +76,7 @@ def test_every_third_party_module_bpp_imports_comes_from_the_core_or_one_extra()
 @pytest.mark.slow
 @pytest.mark.parametrize(
     "extra",
-    [pytest.param(e, marks=[getattr(pytest.mark, m) for m in MARKERS.get(e, (e,))]) for e in EXTRAS],
+    [pytest.param(e, marks=getattr(pytest.mark, e)) for e in ALONE],
 )
 def test_an_extra_alone_brings_every_module_bpp_imports_from_it(extra):
     core, closure = core_closure(), core_closure("bpp", (extra,))

@@ -2,13 +2,16 @@
 
 The robot computer's recipe is installed as written into a new virtual environment: a recipe that works only beside
 what another environment brought fails here (openpi's client imports ``typing_extensions`` without requiring it, and
-the robot environment `make test` builds has it from other packages). Every recipe that installs bpp is resolved by
-uv into an empty environment (an install of torch's wheels per recipe would take minutes and gigabytes): at the lock's
-versions it must bring exactly the distributions tests/test_extras.py imports bpp's modules with in isolation, and
-from the ranges alone it must resolve at all. Needs the package index, as any install does."""
+the robot environment `make test` builds has it from other packages). So is every recipe that installs bpp, by uv,
+whose cache links the same wheels into each new environment (seconds, where pip would copy gigabytes of torch per
+recipe): it must bring exactly the distributions tests/test_extras.py checks that extra with, and the modules bpp
+imports from them must import; from the ranges alone it must resolve too. `make test` builds the environments of the
+other two (`.[all]`: .venv; `.[lerobot]`: .venv-lerobot) for real. Needs the package index, as any install does; the
+first run fills uv's cache (about 6 GB, a minute)."""
 
 from __future__ import annotations
 
+import json
 import re
 import shlex
 import subprocess
@@ -22,11 +25,14 @@ from packaging.utils import canonicalize_name
 
 from core_only import core_closure
 from helpers import OPTIONAL_PARTS
+from test_extras import ALONE, EXTRAS, imported_modules, providers
 
 ROOT = Path(__file__).resolve().parents[1]
 GUIDES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 UV = Path(sys.executable).with_name("uv")
-"""uv (the dev extra) resolves a recipe for an empty environment in a second, from its cache of the index."""
+"""uv, from the dev extra."""
+BUILT_BY_MAKE = {("all",), ("lerobot",)}
+"""Recipes whose environments `make test` builds (.venv, .venv-lerobot)."""
 PLATFORM = ["--python-version", "3.11.7", "--python-platform", "x86_64-manylinux_2_28"]
 """The platform the locks are for (Makefile, `make lock`)."""
 ELSEWHERE = {("lerobot",): "tests/test_lerobot_install.py", ("openpi-client", "typing_extensions"): "the robot test"}
@@ -106,6 +112,8 @@ def test_the_guides_recipes_are_found_and_each_is_checked_somewhere():
     others = {tuple(targets(args)) for _, args in documented_recipes()}
     others = {t for t in others if len(t) != 1 or bpp_extras(t[0]) is None}
     assert others <= set(ELSEWHERE), f"recipes no test installs: {sorted(others - set(ELSEWHERE))}"
+    alone = {recipe[0] for recipe in bpp_recipes() if len(recipe) == 1 and recipe not in BUILT_BY_MAKE}
+    assert set(EXTRAS) <= alone | set(ALONE), f"extras checked neither alone nor by a recipe: {set(EXTRAS) - alone}"
 
 
 def test_no_guide_installs_bpp_from_the_package_index():
@@ -123,18 +131,44 @@ def needs(extras: tuple[str, ...]) -> list[pytest.MarkDecorator]:
     return [getattr(pytest.mark, part) for part in sorted(parts) if part in OPTIONAL_PARTS]
 
 
+def uv(*arguments: str) -> str:
+    done = subprocess.run([str(UV), *arguments], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, f"uv {' '.join(arguments)}:\n{done.stderr[-3000:]}"
+    return done.stdout
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "extras", [pytest.param(e, id=",".join(e) or "core", marks=needs(e)) for e in bpp_recipes() if e != ("lerobot",)]
+    "extras",
+    [pytest.param(e, id=",".join(e) or "core", marks=needs(e)) for e in bpp_recipes() if e not in BUILT_BY_MAKE],
 )
-def test_a_recipe_resolves_into_an_empty_environment_to_what_the_isolated_imports_used(extras):
-    locked = resolve(extras, "requirements.lock")
-    expected = core_closure("bpp", extras) - {"bpp"}
-    assert set(locked) == expected, (
-        f"bpp[{','.join(extras)}] brings {sorted(set(locked) - expected)} that the import check does not see, and the "
-        f"check sees {sorted(expected - set(locked))} that it does not bring"
+def test_a_recipe_installs_into_a_new_environment_and_what_bpp_imports_from_it_imports(extras, tmp_path):
+    where = tmp_path / "env"
+    uv("venv", "--quiet", str(where), "--python", sys.executable)
+    python = str(where / "bin" / "python")
+    target = f".[{','.join(extras)}]" if extras else "."
+    uv("pip", "install", "--quiet", "--python", python, "-c", "requirements.lock", "-e", target)
+    installed = {
+        canonicalize_name(d["name"]) for d in json.loads(uv("pip", "list", "--format=json", "--python", python))
+    }
+    closure, core = core_closure("bpp", extras), core_closure()
+    assert installed - {"bpp"} == closure - {"bpp"}, (
+        f"{target} installs {sorted(installed - closure)} that tests/test_extras.py does not see, and it sees "
+        f"{sorted(closure - installed - {'bpp'})} that the recipe does not install"
     )
+    own = closure - core if extras else core
+    modules = sorted(m for m in imported_modules() if providers(m) & own)
+    assert modules, f"bpp imports nothing {target} brings"
+    script = "; ".join(f"import {m}" for m in (*modules, "bpp.cli"))
+    ran = subprocess.run([python, "-c", script], capture_output=True, text=True, timeout=300)
+    assert ran.returncode == 0, f"in a new environment with {target}: {script}\n{ran.stderr[-3000:]}"
     assert resolve(extras, None), "the declared ranges resolve to nothing"
+
+
+@pytest.mark.slow
+def test_every_extra_of_the_all_recipe_resolves_to_what_its_environment_holds():
+    locked = resolve(("all",), "requirements.lock")
+    assert set(locked) == core_closure("bpp", ("all",)) - {"bpp"}
 
 
 @pytest.mark.slow
