@@ -24,7 +24,7 @@ from collections import Counter
 import cv2
 import numpy as np
 
-from bpp.benchmarks.draw3d.canvas import (
+from bpp.drawing.marked_canvas import (
     CanvasLayout,
     CanvasNotFound,
     canvas_pose,
@@ -141,10 +141,10 @@ def main() -> None:
 
 
 def simulator(n: int, seed: int) -> None:
-    from bpp.benchmarks.draw3d.canvas import canvas_in_base
     from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, random_pose
     from bpp.benchmarks.draw3d.scene import BOARD, HOME_QPOS, Scene, canvas_transform
     from bpp.core.poses import invert, pose_to_vector
+    from bpp.drawing.marked_canvas import canvas_in_base
 
     rng = np.random.default_rng(seed)
     scene = Scene(image_size=96)

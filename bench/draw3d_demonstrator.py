@@ -22,11 +22,11 @@ from collections import Counter
 
 import numpy as np
 
-from bpp.benchmarks.draw3d.canvas import CanvasNotFound, canvas_in_base, canvas_pose, pose_error
 from bpp.benchmarks.draw3d.dataset import ASIDE
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, pixels_to_mm, plan_drawing
 from bpp.benchmarks.draw3d.photo import photo_chamfer
 from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
+from bpp.drawing.marked_canvas import CanvasNotFound, canvas_in_base, canvas_pose, pose_error
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 
 

@@ -15,7 +15,8 @@ from helpers import import_optional
 pytestmark = pytest.mark.iphumi  # OpenCV comes with the iphumi extra
 import_optional("cv2", "iphumi")
 
-from bpp.benchmarks.draw3d.canvas import (  # noqa: E402
+from bpp.core.poses import make_pose  # noqa: E402
+from bpp.drawing.marked_canvas import (  # noqa: E402
     CanvasLayout,
     CanvasNotFound,
     canvas_in_base,
@@ -26,7 +27,6 @@ from bpp.benchmarks.draw3d.canvas import (  # noqa: E402
     random_canvas_pose,
     render_canvas,
 )
-from bpp.core.poses import make_pose  # noqa: E402
 from bpp.errors import UserError  # noqa: E402
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])  # a 640x480 RGB camera, ~56 deg wide

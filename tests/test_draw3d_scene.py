@@ -16,7 +16,6 @@ from helpers import import_optional  # noqa: E402
 pytestmark = pytest.mark.libero  # robosuite's Panda model ships with the libero extra
 import_optional("robosuite", "libero")
 
-from bpp.benchmarks.draw3d.canvas import canvas_in_base, canvas_pose, pose_error  # noqa: E402
 from bpp.benchmarks.draw3d.dataset import ASIDE  # noqa: E402
 from bpp.benchmarks.draw3d.scene import (  # noqa: E402
     BOARD,
@@ -26,6 +25,7 @@ from bpp.benchmarks.draw3d.scene import (  # noqa: E402
     _texture_px,
     canvas_transform,
 )
+from bpp.drawing.marked_canvas import canvas_in_base, canvas_pose, pose_error  # noqa: E402
 
 DOWN = np.diag([1.0, -1.0, -1.0])
 """The pen's orientation relative to the canvas when drawing: along the canvas's -z, aligned with its x."""

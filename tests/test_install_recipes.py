@@ -116,9 +116,12 @@ def test_the_guides_recipes_are_found_and_each_is_checked_somewhere():
     assert set(EXTRAS) <= alone | set(ALONE), f"extras checked neither alone nor by a recipe: {set(EXTRAS) - alone}"
 
 
-def test_no_guide_installs_bpp_from_the_package_index():
+def test_no_guide_or_message_installs_bpp_from_the_package_index():
     # bpp is installed from its clone; a package of that name on the index is another project's.
     wrong = [where for where, args in documented_recipes() for t in targets(args) if re.match(r"bpp\b", t)]
+    for path in sorted((ROOT / "src" / "bpp").rglob("*.py")):  # errors and --help
+        text = path.read_text()
+        wrong += [f"{path.relative_to(ROOT)}: {m}" for m in re.findall(r"pip install ['\"]?bpp\b[^\s'\"]*", text)]
     assert not wrong, f"these install the index's bpp, not this one: {wrong}"
 
 

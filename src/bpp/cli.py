@@ -56,7 +56,8 @@ class Generate:
     workers: int = 0
     """Worker processes (0: one per core)."""
     executor: Literal["local", "ray"] = "local"
-    """Where the tasks are demonstrated: local processes, or a Ray cluster (pip install 'bpp[ray]'): the same store."""
+    """Where the tasks are demonstrated: local processes, or a Ray cluster (pip install -e '.[ray]' in bpp's clone):
+    the same store."""
     ray_address: str = ""
     """The Ray cluster's head (host:port, or auto); default: RAY_ADDRESS, else a cluster on this machine."""
     overwrite: bool = False
@@ -265,7 +266,8 @@ class Eval:
     workers: int = 0
     """Processes (0: one per core), for the rollouts and for generating a named task set or --files the first time."""
     executor: Literal["local", "ray"] = "local"
-    """Where the tasks' rollouts run: local processes, or a Ray cluster (pip install 'bpp[ray]'): the same results."""
+    """Where the tasks' rollouts run: local processes, or a Ray cluster (pip install -e '.[ray]' in bpp's clone): the
+    same results."""
     ray_address: str = ""
     """The Ray cluster's head (host:port, or auto); default: RAY_ADDRESS, else a cluster on this machine."""
     videos: int = 2

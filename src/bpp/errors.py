@@ -37,10 +37,12 @@ def raise_interrupted(signum: int, frame) -> None:
 
 def require_extra(module: str, extra: str):
     """Import `module`, which only optional extra `extra` installs; a missing one is a UserError saying what to
-    install (``pip install 'bpp[extra]'``) rather than an ImportError from deep inside a command."""
+    install (``pip install -e '.[extra]'`` in bpp's clone) rather than an ImportError from deep inside a command."""
     try:
         return importlib.import_module(module)
     except ModuleNotFoundError as err:
         if err.name is None or module.split(".")[0] != err.name.split(".")[0]:
             raise  # the module is there but one of its own imports failed: a broken install, not a missing extra
-        raise UserError(f"this needs the {extra!r} extra, which is not installed: pip install 'bpp[{extra}]'") from err
+        raise UserError(
+            f"this needs the {extra!r} extra, which is not installed: pip install -e '.[{extra}]' in bpp's clone"
+        ) from err

@@ -204,7 +204,7 @@ def _check_reachable(address: str, timeout: float = 10.0) -> None:
         raise UserError(f"{named}: cannot reach a Ray cluster there ({err})") from None
 
 
-RAY_MISSING = "--executor ray needs Ray: pip install 'bpp[ray]'"
+RAY_MISSING = "--executor ray needs Ray: pip install -e '.[ray]' in bpp's clone"
 
 
 def _import_ray():

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bpp.benchmarks.draw3d.canvas import MARKER_NAMES, CanvasLayout, canvas_in_base, canvas_pose
 from bpp.benchmarks.draw3d.dataset import ASIDE, PHOTO_SIZE, random_placement
 from bpp.benchmarks.draw3d.scene import BOARD, Scene, canvas_transform
+from bpp.drawing.marked_canvas import MARKER_NAMES, CanvasLayout, canvas_in_base, canvas_pose
 from bpp.errors import UserError
 from bpp.utils import read_json, write_json_atomic
 
@@ -127,7 +127,7 @@ class CameraCalibration:
 
     def canvas_in_base(self, photo: np.ndarray) -> np.ndarray:
         """T_base_canvas from a photo taken by this camera (undistorted first);
-        :class:`~bpp.benchmarks.draw3d.canvas.CanvasNotFound` when the markers do not give a trustworthy pose."""
+        :class:`~bpp.drawing.marked_canvas.CanvasNotFound` when the markers do not give a trustworthy pose."""
         photo = np.asarray(photo)
         if photo.shape[:2] != (self.height, self.width):
             raise UserError(

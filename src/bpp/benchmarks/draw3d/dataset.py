@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from bpp.benchmarks.draw3d.canvas import CanvasNotFound, canvas_in_base, canvas_pose
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, plan_drawing
 from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
 from bpp.core.poses import pose_to_vector
@@ -30,6 +29,7 @@ from bpp.data.store import EpisodeStore, EpisodeWriter
 from bpp.drawing.drawing import strokes_array
 from bpp.drawing.files import load_drawings
 from bpp.drawing.human import human_drawings
+from bpp.drawing.marked_canvas import CanvasNotFound, canvas_in_base, canvas_pose
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing, procedural_id
 from bpp.errors import UserError
 from bpp.executor import Executor, as_executor
@@ -117,7 +117,7 @@ def _scene(image_size: int):
 
 def measure_canvas(scene, truth: np.ndarray) -> np.ndarray:
     """Place the canvas at `truth` with the arm swung aside, photograph it with the scene camera and return the
-    canvas pose the photo gives in the base frame (:class:`bpp.benchmarks.draw3d.canvas.CanvasNotFound` if none)."""
+    canvas pose the photo gives in the base frame (:class:`bpp.drawing.marked_canvas.CanvasNotFound` if none)."""
     scene.reset(truth, ASIDE)
     camera = scene.camera_pose("scene")
     photo = scene.render("scene", PHOTO_SIZE)

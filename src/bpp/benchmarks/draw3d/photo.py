@@ -3,7 +3,7 @@
 In simulation the pen's ink is known exactly (:func:`bpp.benchmarks.draw3d.demonstrator.ink_chamfer`); on a real
 whiteboard only a camera sees it. :func:`photo_chamfer` does what a lab would: fold the arm out of the view,
 photograph the board with the fixed scene camera, find the canvas pose from the red markers
-(:func:`bpp.benchmarks.draw3d.canvas.canvas_pose`), resample the photo onto DrawAnything's canvas through that pose
+(:func:`bpp.drawing.marked_canvas.canvas_pose`), resample the photo onto DrawAnything's canvas through that pose
 (one pixel of DrawAnything's 350-px board is 0.66 mm of the drawing area), take the dark pixels as ink, widen them by
 DrawAnything's pen (its ink masks are 12 px wide lines) and score them against the drawing with DrawAnything's
 Chamfer. ``bench/draw3d_photo_chamfer.py`` measures how far it is from the exact score.
@@ -16,11 +16,11 @@ import functools
 import numpy as np
 from scipy import ndimage
 
-from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE, canvas_pose
 from bpp.benchmarks.draw3d.dataset import ASIDE
 from bpp.benchmarks.draw3d.demonstrator import drawing_to_canvas
 from bpp.benchmarks.draw3d.scene import BOARD
 from bpp.drawing.geometry import CANVAS_SIZE, canvas_to_unit, unit_to_canvas
+from bpp.drawing.marked_canvas import CANVAS_SIDE, MARKER_SIDE, canvas_pose
 from bpp.drawing.metric import chamfer_distance, ink_mask
 
 INK_THRESHOLD = 128
@@ -74,7 +74,7 @@ def photo_ink_mask(rectified: np.ndarray) -> np.ndarray:
 def photo_chamfer(scene, drawing_strokes, photo_size: int = 640) -> float:
     """DrawAnything's Chamfer (px) of the ink on `scene`'s canvas against `drawing_strokes` (unit square), measured
     from a scene-camera photo with the arm folded away, as a lab would
-    (:class:`bpp.benchmarks.draw3d.canvas.CanvasNotFound` if the markers do not give the canvas pose). The arm stays
+    (:class:`bpp.drawing.marked_canvas.CanvasNotFound` if the markers do not give the canvas pose). The arm stays
     folded: call it once a rollout has ended."""
     scene.fold(ASIDE)
     photo = scene.render("scene", photo_size)

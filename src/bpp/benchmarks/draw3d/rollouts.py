@@ -14,7 +14,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bpp.benchmarks.draw3d.canvas import CanvasNotFound, pose_error
 from bpp.benchmarks.draw3d.dataset import measure_canvas
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, ink_chamfer, random_pose
 from bpp.benchmarks.draw3d.photo import photo_chamfer
@@ -23,6 +22,7 @@ from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.core.poses import invert, pose_to_vector, vector_to_pose
 from bpp.data.store import EpisodeStore
 from bpp.drawing.drawing import task_drawing
+from bpp.drawing.marked_canvas import CanvasNotFound, pose_error
 from bpp.errors import UserError
 
 ACTION_KEYS = ("action", "target_in_canvas")

@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from bpp.benchmarks.draw3d.canvas import CANVAS_SIDE, MARKER_SIDE
 from bpp.core.poses import invert, make_pose, vector_to_pose
+from bpp.drawing.marked_canvas import CANVAS_SIDE, MARKER_SIDE
 from bpp.errors import require_extra
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL (Mesa); MuJoCo reads it when first imported

@@ -72,7 +72,7 @@ class CanvasNotFound(UserError):
 
 
 def _cv2():
-    return require_extra("cv2", "draw3d")
+    return require_extra("cv2", "iphumi")
 
 
 @dataclass(frozen=True)
