@@ -37,6 +37,8 @@ OCCLUDER_RGB = (70, 70, 70)
 """Dark grey of render_canvas's occluder polygon (an arm, a hand, a pen in front of the canvas)."""
 MARKER_NAMES = ("top-left", "top-right", "bottom-right", "bottom-left")
 """The markers in canvas order, as seen on the upright canvas."""
+DRAW_SIDE = CANVAS_SIDE - 2 * (MARKER_SIDE + 0.01)
+"""The square a drawing's unit square is mapped to, inside the markers (m)."""
 
 # Segmentation: red hue (OpenCV's 8-bit hue is 0..179), saturated, not dark. Saturation and hue do not change when
 # the light gets brighter or dimmer, so only the darkness floor depends on the exposure.
@@ -110,6 +112,16 @@ class CanvasLayout:
 
 
 # ---------------------------------------------------------------------------------------------------------- helpers
+
+
+def drawing_to_canvas(points: np.ndarray) -> np.ndarray:
+    """A drawing's unit-square points (N, 2), y up -> canvas-frame points (N, 2), metres."""
+    return (np.asarray(points, dtype=np.float64) - 0.5) * DRAW_SIDE
+
+
+def canvas_to_drawing(points: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`drawing_to_canvas`."""
+    return np.asarray(points, dtype=np.float64) / DRAW_SIDE + 0.5
 
 
 def _intrinsics(intrinsics) -> np.ndarray:

@@ -18,7 +18,6 @@ from PIL import Image
 
 from bpp.benchmarks.draw3d.dataset import BENCHMARK as NAME
 from bpp.benchmarks.draw3d.dataset import GOAL_KEY, PLACEMENT, PRESETS, Draw3DConfig, generate, random_placement
-from bpp.benchmarks.draw3d.demonstrator import canvas_to_drawing
 from bpp.benchmarks.draw3d.rollouts import run_rollouts
 from bpp.benchmarks.draw3d.scene import CONTROL_HZ, canvas_transform
 from bpp.core.contract import Metric, RolloutResult, TaskSet
@@ -27,6 +26,7 @@ from bpp.data.frames import stored_frames
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, stored_with
 from bpp.drawing.geometry import unit_to_canvas
+from bpp.drawing.marked_canvas import canvas_to_drawing
 from bpp.drawing.metric import ink_mask
 from bpp.errors import UserError
 from bpp.media import resize_frames

@@ -15,14 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from bpp.benchmarks.draw3d.scene import CANVAS_SIDE, MARKER_SIDE, Scene
+from bpp.benchmarks.draw3d.scene import Scene
 from bpp.core.poses import invert, make_pose, pose_to_vector
 from bpp.drawing.geometry import BOARD_SIZE, unit_to_canvas
+from bpp.drawing.marked_canvas import DRAW_SIDE, canvas_to_drawing, drawing_to_canvas
 from bpp.drawing.metric import chamfer_distance, ink_mask
 from bpp.utils import check_fields
 
-DRAW_SIDE = CANVAS_SIDE - 2 * (MARKER_SIDE + 0.01)
-"""The square a drawing's unit square is mapped to, inside the markers (m)."""
 DOWN = np.diag([1.0, -1.0, -1.0])
 """The pen's orientation in the canvas frame when drawing: into the canvas, its x along the canvas's x."""
 
@@ -59,16 +58,6 @@ class ScriptConfig:
             ("lift", 0.002 < self.lift <= 0.1, "in (0.002, 0.1] m"),
             ("press", 0 <= self.press <= 0.002, "in [0, 0.002] m (within the pen's spring)"),
         )
-
-
-def drawing_to_canvas(points: np.ndarray) -> np.ndarray:
-    """A drawing's unit-square points (N, 2), y up -> canvas-frame points (N, 2), metres."""
-    return (np.asarray(points, dtype=np.float64) - 0.5) * DRAW_SIDE
-
-
-def canvas_to_drawing(points: np.ndarray) -> np.ndarray:
-    """The inverse of :func:`drawing_to_canvas`."""
-    return np.asarray(points, dtype=np.float64) / DRAW_SIDE + 0.5
 
 
 @dataclass

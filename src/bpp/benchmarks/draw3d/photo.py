@@ -17,10 +17,9 @@ import numpy as np
 from scipy import ndimage
 
 from bpp.benchmarks.draw3d.dataset import ASIDE
-from bpp.benchmarks.draw3d.demonstrator import drawing_to_canvas
 from bpp.benchmarks.draw3d.scene import BOARD
 from bpp.drawing.geometry import CANVAS_SIZE, canvas_to_unit, unit_to_canvas
-from bpp.drawing.marked_canvas import CANVAS_SIDE, MARKER_SIDE, canvas_pose
+from bpp.drawing.marked_canvas import CANVAS_SIDE, MARKER_SIDE, canvas_pose, drawing_to_canvas
 from bpp.drawing.metric import chamfer_distance, ink_mask
 
 INK_THRESHOLD = 128

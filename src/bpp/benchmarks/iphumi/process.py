@@ -15,7 +15,10 @@ demonstration:
 * ``rgb`` / ``arm1_rgb`` / ``head_rgb``: the main cameras, letterboxed to a square and resized; optionally
   ``ultrawide`` / ``arm1_ultrawide`` and ``depth`` / ``arm1_depth`` ((S, S, 1) float16 metres, 0 outside the image);
 * ``action`` (10 per arm): the step to the next pose in the current pose's frame (position + 6-D rotation,
-  :func:`bpp.core.poses.relative_actions`) and the next step's width.
+  :func:`bpp.core.poses.relative_actions`) and the next step's width;
+* with ``canvas`` (drawings on DrawAnything-Real's marked canvas, single arm): ``canvas_pose`` (9,), the canvas
+  measured from the main camera at the episode's start (:mod:`bpp.benchmarks.iphumi.canvas`), in the frame of
+  ``pose``, and ``tip_in_canvas`` (9,), the TCP (the pen's tip, for a drawing gripper's mount) in the canvas's frame.
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from PIL import Image
 
 from bpp.benchmarks.iphumi import gripper
 from bpp.benchmarks.iphumi.align import GRID_HZ, Aligned, Limits, align, check_demonstration, load_mounts
+from bpp.benchmarks.iphumi.canvas import canvas_in_world
 from bpp.benchmarks.iphumi.recording import (
     Demonstration,
     Recording,
@@ -65,6 +69,8 @@ class ProcessSettings:
     """Segments shorter than this many policy steps are left out (with the reason)."""
     include_error_correction: bool = True
     """Keep demonstrations the app marked as error corrections."""
+    canvas: bool = False
+    """Drawings on the marked canvas (single arm): measure it as each episode starts, store the pen in its frame."""
     limits: Limits = Limits()
 
     def __post_init__(self):
@@ -314,6 +320,12 @@ def episodes_of(
                 demonstration.phones["head"], "rgb", aligned.rgb_index["head"][rows], settings.image_size
             )
         steps["action"] = np.concatenate(actions, axis=1).astype(np.float32)
+        if settings.canvas:
+            if len(arms) > 1:
+                raise RecordingError(f"{demonstration.group}: --canvas is for single-arm drawing demonstrations")
+            canvas = canvas_in_world(demonstration.phones[arms[0]], float(aligned.times[rows[0]]))
+            steps["canvas_pose"] = np.repeat(pose_to_vector(reference @ canvas)[None], len(rows), 0).astype(np.float32)
+            steps["tip_in_canvas"] = pose_to_vector(invert(canvas) @ aligned.tcp[arms[0]][rows]).astype(np.float32)
         episodes.append({"task": task, "steps": steps, "start": float(aligned.times[rows[0]] - aligned.times[0])})
     if not episodes:
         raise RecordingError(f"{demonstration.group}: no segment long enough ({'; '.join(skipped)})")

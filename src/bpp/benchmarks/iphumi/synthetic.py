@@ -6,6 +6,11 @@ procedural DrawAnything drawing traced by the gripper on a table: the gripper cl
 phone's ARKit world frame is a random rigid transform of the table's, as a new ARKit session's would be. Poses are
 exact at the logged (millisecond) times; ultrawide frames (10 Hz) show the finger tags drawn by OpenCV at the true
 gripper width; main-camera frames show the ink so far and the pen; depth (optional) is a tilted plane.
+
+With ``canvas``, each drawing is traced on DrawAnything-Real's marked canvas (:mod:`bpp.drawing.marked_canvas`)
+lying on the table, at the size the arm draws it, and each task begins with the phone held still high above the
+canvas: the main camera's frames then are exact photos of the canvas and its four red markers (the frames after
+them stay schematic), from which ``bpp iphumi process --canvas`` measures where the canvas lies.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from bpp.benchmarks.iphumi.align import MOUNTS
 from bpp.benchmarks.iphumi.recording import DEPTH_SHAPE, find_recordings
 from bpp.benchmarks.iphumi.video import write_video
 from bpp.core.poses import invert, make_pose
+from bpp.drawing.marked_canvas import DRAW_SIDE, render_canvas
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 from bpp.errors import UserError
 from bpp.utils import atomic_path, check_fields
@@ -44,6 +50,14 @@ SPEED = 0.12
 """Tracing speed (m/s)."""
 MAIN_SIDES = (16, 4096)
 """The smallest and largest side of the main camera's video (px)."""
+LOOK = 0.35
+"""With a canvas: the pen's height above the canvas's centre while the phone looks at it (m); the main camera, some
+0.55 m away, then sees the whole canvas."""
+CANVAS_MAIN_SIZE = (320, 240)
+"""With a canvas: the smallest main-camera video that resolves its markers (px)."""
+TABLE_FROM_CANVAS = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
+"""A canvas-frame direction (x right, y up the drawing, z out of the table) in the table frame (x, z on the table, y
+up)."""
 
 
 @dataclass(frozen=True)
@@ -63,6 +77,8 @@ class SyntheticSettings:
     """Record LiDAR depth (192x256 float16 per 60 Hz frame: 6 MB a second)."""
     main_size: tuple[int, int] = (160, 120)
     """Main camera video (width, height), even numbers of pixels (H.264) in [16, 4096]; the app records 1920x1440."""
+    canvas: bool = False
+    """Trace each drawing on DrawAnything-Real's marked canvas, the phone first held above it (single arm)."""
     session: str = "synthetic"
     """The data-collection session's name, part of every folder name: letters, digits, '.' and '-'."""
     seed: int = 0
@@ -85,6 +101,12 @@ class SyntheticSettings:
                 "a name of letters, digits, '.' and '-' (no '_' or '/': it is part of the folder names)",
             ),
             ("seed", self.seed >= 0, ">= 0"),
+            ("canvas", not (self.canvas and (self.bimanual or self.head)), "without --bimanual and --head"),
+            (
+                "main_size",
+                not self.canvas or all(v >= m for v, m in zip(self.main_size, CANVAS_MAIN_SIZE, strict=True)),
+                f"at least {CANVAS_MAIN_SIZE[0]}x{CANVAS_MAIN_SIZE[1]} with --canvas (the markers must be resolved)",
+            ),
         )
 
 
@@ -100,6 +122,8 @@ class Truth:
     labels: list = field(default_factory=list)
     motion: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = field(default=None, repr=False)
     """The motion itself: epoch times (M,) -> (TCP poses (M, 4, 4), openings (M,)) at any time, not only logged ones."""
+    canvas: np.ndarray | None = None
+    """With a canvas: its pose (4, 4) in the phone's world frame."""
 
 
 def _iso(t: float) -> str:
@@ -115,22 +139,25 @@ def _rotation_y(angle: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _task_path(task: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _task_path(task: int, seed: int, canvas: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A task's drawing as (positions (M, 3) in the canvas frame: x, y on the table, z up; pen down (M,) bool;
-    the strokes for the camera picture)."""
+    the strokes for the camera picture). With `canvas`, at the marked canvas's drawing size, from a look at it."""
     drawing, _ = generate_drawing(np.random.default_rng([seed, task]), ProceduralConfig(max_parts=3), f"task{task}")
-    points, down = [np.array([0.5, 0.5, HOVER / CANVAS])], [False]
+    side = DRAW_SIDE if canvas else CANVAS
+    points, down = [np.array([0.5, 0.5, HOVER / side])], [False]
+    if canvas:
+        points, down = [np.array([0.5, 0.5, LOOK / side]), *points], [False, *down]
     for stroke in drawing.strokes:
-        start = np.append(stroke[0], LIFT / CANVAS)
+        start = np.append(stroke[0], LIFT / side)
         points += [start, np.append(stroke[0], 0.0)]
         down += [False, False]
         points += [np.append(p, 0.0) for p in stroke[1:]]
         down += [True] * (len(stroke) - 1)
-        points.append(np.append(stroke[-1], LIFT / CANVAS))
+        points.append(np.append(stroke[-1], LIFT / side))
         down.append(False)
-    points.append(np.array([0.5, 0.5, HOVER / CANVAS]))
+    points.append(np.array([0.5, 0.5, HOVER / side]))
     down.append(False)
-    return (np.asarray(points) - [0.5, 0.5, 0.0]) * CANVAS, np.asarray(down), drawing.strokes
+    return (np.asarray(points) - [0.5, 0.5, 0.0]) * side, np.asarray(down), drawing.strokes
 
 
 def _trace(path: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -185,13 +212,14 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
             place = make_pose(turn, [rng.uniform(-0.1, 0.1), 0.0, rng.uniform(-0.1, 0.1)])
             # the motion, shared by the phones of a bimanual demonstration (the left gripper mirrors the right at an
             # offset)
-            local, positions, labels, widths, t = [], [], [], [], 0.0
+            local, positions, labels, widths, looking, t = [], [], [], [], [], 0.0
             for task in tasks:
-                path, _, _ = _task_path(task, settings.seed)
+                path, _, _ = _task_path(task, settings.seed, settings.canvas)
                 duration = _segment_seconds(path) + 2 * GRASP
                 steps = np.arange(0.0, duration, 1 / 60)
                 positions.append(_trace(path, np.clip(steps - GRASP, 0, None)))
                 widths.append(_opening(steps, duration))
+                looking.append(steps < GRASP if settings.canvas else np.zeros(len(steps), bool))
                 labels.append((f"draw task {task}", t, t + duration))
                 local.append(t + steps)
                 t += duration + 0.5
@@ -200,6 +228,7 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
             present = [*sides, "head"] if settings.head else sides
             # the phones' shared ARKit world frame: a random rigid transform of the table's, as a new session's is
             world = make_pose(_rotation_y(rng.uniform(-np.pi, np.pi)), rng.normal(0, 0.5, 3))
+            canvas = world @ place @ make_pose(TABLE_FROM_CANVAS, np.zeros(3)) if settings.canvas else None
             for side in present:
                 offset = {"right": 0.0, "left": -0.35, "head": -0.15}[side]
                 jitter = rng.uniform(-0.4, 0.4, size=sum(len(p) for p in positions)) * 1e-3
@@ -220,9 +249,11 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
                     tasks,
                     settings,
                     rng,
+                    (canvas, np.concatenate(looking)),
                 )
                 if side != "head":
-                    truths[name] = Truth(times, tcp, width, [(n, clock + a, clock + b) for n, a, b in labels], motion)
+                    spans = [(n, clock + a, clock + b) for n, a, b in labels]
+                    truths[name] = Truth(times, tcp, width, spans, motion, canvas)
             clock += t + 2.0
     return truths
 
@@ -306,7 +337,9 @@ def _write_calibration(folder: Path, start: float, side: str, settings: Syntheti
     (folder / f"{folder.name}.json").write_text(__import__("json").dumps(meta))
 
 
-def _write_demonstration(folder, times, tcp, width, labels, clock, side, present, calibration, tasks, settings, rng):
+def _write_demonstration(
+    folder, times, tcp, width, labels, clock, side, present, calibration, tasks, settings, rng, canvas=(None, None)
+):
     folder.mkdir(parents=True, exist_ok=True)
     mount = MOUNTS[DEVICE] if side != "head" else make_pose(np.diag([1.0, -1.0, -1.0]), [0, 0, 0])
     camera = tcp @ invert(mount)
@@ -342,7 +375,8 @@ def _write_demonstration(folder, times, tcp, width, labels, clock, side, present
             10,
             (640, 480),
         )
-    write_video(folder / f"{folder.name}_rgb.mp4", _main_frames(tcp, width, settings, tasks), 60, settings.main_size)
+    frames = _main_frames(tcp, width, settings, tasks, camera, *canvas, rng)
+    write_video(folder / f"{folder.name}_rgb.mp4", frames, 60, settings.main_size)
     if settings.depth:
         plane = 0.25 + 0.1 * np.linspace(0, 1, DEPTH_SHAPE[0])[:, None] + np.zeros(DEPTH_SHAPE)
         with open(folder / f"{folder.name}_depth.raw", "wb") as f:
@@ -351,9 +385,10 @@ def _write_demonstration(folder, times, tcp, width, labels, clock, side, present
     (folder / f"{folder.name}.json").write_text(__import__("json").dumps(meta))
 
 
-def _main_frames(tcp, width, settings, tasks):
+def _main_frames(tcp, width, settings, tasks, camera, canvas, looking, rng):
     """The main camera's frames: the ink drawn so far (where the pen touched the table) and the pen, seen from above,
-    on a background whose colour names the demonstration's first task."""
+    on a background whose colour names the demonstration's first task; while `looking` (a mask over frames), an exact
+    photo of the `canvas` (its pose in the world) from the `camera` (ARKit's camera poses)."""
     # OpenCV: the iphumi extra
     import cv2
 
@@ -363,11 +398,15 @@ def _main_frames(tcp, width, settings, tasks):
     start = tcp[0, :3, 3]
     ink = base.copy()
     scale = min(w, h) / (CANVAS * 1.6)
-    for pose in tcp:
+    opencv = np.diag([1.0, -1.0, -1.0, 1.0])  # ARKit's camera axes (y up, z back) -> OpenCV's (y down, z forward)
+    for k, pose in enumerate(tcp):
         offset = pose[:3, 3] - start
         x, y = int(w / 2 + offset[0] * scale), int(h / 2 + offset[2] * scale)
         if pose[1, 3] - tcp[:, 1, 3].min() < 0.002:
             cv2.circle(ink, (x, y), 1, (20, 20, 20), -1)
+        if canvas is not None and looking[k]:
+            yield render_canvas(invert(camera[k] @ opencv) @ canvas, _main_k(settings), (w, h), rng=rng)
+            continue
         frame = ink.copy()
         cv2.circle(frame, (x, y), 3, (230, 40, 40), -1)
         yield frame
