@@ -577,33 +577,6 @@ def test_one_recording_becomes_the_prompt_of_a_served_policy(export, processed, 
     assert "KiB, over the 4 KiB a message to this server may have" in str(err.value)
 
 
-@pytest.fixture(scope="module")
-def canvas_export(tmp_path_factory):
-    """One demonstration of one drawing on the marked canvas, the phone first held above it."""
-    out = tmp_path_factory.mktemp("iphumi-canvas") / "export"
-    truths = write_export(out, SyntheticSettings(demonstrations=1, tasks=1, canvas=True, main_size=(320, 240), seed=5))
-    return out, truths
-
-
-def test_a_drawing_on_the_marked_canvas_is_written_in_the_canvas_s_frame_measured_by_the_phone(canvas_export):
-    folder = next(f for f in find_recordings(canvas_export[0]) if "demonstration" in f.name)
-    episode = pipeline.process_one(folder, ProcessSettings(canvas=True, fps=20))
-    truth = canvas_export[1][folder.name]
-    steps = episode["steps"]
-    tcp, _ = truth.motion(truth.times[0] + np.arange(len(steps["pose"])) / 20)
-    expected = invert(truth.canvas) @ tcp
-    tip = vector_to_pose(steps["tip_in_canvas"].astype(np.float64))
-    error_mm = np.linalg.norm(tip[:, :3, 3] - expected[:, :3, 3], axis=1) * 1e3
-    assert np.median(error_mm) < 2.0 and error_mm.max() < 5.0, (np.median(error_mm), error_mm.max())
-    assert rotation_angle(tip[:, :3, :3], expected[:, :3, :3]).max() < np.deg2rad(1.0)
-    # the pen touches the canvas (z = 0) while drawing, and the canvas pose is one pose, in the episode's frame
-    assert np.abs(steps["tip_in_canvas"][:, 2]).min() < 0.002 and steps["tip_in_canvas"][0, 2] > 0.3
-    canvas = vector_to_pose(steps["canvas_pose"].astype(np.float64))
-    np.testing.assert_allclose(canvas, canvas[:1].repeat(len(canvas), 0), atol=1e-6)
-    pose = vector_to_pose(steps["pose"].astype(np.float64))
-    np.testing.assert_allclose(invert(canvas) @ pose, tip, atol=1e-4)
-
-
 def test_a_demonstration_whose_phone_never_sees_the_canvas_is_refused_naming_what_to_do(export):
     folder = next(f for f in find_recordings(export[0]) if "demonstration" in f.name)
     with pytest.raises(RecordingError, match="shows the canvas's four red markers.*hold the phone still above"):

@@ -17,11 +17,11 @@ import numpy as np
 from PIL import Image
 
 from bpp.benchmarks.draw3d.dataset import BENCHMARK as NAME
-from bpp.benchmarks.draw3d.dataset import GOAL_KEY, PLACEMENT, PRESETS, Draw3DConfig, generate, random_placement
+from bpp.benchmarks.draw3d.dataset import GOAL_KEY, PRESETS, Draw3DConfig, generate, random_placement
+from bpp.benchmarks.draw3d.phone import strokes_where
 from bpp.benchmarks.draw3d.rollouts import run_rollouts
-from bpp.benchmarks.draw3d.scene import CONTROL_HZ, canvas_transform
+from bpp.benchmarks.draw3d.scene import CONTROL_HZ
 from bpp.core.contract import Metric, RolloutResult, TaskSet
-from bpp.core.poses import invert
 from bpp.data.frames import stored_frames
 from bpp.data.spec import ObservationPreset
 from bpp.data.store import EpisodeStore, stored_with
@@ -133,15 +133,10 @@ class DrawAnythingReal:
         return run_rollouts(agent, store, rollouts, max_steps, record_frames)
 
     def prompt_picture(self, store: EpisodeStore, episode: int, size: int = 256) -> np.ndarray:
-        """The demonstration's ink on the canvas (from its pen poses where the pen touched), upright."""
-        data = store.episode(episode, ["tip_pose", "pen_down"])
-        columns = {k: float(store.column(f"canvas_{k}")[episode]) for k in PLACEMENT}
-        canvas = canvas_transform(columns["u"], columns["v"], columns["angle"])
-        tips = np.c_[data["tip_pose"][:, :3].astype(np.float64), np.ones(len(data["tip_pose"]))]
-        points = (invert(canvas) @ tips.T)[:2].T
-        down = data["pen_down"][:, 0] > 0.5
-        strokes = [points[run] for run in np.split(np.arange(len(points)), np.flatnonzero(np.diff(down)) + 1)
-                   if down[run[0]] and len(run) > 1]  # fmt: skip
+        """The demonstration's ink on the canvas (from its pen poses in the canvas's frame where the pen touched),
+        upright: an arm's demonstration or a phone's (``bpp draw3d from-iphumi``)."""
+        data = store.episode(episode, ["tip_in_canvas", "pen_down"])
+        strokes = strokes_where(data["tip_in_canvas"][:, :2].astype(np.float64), data["pen_down"][:, 0] > 0.5)
         mask = ink_mask([unit_to_canvas(canvas_to_drawing(s), 0.0) for s in strokes])
         picture = np.where(mask[..., None], np.uint8(20), np.uint8(245)).repeat(3, axis=2)
 

@@ -1,12 +1,16 @@
-"""``bpp draw3d calibration``: a lab's camera calibration checked against touched markers (``bpp draw3d generate`` is
-generic)."""
+"""``bpp draw3d calibration``: a lab's camera calibration checked against touched markers; ``bpp draw3d from-iphumi``:
+drawings recorded with an iPhUMI phone as demonstrations (``bpp draw3d generate`` is generic)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Annotated
+
+import tyro
 
 from bpp.benchmarks.draw3d.calibration import CameraCalibration, check_calibration, read_touched, simulated_lab
+from bpp.benchmarks.draw3d.phone import START_HEIGHT, from_iphumi
 from bpp.errors import UserError, require_extra
 
 
@@ -66,4 +70,47 @@ def draw3d_calibration(args: Draw3DCalibration) -> None:
         raise UserError(f"{calibration}: the calibration does not agree with the touched markers")
 
 
-COMMANDS = {"calibration": (Draw3DCalibration, draw3d_calibration)}
+@dataclass(frozen=True)
+class Draw3DFromIphumi:
+    """Turn drawings recorded with an iPhUMI phone on the marked canvas into demonstrations of this benchmark: the
+    pen's poses in the canvas's frame, whether it inks, the ink so far, and a Goal-Image goal photo of the ink on the
+    simulated board. The recordings are processed first with bpp iphumi process --canvas --fps 20. Merge the result
+    with the scripted arm's (bpp store merge) to train on both, or evaluate with it to prompt with the phone's
+    drawings (bpp eval RUN --tasks STORE); a policy trained on both observes with --obs canvas.
+
+    Examples:
+      bpp iphumi process exports/drawings --canvas --fps 20 --out data/iphumi/drawings.zarr
+      bpp draw3d from-iphumi data/iphumi/drawings.zarr --out data/draw3d/phone.zarr
+    """
+
+    source: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="PROCESSED_STORE")] = Path()
+    out: Path = Path("data/draw3d/phone.zarr")
+    """Store to write (a .zarr folder)."""
+    goal_size: int = 64
+    """Side (px) of each demonstration's goal photo of the board (0: none)."""
+    start_height: float = START_HEIGHT
+    """Steps before the pen first comes this close to the canvas (m), the phone held up to look at it, are left out."""
+    seed: int = 0
+    """The goal photos' canvas placements."""
+    overwrite: bool = False
+    """Replace an existing store."""
+
+
+def draw3d_from_iphumi(args: Draw3DFromIphumi) -> None:
+    if str(args.source) in ("", "."):
+        raise UserError("give the processed iPhUMI store (bpp iphumi process --canvas --fps 20 ... --out STORE)")
+    store = from_iphumi(
+        args.source,
+        args.out,
+        goal_size=args.goal_size,
+        start_height=args.start_height,
+        seed=args.seed,
+        overwrite=args.overwrite,
+    )
+    print(f"[draw3d] {store.num_episodes} demonstrations of {store.num_tasks} drawings -> {args.out}")
+
+
+COMMANDS = {
+    "calibration": (Draw3DCalibration, draw3d_calibration),
+    "from-iphumi": (Draw3DFromIphumi, draw3d_from_iphumi),
+}

@@ -277,6 +277,19 @@ class Scene:
             cv2.line(self._paper, a, b, (25, 25, 30), 2, lineType=cv2.LINE_AA)
             self._paper_dirty = True
 
+    def paint(self, polylines) -> None:
+        """Ink `polylines` ((N, 2) points in the canvas frame, metres) onto the canvas, as the pen would have drawn
+        them (a demonstration made elsewhere, photographed here)."""
+        # OpenCV: the iphumi extra
+        import cv2
+
+        for line in polylines:
+            points = np.asarray(line, dtype=np.float64)
+            for a, b in zip(points[:-1], points[1:], strict=True):
+                cv2.line(self._paper, _texture_px(a), _texture_px(b), (25, 25, 30), 2, lineType=cv2.LINE_AA)
+            self.ink.strokes.append(list(points))
+        self._paper_dirty = True
+
     # ------------------------------------------------------------------ cameras
     def render(self, camera: str, size: int | None = None) -> np.ndarray:
         """An RGB frame (size, size, 3) uint8 of camera ``wrist`` or ``scene``, with the ink drawn so far."""
