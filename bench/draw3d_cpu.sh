@@ -5,26 +5,60 @@
 #
 #   bash bench/draw3d_cpu.sh            # TASKS=60 DEMOS=3 STEPS=3000 HUMAN=10 ROLLOUTS=2 OBS=state by default
 #   OBS=canvas METHODS=bpp WORKERS=1 bash bench/draw3d_cpu.sh      # one method, in the canvas's frame, on one core
+#   OBS=canvas PHONE=40 PROMPTS=phone bash bench/draw3d_cpu.sh     # the real setup's loop, with a synthetic phone
 #
 # HUMAN of the 50 human-made drawings are evaluated, spread evenly. One thread per process; the methods train and
 # evaluate side by side (2 cores), generation runs on WORKERS processes.
+#
+# PHONE=K adds K more procedural drawings x DEMOS, drawn by a person with an iPhUMI phone (synthetic recordings on the
+# marked canvas, processed with --canvas and converted with bpp draw3d from-iphumi), to the training data (OBS=canvas:
+# the phone has no robot base frame). PROMPTS=phone prompts with phone recordings of the human-made drawings instead
+# of the arm's demonstrations of them (PROMPTS=both: each policy is evaluated with both).
 set -euo pipefail
 TASKS=${TASKS:-60} DEMOS=${DEMOS:-3} STEPS=${STEPS:-3000} HUMAN=${HUMAN:-10} ROLLOUTS=${ROLLOUTS:-2}
-OBS=${OBS:-state} METHODS=${METHODS:-bpp goal_image} WORKERS=${WORKERS:-2}
-DATA=${DATA:-data/draw3d} RUNS=${RUNS:-runs/draw3d-cpu-$OBS}
+OBS=${OBS:-state} METHODS=${METHODS:-bpp goal_image} WORKERS=${WORKERS:-2} PHONE=${PHONE:-0} PROMPTS=${PROMPTS:-arm}
+with_phone=""; [ "$PHONE" -gt 0 ] && with_phone="-phone$PHONE"
+DATA=${DATA:-data/draw3d} RUNS=${RUNS:-runs/draw3d-cpu-$OBS$with_phone}
 export OMP_NUM_THREADS=1 MUJOCO_GL=${MUJOCO_GL:-egl}
 BPP=${BPP:-bpp}
 train="$DATA/procedural-${TASKS}x${DEMOS}.zarr"
 human="$DATA/human.zarr"  # DrawAnything's 50 human-made drawings, one demonstration each (the prompts)
 [ -d "$train" ] || $BPP draw3d generate --preset cpu --num-tasks "$TASKS" --demos-per-task "$DEMOS" --workers "$WORKERS" --out "$train"
 [ -d "$human" ] || $BPP draw3d generate --preset cpu --source human --demos-per-task 1 --workers "$WORKERS" --out "$human"
+phone() {  # phone NAME SYNTH_OPTIONS...: synthetic iPhUMI drawings on the marked canvas -> $DATA/phone-NAME.zarr
+  local name=$1; shift
+  [ -d "$DATA/phone-$name.zarr" ] && return
+  rm -rf "$DATA/phone-$name-export"
+  $BPP iphumi synth "$DATA/phone-$name-export" --canvas --main-size 320 240 "$@"
+  $BPP iphumi process "$DATA/phone-$name-export" --canvas --fps 20 --workers "$WORKERS" --overwrite \
+    --out "$DATA/phone-$name-processed.zarr"
+  $BPP draw3d from-iphumi "$DATA/phone-$name-processed.zarr" --out "$DATA/phone-$name.zarr"
+}
+if [ "$PHONE" -gt 0 ]; then
+  phone "procedural-${PHONE}x${DEMOS}" --tasks "$PHONE" --demonstrations $((PHONE * DEMOS)) --seed 11
+  mixed="$DATA/procedural-${TASKS}x${DEMOS}-phone-${PHONE}x${DEMOS}.zarr"
+  [ -d "$mixed" ] || $BPP store merge "$train" "$DATA/phone-procedural-${PHONE}x${DEMOS}.zarr" --out "$mixed"
+  train=$mixed
+fi
+prompts=()
+case $PROMPTS in
+  arm) prompts=(arm) ;;
+  phone) prompts=(phone) ;;
+  both) prompts=(arm phone) ;;
+  *) echo "PROMPTS must be arm, phone or both" >&2; exit 2 ;;
+esac
+[[ " ${prompts[*]} " == *" phone "* ]] && phone human --drawings human --tasks 50 --demonstrations 50 --seed 12
 for method in $METHODS; do
   $BPP train --data "$train" --out "$RUNS/$method" --method "$method" --preset cpu --obs "$OBS" --steps "$STEPS" \
     --threads 1 --workers 0 &
 done
 wait
-for method in $METHODS; do
-  $BPP eval "$RUNS/$method" --tasks "$human" --num-tasks "$HUMAN" --rollouts "$ROLLOUTS" --workers 1 --videos 1 \
-    --out "$RUNS/$method-eval" &
+for prompt in "${prompts[@]}"; do
+  tasks=$human suffix=""
+  [ "$prompt" = phone ] && tasks="$DATA/phone-human.zarr" suffix="-phone"
+  for method in $METHODS; do
+    $BPP eval "$RUNS/$method" --tasks "$tasks" --num-tasks "$HUMAN" --rollouts "$ROLLOUTS" --workers 1 --videos 1 \
+      --out "$RUNS/$method-eval$suffix" &
+  done
+  wait
 done
-wait

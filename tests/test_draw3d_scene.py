@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports MuJoCo (robosuite does)
 
@@ -139,3 +141,15 @@ def test_the_canvas_pose_is_found_from_the_scene_cameras_photo(scene, placement)
     )
     position, angle = pose_error(found, canvas)
     assert position < 6e-3 and angle < 0.5, (position, angle)  # markers about 10 px across at 480 px
+
+
+def test_torch_s_triton_loads_after_the_scene_has_rendered():
+    # Mesa's renderer and triton each bring an LLVM: triton loaded after an OpenGL context once crashed the process
+    # (torch loads it when diffusers is first imported, e.g. by a policy built after the scene rendered).
+    script = (
+        "from bpp.benchmarks.draw3d.scene import Scene, canvas_transform\n"
+        "scene = Scene(image_size=16)\nscene.reset(canvas_transform(0.0, 0.0, 0.0))\nscene.render('scene')\n"
+        "import triton, torch._dynamo\nprint('ok')"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", (done.returncode, done.stderr[-2000:])

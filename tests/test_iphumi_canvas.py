@@ -13,10 +13,10 @@ from helpers import import_optional
 pytestmark = pytest.mark.iphumi
 import_optional("cv2", "iphumi")
 
-from bpp.benchmarks.iphumi import pipeline  # noqa: E402
+from bpp.benchmarks.iphumi import pipeline, synthetic  # noqa: E402
 from bpp.benchmarks.iphumi.process import ProcessSettings  # noqa: E402
 from bpp.benchmarks.iphumi.recording import find_recordings  # noqa: E402
-from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, _task_path, write_export  # noqa: E402
+from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
 from bpp.cli import main  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
 from bpp.drawing.drawing import task_drawing  # noqa: E402
@@ -84,6 +84,6 @@ def test_processed_drawings_become_the_arm_s_demonstrations_with_its_keys_and_th
     assert picture.min() < 100 and picture.max() > 200  # ink on paper
     # each task's drawing is the synthetic drawing the phone traced, up to the measurement (DrawAnything px)
     for task in range(store.num_tasks):
-        traced = int(store.tasks[task]["id"].rsplit("-", 1)[-1])  # the label "draw task N"
-        _, _, strokes = _task_path(traced, SEED, canvas=True)
-        assert ink_chamfer([drawing_to_canvas(s) for s in task_drawing(store, task).strokes], strokes) < 2.0
+        _, traced = synthetic.task_drawing(int(store.tasks[task]["id"].rsplit("-", 1)[-1]), SEED)  # "draw task N"
+        ink = [drawing_to_canvas(s) for s in task_drawing(store, task).strokes]
+        assert ink_chamfer(ink, traced.strokes) < 2.0

@@ -3,7 +3,9 @@ all (:func:`bpp.utils.atomic_path`)."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -11,6 +13,17 @@ import numpy as np
 from PIL import Image
 
 from bpp.utils import atomic_path
+
+
+def headless_opengl() -> None:
+    """Call before a process's first OpenGL context: MuJoCo renders headless through EGL unless ``MUJOCO_GL`` says
+    otherwise, and triton is loaded first. Mesa's software renderer links the system's LLVM, and so does triton (which
+    comes with torch's wheels and which torch loads lazily, e.g. when diffusers imports ``torch._dynamo``): loading
+    triton after a GL context exists crashes the process, loading it first is safe."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    with contextlib.suppress(ImportError):
+        # triton: before any OpenGL context, see above
+        import triton._C.libtriton  # noqa: F401
 
 
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:

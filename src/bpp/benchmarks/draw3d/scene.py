@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 from bpp.core.poses import invert, make_pose, vector_to_pose
 from bpp.drawing.marked_canvas import CANVAS_SIDE, MARKER_SIDE
 from bpp.errors import require_extra
+from bpp.media import headless_opengl
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless OpenGL (Mesa); MuJoCo reads it when first imported
 
@@ -166,6 +167,7 @@ class Scene:
     """The simulated arm, board and canvas. ``reset`` places the canvas, ``step`` takes a relative pen action."""
 
     def __init__(self, image_size: int = 96):
+        headless_opengl()
         # MuJoCo: the libero extra
         import mujoco
 

@@ -29,6 +29,8 @@ from bpp.benchmarks.iphumi.align import MOUNTS
 from bpp.benchmarks.iphumi.recording import DEPTH_SHAPE, find_recordings
 from bpp.benchmarks.iphumi.video import write_video
 from bpp.core.poses import invert, make_pose
+from bpp.drawing.drawing import Drawing
+from bpp.drawing.human import HUMAN_GLYPHS, human_drawings
 from bpp.drawing.marked_canvas import DRAW_SIDE, render_canvas
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
 from bpp.errors import UserError
@@ -79,6 +81,8 @@ class SyntheticSettings:
     """Main camera video (width, height), even numbers of pixels (H.264) in [16, 4096]; the app records 1920x1440."""
     canvas: bool = False
     """Trace each drawing on DrawAnything-Real's marked canvas, the phone first held above it (single arm)."""
+    drawings: str = "procedural"
+    """procedural (DrawAnything's generator) or human (its 50 human-made drawings: task i draws the i-th)."""
     session: str = "synthetic"
     """The data-collection session's name, part of every folder name: letters, digits, '.' and '-'."""
     seed: int = 0
@@ -102,6 +106,7 @@ class SyntheticSettings:
             ),
             ("seed", self.seed >= 0, ">= 0"),
             ("canvas", not (self.canvas and (self.bimanual or self.head)), "without --bimanual and --head"),
+            ("drawings", self.drawings in ("procedural", "human"), "procedural or human"),
             (
                 "main_size",
                 not self.canvas or all(v >= m for v, m in zip(self.main_size, CANVAS_MAIN_SIZE, strict=True)),
@@ -139,25 +144,27 @@ def _rotation_y(angle: float) -> np.ndarray:
     return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
 
 
-def _task_path(task: int, seed: int, canvas: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A task's drawing as (positions (M, 3) in the canvas frame: x, y on the table, z up; pen down (M,) bool;
-    the strokes for the camera picture). With `canvas`, at the marked canvas's drawing size, from a look at it."""
+def task_drawing(task: int, seed: int, drawings: str = "procedural") -> tuple[str, Drawing]:
+    """Task `task`'s (label, drawing): a procedural one of `seed`, or DrawAnything's human-made drawing number
+    `task` (of 50, cyclically)."""
+    if drawings == "human":
+        drawing = human_drawings()[task % len(HUMAN_GLYPHS)]
+        return f"draw {drawing.id}", drawing
     drawing, _ = generate_drawing(np.random.default_rng([seed, task]), ProceduralConfig(max_parts=3), f"task{task}")
+    return f"draw task {task}", drawing
+
+
+def _task_path(drawing: Drawing, canvas: bool = False) -> np.ndarray:
+    """A drawing traced: positions (M, 3) in the canvas frame (x, y on the table, z up), the pen lifted between
+    strokes. With `canvas`, at the marked canvas's drawing size, from a look at it."""
     side = DRAW_SIDE if canvas else CANVAS
-    points, down = [np.array([0.5, 0.5, HOVER / side])], [False]
-    if canvas:
-        points, down = [np.array([0.5, 0.5, LOOK / side]), *points], [False, *down]
-    for stroke in drawing.strokes:
-        start = np.append(stroke[0], LIFT / side)
-        points += [start, np.append(stroke[0], 0.0)]
-        down += [False, False]
-        points += [np.append(p, 0.0) for p in stroke[1:]]
-        down += [True] * (len(stroke) - 1)
-        points.append(np.append(stroke[-1], LIFT / side))
-        down.append(False)
+    points = [np.array([0.5, 0.5, LOOK / side])] if canvas else []
     points.append(np.array([0.5, 0.5, HOVER / side]))
-    down.append(False)
-    return (np.asarray(points) - [0.5, 0.5, 0.0]) * side, np.asarray(down), drawing.strokes
+    for stroke in drawing.strokes:
+        points += [np.append(stroke[0], LIFT / side), *(np.append(p, 0.0) for p in stroke)]
+        points.append(np.append(stroke[-1], LIFT / side))
+    points.append(np.array([0.5, 0.5, HOVER / side]))
+    return (np.asarray(points) - [0.5, 0.5, 0.0]) * side
 
 
 def _trace(path: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -214,13 +221,14 @@ def write_export(out: str | Path, settings: SyntheticSettings = SyntheticSetting
             # offset)
             local, positions, labels, widths, looking, t = [], [], [], [], [], 0.0
             for task in tasks:
-                path, _, _ = _task_path(task, settings.seed, settings.canvas)
+                label, drawing = task_drawing(task, settings.seed, settings.drawings)
+                path = _task_path(drawing, settings.canvas)
                 duration = _segment_seconds(path) + 2 * GRASP
                 steps = np.arange(0.0, duration, 1 / 60)
                 positions.append(_trace(path, np.clip(steps - GRASP, 0, None)))
                 widths.append(_opening(steps, duration))
                 looking.append(steps < GRASP if settings.canvas else np.zeros(len(steps), bool))
-                labels.append((f"draw task {task}", t, t + duration))
+                labels.append((label, t, t + duration))
                 local.append(t + steps)
                 t += duration + 0.5
             number = rng.integers(10000, 99999)

@@ -29,6 +29,7 @@ import numpy as np
 
 from bpp.benchmarks.libero.substeps import pre_action
 from bpp.errors import UserError
+from bpp.media import headless_opengl
 
 
 class LiberoUnavailable(UserError):
@@ -56,13 +57,8 @@ def _check_renderer() -> None:
 
 
 def _libero():
-    os.environ.setdefault("MUJOCO_GL", "egl")
+    headless_opengl()
     _check_renderer()
-    # Mesa's software renderer links its own LLVM, and so does triton (which torch loads lazily, e.g. on its first
-    # optimizer step): loading triton after a GL context exists crashes the process, loading it first is safe.
-    with contextlib.suppress(ImportError):
-        # triton: before LIBERO, see above
-        import triton._C.libtriton  # noqa: F401
     try:
         # LIBERO: the libero extra
         import libero.libero as libero
