@@ -13,9 +13,7 @@ from helpers import import_optional
 pytestmark = pytest.mark.iphumi
 import_optional("cv2", "iphumi")
 
-from bpp.benchmarks.iphumi import pipeline, synthetic  # noqa: E402
-from bpp.benchmarks.iphumi.process import ProcessSettings  # noqa: E402
-from bpp.benchmarks.iphumi.recording import find_recordings  # noqa: E402
+from bpp.benchmarks.iphumi import synthetic  # noqa: E402
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export  # noqa: E402
 from bpp.cli import main  # noqa: E402
 from bpp.data.store import EpisodeStore  # noqa: E402
@@ -27,31 +25,36 @@ SEED = 5
 
 @pytest.fixture(scope="module")
 def canvas_export(tmp_path_factory):
-    """One demonstration of two drawings on the marked canvas, the phone held above it as each starts; the gripper
-    calibrations are cached in a folder of this module's own."""
+    """One demonstration of two drawings on the marked canvas, the phone held above it as each starts, and its store
+    processed with --canvas at the arm's 20 Hz (one episode a drawing); the gripper calibrations are cached in a
+    folder of this module's own."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("BPP_CACHE", str(tmp_path_factory.mktemp("cache")))
-        out = tmp_path_factory.mktemp("iphumi-canvas") / "export"
-        settings = SyntheticSettings(1, 2, 2, canvas=True, main_size=(320, 240), seed=SEED)
-        yield out, write_export(out, settings)
+        out = tmp_path_factory.mktemp("iphumi-canvas")
+        truths = write_export(out / "export", SyntheticSettings(1, 2, 2, canvas=True, main_size=(320, 240), seed=SEED))
+        main(["iphumi", "process", str(out / "export"), "--canvas", "--fps", "20", "--out", str(out / "phone.zarr"),
+              "--workers", "1"])  # fmt: skip
+        yield next(iter(truths.values())), EpisodeStore(out / "phone.zarr")
 
 
 def test_a_drawing_is_written_in_the_frame_of_the_canvas_the_phone_measured(canvas_export):
-    folder = next(f for f in find_recordings(canvas_export[0]) if "demonstration" in f.name)
-    episode = pipeline.process_one(folder, ProcessSettings(canvas=True, fps=20))
-    truth = canvas_export[1][folder.name]
-    steps = episode["steps"]
-    tcp, _ = truth.motion(truth.times[0] + np.arange(len(steps["pose"])) / 20)
-    expected = invert(truth.canvas) @ tcp
-    tip = vector_to_pose(steps["tip_in_canvas"].astype(np.float64))
-    error_mm = np.linalg.norm(tip[:, :3, 3] - expected[:, :3, 3], axis=1) * 1e3
-    assert np.median(error_mm) < 2.0 and error_mm.max() < 5.0, (np.median(error_mm), error_mm.max())
-    assert rotation_angle(tip[:, :3, :3], expected[:, :3, :3]).max() < np.deg2rad(1.0)
-    # the pen touches the canvas (z = 0) while drawing; the canvas is one pose, in the frame of the episode's poses
-    assert np.abs(steps["tip_in_canvas"][:, 2]).min() < 0.002 and steps["tip_in_canvas"][0, 2] > 0.3
-    canvas = vector_to_pose(steps["canvas_pose"].astype(np.float64))
-    np.testing.assert_allclose(canvas, canvas[:1].repeat(len(canvas), 0), atol=1e-6)
-    np.testing.assert_allclose(invert(canvas) @ vector_to_pose(steps["pose"].astype(np.float64)), tip, atol=1e-4)
+    truth, store = canvas_export
+    assert store.num_episodes == 2
+    for episode in range(store.num_episodes):
+        steps = store.episode(episode, ["pose", "canvas_pose", "tip_in_canvas"])
+        start = truth.times[0] + float(store.column("start_s")[episode])
+        tcp, _ = truth.motion(start + np.arange(len(steps["pose"])) / 20)
+        expected = invert(truth.canvas) @ tcp
+        tip = vector_to_pose(steps["tip_in_canvas"].astype(np.float64))
+        error_mm = np.linalg.norm(tip[:, :3, 3] - expected[:, :3, 3], axis=1) * 1e3
+        assert np.median(error_mm) < 2.0 and error_mm.max() < 5.0, (np.median(error_mm), error_mm.max())
+        assert rotation_angle(tip[:, :3, :3], expected[:, :3, :3]).max() < np.deg2rad(1.0)
+        # the pen touches the canvas (z = 0) while drawing, after the look at it from above
+        assert np.abs(steps["tip_in_canvas"][:, 2]).min() < 0.002 and steps["tip_in_canvas"][0, 2] > 0.3
+        # the canvas is one pose, in the frame of the episode's poses
+        canvas = vector_to_pose(steps["canvas_pose"].astype(np.float64))
+        np.testing.assert_allclose(canvas, canvas[:1].repeat(len(canvas), 0), atol=1e-6)
+        np.testing.assert_allclose(invert(canvas) @ vector_to_pose(steps["pose"].astype(np.float64)), tip, atol=1e-4)
 
 
 @pytest.mark.libero
@@ -59,10 +62,8 @@ def test_processed_drawings_become_the_arm_s_demonstrations_with_its_keys_and_th
     from bpp.benchmarks.draw3d.benchmark import BENCHMARK  # MuJoCo: the libero extra
     from bpp.benchmarks.draw3d.demonstrator import ink_chamfer
 
-    processed, converted = tmp_path / "phone.zarr", tmp_path / "draw3d.zarr"
-    main(["iphumi", "process", str(canvas_export[0]), "--canvas", "--fps", "20", "--out", str(processed),
-          "--workers", "1"])  # fmt: skip
-    main(["draw3d", "from-iphumi", str(processed), "--out", str(converted), "--goal-size", "32"])
+    converted = tmp_path / "draw3d.zarr"
+    main(["draw3d", "from-iphumi", str(canvas_export[1].path), "--out", str(converted), "--goal-size", "32"])
     store = EpisodeStore(converted)
     assert store.benchmark == "draw3d" and store.num_tasks == 2 and store.num_episodes == 2
     assert set(store.keys) == {"tip_pose", "tip_in_canvas", "target_in_canvas", "canvas_pose", "ink_length",
