@@ -23,6 +23,7 @@ random placement on the simulated board (:data:`~bpp.benchmarks.draw3d.dataset.G
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -112,13 +113,18 @@ def from_iphumi(
         raise UserError(f"{store.path}: processed at {store.config.get('fps')} Hz; the arm acts at {CONTROL_HZ:g} Hz "
                         f"(bpp iphumi process --fps {CONTROL_HZ:g})")  # fmt: skip
     rng, press = np.random.default_rng(seed), ScriptConfig().press
-    scene = Scene() if goal_size else None
     config = {"source": "iphumi", "iphumi_store": str(store.path), "cameras": [], "goal_size": goal_size, "seed": seed}
     tasks: dict[int, tuple[int, Drawing]] = {}
-    with EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer:
+    with (
+        contextlib.closing(Scene()) if goal_size else contextlib.nullcontext() as scene,
+        EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer,
+    ):
         episodes = range(store.num_episodes)
         for episode in tqdm(episodes, desc=f"converting {Path(source).name}", unit="episode", disable=not progress):
-            steps = episode_steps(store.episode(episode, list(NEEDED)), press, start_height)
+            try:
+                steps = episode_steps(store.episode(episode, list(NEEDED)), press, start_height)
+            except UserError as err:
+                raise UserError(f"{store.path}, episode {episode}: {err}") from None
             _, ink = ink_of(steps["tip_in_canvas"])
             task = int(store.column("task_index")[episode])
             if task not in tasks:
@@ -132,7 +138,4 @@ def from_iphumi(
             if scene is not None:
                 columns[GOAL_KEY] = goal_photo(scene, ink, placement, goal_size)
             writer.add_episode(steps, index, **columns)
-        converted = writer.close()
-    if scene is not None:
-        scene.close()
-    return converted
+        return writer.close()
