@@ -93,6 +93,13 @@ def goal_photo(scene: Scene, ink: list[np.ndarray], placement: dict, size: int) 
     return scene.render("scene", size)
 
 
+def recorded_order(store: EpisodeStore) -> list[int]:
+    """The episodes of a processed iPhUMI store in the order they were recorded (its demonstrations' names begin with
+    their start time; a demonstration's segments by their start)."""
+    names, starts = store.config["demonstrations"], store.column("start_s")[:]
+    return sorted(range(store.num_episodes), key=lambda e: (names[e], float(starts[e])))
+
+
 def from_iphumi(
     source: str | Path,
     out: str | Path,
@@ -104,7 +111,8 @@ def from_iphumi(
     progress: bool = True,
 ) -> EpisodeStore:
     """Every episode of the processed iPhUMI store `source` (``bpp iphumi process --canvas --fps 20``) as a
-    DrawAnything-Real episode in the store `out` (atomically)."""
+    DrawAnything-Real episode in the store `out` (atomically), in the order they were recorded, so that the tasks are
+    in the order of their first recording."""
     store = EpisodeStore(source)
     missing = [key for key in NEEDED if key not in store.keys]
     if missing or not store.config.get("settings", {}).get("canvas"):
@@ -119,8 +127,8 @@ def from_iphumi(
         contextlib.closing(Scene()) if goal_size else contextlib.nullcontext() as scene,
         EpisodeWriter(out, benchmark=BENCHMARK, config=config, overwrite=overwrite) as writer,
     ):
-        episodes = range(store.num_episodes)
-        for episode in tqdm(episodes, desc=f"converting {Path(source).name}", unit="episode", disable=not progress):
+        bar = tqdm(recorded_order(store), desc=f"converting {Path(source).name}", unit="episode", disable=not progress)
+        for episode in bar:
             try:
                 steps = episode_steps(store.episode(episode, list(NEEDED)), press, start_height)
             except UserError as err:
