@@ -90,7 +90,8 @@ def main() -> None:
         rate = s["successes"] / max(1, s["rollouts"])
         low, high = wilson(s["successes"], s["rollouts"])
         ax.bar(i, 100 * rate, color=COLOURS.get(method, "tab:grey"), alpha=0.8)
-        ax.errorbar(i, 100 * rate, yerr=[[100 * (rate - low)], [100 * (high - rate)]], color="black", capsize=4)
+        below, above = max(0.0, rate - low), max(0.0, high - rate)  # 0 successes: the bound may round above 0
+        ax.errorbar(i, 100 * rate, yerr=[[100 * below], [100 * above]], color="black", capsize=4)
         goal = GOALS.get(rung[:1])
         if goal is not None and method == "BPP":  # the rungs' goals are BPP's
             ax.hlines(goal, i - 0.45, i + 0.45, color="tab:red", linestyle="--", linewidth=1.2)
