@@ -7,7 +7,7 @@ whose cache links the same wheels into each new environment (seconds, where pip 
 recipe): it must bring exactly the distributions tests/test_extras.py checks that extra with, and the modules bpp
 imports from them must import; from the ranges alone it must resolve too. `make test` builds the environments of the
 other two (`.[all]`: .venv; `.[lerobot]`: .venv-lerobot) for real. Needs the package index, as any install does; the
-first run fills uv's cache (about 6 GB, a minute)."""
+first run fills uv's cache (6.1 GB)."""
 
 from __future__ import annotations
 
