@@ -10,7 +10,7 @@ import pytest
 from bpp.core.poses import invert, rotation_angle, vector_to_pose
 from helpers import import_optional
 
-pytestmark = pytest.mark.iphumi
+pytestmark = [pytest.mark.iphumi, pytest.mark.slow]  # a synthetic export and its processing
 import_optional("cv2", "iphumi")
 
 from bpp.benchmarks.iphumi import synthetic  # noqa: E402
