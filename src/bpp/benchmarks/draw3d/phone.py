@@ -56,19 +56,21 @@ def ink_of(tip_in_canvas: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
     return down, strokes_where(tip[:, :2], down)
 
 
-def episode_steps(source: dict[str, np.ndarray], press: float, start_height: float = START_HEIGHT) -> dict:
-    """One processed iPhUMI episode's steps -> the steps of a DrawAnything-Real episode (see the module)."""
+def episode_steps(
+    source: dict[str, np.ndarray], press: float, start_height: float = START_HEIGHT
+) -> tuple[dict, list[np.ndarray]]:
+    """One processed iPhUMI episode's steps -> (the steps of a DrawAnything-Real episode (see the module), its ink)."""
     near = np.flatnonzero(source["tip_in_canvas"][:, 2] <= start_height)
     if not len(near):
         raise UserError(f"the pen never comes within {start_height} m of the canvas")
     kept = {key: np.asarray(value)[near[0] :] for key, value in source.items()}
     tip = kept["tip_in_canvas"].astype(np.float64)
-    down, _ = ink_of(tip)
+    down, ink = ink_of(tip)
     segment = np.linalg.norm(np.diff(tip[:, :3], axis=0), axis=1) * (down[1:] & down[:-1])
     target = np.concatenate([tip[1:], tip[-1:]])
     target[:, 2] -= press * np.concatenate([down[1:], down[-1:]])
     zero = np.zeros((len(tip), 1))
-    return {
+    steps = {
         "tip_pose": kept["pose"].astype(np.float32),
         "tip_in_canvas": tip.astype(np.float32),
         "target_in_canvas": np.concatenate([target, zero], axis=1).astype(np.float32),
@@ -77,6 +79,7 @@ def episode_steps(source: dict[str, np.ndarray], press: float, start_height: flo
         "pen_down": down[:, None].astype(np.float32),
         "action": np.concatenate([relative_actions(vector_to_pose(tip)), zero], axis=1).astype(np.float32),
     }
+    return steps, ink
 
 
 def drawing_of(task_id: str, ink: list[np.ndarray]) -> Drawing:
@@ -130,10 +133,9 @@ def from_iphumi(
         bar = tqdm(recorded_order(store), desc=f"converting {Path(source).name}", unit="episode", disable=not progress)
         for episode in bar:
             try:
-                steps = episode_steps(store.episode(episode, list(NEEDED)), press, start_height)
+                steps, ink = episode_steps(store.episode(episode, list(NEEDED)), press, start_height)
             except UserError as err:
                 raise UserError(f"{store.path}, episode {episode}: {err}") from None
-            _, ink = ink_of(steps["tip_in_canvas"])
             task = int(store.column("task_index")[episode])
             if task not in tasks:
                 name = store.tasks[task]["id"]

@@ -272,25 +272,24 @@ class Scene:
         previous = self.ink.strokes[-1][-1] if self.ink.down and self.ink.strokes else None
         self.ink.add(point[:2], touching)
         if touching and previous is not None:
-            # OpenCV: the iphumi extra
-            import cv2
+            self._ink_line(previous, point[:2])
 
-            a, b = (_texture_px(p) for p in (previous, point[:2]))
-            cv2.line(self._paper, a, b, (25, 25, 30), 2, lineType=cv2.LINE_AA)
-            self._paper_dirty = True
+    def _ink_line(self, a: np.ndarray, b: np.ndarray) -> None:
+        """Paint the ink from canvas point `a` to `b` (metres) into the canvas's texture."""
+        # OpenCV: the iphumi extra
+        import cv2
+
+        cv2.line(self._paper, _texture_px(a), _texture_px(b), (25, 25, 30), 2, lineType=cv2.LINE_AA)
+        self._paper_dirty = True
 
     def paint(self, polylines) -> None:
         """Ink `polylines` ((N, 2) points in the canvas frame, metres) onto the canvas, as the pen would have drawn
         them (a demonstration made elsewhere, photographed here)."""
-        # OpenCV: the iphumi extra
-        import cv2
-
         for line in polylines:
             points = np.asarray(line, dtype=np.float64)
             for a, b in zip(points[:-1], points[1:], strict=True):
-                cv2.line(self._paper, _texture_px(a), _texture_px(b), (25, 25, 30), 2, lineType=cv2.LINE_AA)
+                self._ink_line(a, b)
             self.ink.strokes.append(list(points))
-        self._paper_dirty = True
 
     # ------------------------------------------------------------------ cameras
     def render(self, camera: str, size: int | None = None) -> np.ndarray:
