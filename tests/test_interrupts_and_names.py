@@ -390,3 +390,32 @@ def test_a_command_interrupted_while_it_loads_ends_in_one_line(signum):
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 128 + signum and "Traceback" not in err, err[-3000:]
     assert re.fullmatch(rf"bpp( train)?: interrupted by {signal.Signals(signum).name}", err.strip()), err[-500:]
+
+
+_SIGNAL_INSIDE_A_FINALIZER = """
+import os, signal, sys, time
+from bpp.errors import Interrupted, raise_interrupted
+signal.signal(signal.SIGTERM, raise_interrupted)
+class Finalized:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGTERM)
+        for _ in range(100_000):  # the handler raises here, where Python can only ignore the exception
+            pass
+try:
+    Finalized()
+    time.sleep(20)
+    print("went on")
+except Interrupted as err:
+    print("stopped by", err.signum)
+"""
+
+
+@needs_proc
+def test_a_signal_raised_where_python_ignores_exceptions_still_stops_the_command():
+    """A signal that comes while a finalizer or an import lock's callback runs cannot stop the program there: it stops
+    it at the next ordinary line, without a traceback, instead of being lost."""
+    start = time.monotonic()
+    script = [sys.executable, "-c", _SIGNAL_INSIDE_A_FINALIZER]
+    done = subprocess.run(script, capture_output=True, text=True, timeout=60)
+    assert done.stdout.strip() == f"stopped by {int(signal.SIGTERM)}", done
+    assert "Traceback" not in done.stderr and time.monotonic() - start < 15, done

@@ -9,8 +9,11 @@ A command stopped by Ctrl-C (SIGINT) or SIGTERM ends with one line and the statu
 """
 
 import importlib
+import os
 import signal
+import sys
 import threading
+import time
 
 
 class UserError(ValueError):
@@ -32,7 +35,25 @@ def raise_interrupted(signum: int, frame) -> None:
     library's background thread that fails on the way down (torch's file-descriptor sharing, when a loader process it
     talks to is stopped) must not print a traceback after the one-line message."""
     threading.excepthook = lambda args: None
+    sys.unraisablehook = _send_again
     raise Interrupted(signum)
+
+
+def _send_again(unraisable) -> None:
+    """Python ignores an exception raised inside some callbacks (the import machinery's weakref callbacks, a
+    ``__del__``): an :class:`Interrupted` raised there would be lost and the command would go on. Send its signal
+    again, a moment later and from another thread, so that it is raised at the main thread's next ordinary line (once
+    more if that is another such callback); report any other exception as Python does."""
+    if isinstance(unraisable.exc_value, Interrupted):
+        threading.Thread(target=_send_later, args=(unraisable.exc_value.signum,), daemon=True).start()
+    else:
+        sys.__unraisablehook__(unraisable)
+
+
+def _send_later(signum: int) -> None:
+    """Send `signum` to this process once the hook that started this thread has returned."""
+    time.sleep(0.05)
+    os.kill(os.getpid(), signum)
 
 
 def require_extra(module: str, extra: str):
