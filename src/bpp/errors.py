@@ -45,9 +45,12 @@ def _send_again(unraisable) -> None:
     again, a moment later and from another thread, so that it is raised at the main thread's next ordinary line (once
     more if that is another such callback); report any other exception as Python does."""
     if isinstance(unraisable.exc_value, Interrupted):
-        threading.Thread(target=_send_later, args=(unraisable.exc_value.signum,), daemon=True).start()
-    else:
-        sys.__unraisablehook__(unraisable)
+        try:
+            threading.Thread(target=_send_later, args=(unraisable.exc_value.signum,), daemon=True).start()
+            return
+        except RuntimeError:  # the interpreter is already shutting down: nothing is left to stop
+            pass
+    sys.__unraisablehook__(unraisable)
 
 
 def _send_later(signum: int) -> None:
