@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from bpp.drawing.geometry import canvas_to_upright, unit_to_canvas
-from bpp.drawing.metric import EMPTY_DISTANCE, chamfer_distance, ink_mask
+from bpp.drawing.metric import EMPTY_DISTANCE, _segment_band, chamfer_distance, ink_mask, pen_band
+from bpp.drawing.raster import centers, polyline_segments
 
 
 def _line(y):
@@ -66,3 +67,18 @@ def test_incremental_tracker_matches_direct_computation(rng):
     for a, b in zip(walk[:-1], walk[1:], strict=True):
         score = tracker.add(ink.add(np.stack([a, b])))
         assert score == pytest.approx(chamfer_distance(target, ink.mask), rel=1e-9)
+
+
+def test_each_segment_inks_only_within_its_reach(rng):
+    """The pen's band is tested per segment near the segment only; over the whole canvas it inks exactly the same
+    pixels (a dense sub-pixel path, as a simulator records, and long segments at every slope)."""
+    dense = np.cumsum(rng.normal(0, 0.4, (600, 2)), axis=0) + 256
+    long = rng.uniform(-20, 530, (12, 2))
+    x = centers(512)
+    for path in (dense, long, np.array([[100.0, 100.0], [100.0, 100.0]])):
+        segments = polyline_segments(path)
+        everywhere = np.zeros((512, 512), bool)
+        for segment in segments:
+            everywhere |= _segment_band(x[None, :], x[:, None], segment)
+        assert np.array_equal(pen_band(x, x, segments), everywhere)
+        assert everywhere.any()
