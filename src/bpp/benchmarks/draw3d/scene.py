@@ -268,7 +268,7 @@ class Scene:
 
     def _rotation_vector(self, rotation: np.ndarray) -> np.ndarray:
         """The rotation vector (axis times angle, at most pi) of a rotation matrix, through MuJoCo's quaternions:
-        called at every physics step, where scipy's ``Rotation`` costs 25 times as much."""
+        called at every physics step, where scipy's ``Rotation`` costs many times as much."""
         quat, vector = np.empty(4), np.empty(3)
         self.mujoco.mju_mat2Quat(quat, np.ascontiguousarray(rotation).reshape(-1))
         self.mujoco.mju_quat2Vel(vector, quat, 1.0)
