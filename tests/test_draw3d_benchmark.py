@@ -112,6 +112,11 @@ def test_bpp_trains_on_it_and_bpp_eval_draws_on_new_canvas_placements(store, tmp
     assert all(np.isfinite(row["score"]) and row["canvas_pose_error_mm"] < 10 for row in rows)
     assert all(row["photo_found_canvas"] == 0 or abs(row["chamfer_from_photo"] - row["score"]) < 2 for row in rows)
     assert (out / "grid.png").is_file()
+    # a film ends on the canvas as the photo that scored it shows it, rectified upright: paper from edge to edge
+    film = iio.imread(next(p for p in out.glob("rollout_*") if p.suffix in (".mp4", ".gif")))
+    middle = slice(film.shape[1] // 4, 3 * film.shape[1] // 4)
+    if rows[0]["photo_found_canvas"]:
+        assert film[-1][middle, middle].mean() > 200 and film[-2][middle, middle].mean() < 200
 
 
 def test_bpp_acts_in_the_measured_canvas_frame_with_the_canvas_observations(store, tmp_path):

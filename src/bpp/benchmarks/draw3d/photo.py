@@ -70,16 +70,28 @@ def photo_ink_mask(rectified: np.ndarray) -> np.ndarray:
     return ndimage.distance_transform_edt(~dark) <= PEN_RADIUS_PX
 
 
+def photograph_canvas(scene, photo_size: int = 640) -> np.ndarray:
+    """(512, 512, 3) uint8: `scene`'s canvas as a lab would photograph it once a rollout has ended (the arm folded
+    away, the scene camera, the canvas pose from the markers), rectified onto DrawAnything's canvas: upright, as a
+    prompt's ink is drawn (:class:`bpp.drawing.marked_canvas.CanvasNotFound` if the markers do not give the pose).
+    The arm stays folded."""
+    scene.fold(ASIDE)
+    photo = scene.render("scene", photo_size)
+    intrinsics = scene.camera_intrinsics("scene", photo_size)
+    camera = scene.camera_pose("scene")
+    return rectify(photo, intrinsics, canvas_pose(photo, intrinsics, up=camera[:3, :3].T @ BOARD[:, 1]))
+
+
+def rectified_chamfer(rectified: np.ndarray, drawing_strokes) -> float:
+    """DrawAnything's Chamfer (px) of the ink in a rectified photo (:func:`photograph_canvas`) against
+    `drawing_strokes` (unit square)."""
+    target = ink_mask([unit_to_canvas(np.asarray(s), 0.0) for s in drawing_strokes])
+    return chamfer_distance(target, photo_ink_mask(rectified))
+
+
 def photo_chamfer(scene, drawing_strokes, photo_size: int = 640) -> float:
     """DrawAnything's Chamfer (px) of the ink on `scene`'s canvas against `drawing_strokes` (unit square), measured
     from a scene-camera photo with the arm folded away, as a lab would
     (:class:`bpp.drawing.marked_canvas.CanvasNotFound` if the markers do not give the canvas pose). The arm stays
     folded: call it once a rollout has ended."""
-    scene.fold(ASIDE)
-    photo = scene.render("scene", photo_size)
-    intrinsics = scene.camera_intrinsics("scene", photo_size)
-    camera = scene.camera_pose("scene")
-    pose = canvas_pose(photo, intrinsics, up=camera[:3, :3].T @ BOARD[:, 1])
-    ink = photo_ink_mask(rectify(photo, intrinsics, pose))
-    target = ink_mask([unit_to_canvas(np.asarray(s), 0.0) for s in drawing_strokes])
-    return chamfer_distance(target, ink)
+    return rectified_chamfer(photograph_canvas(scene, photo_size), drawing_strokes)

@@ -13,10 +13,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from PIL import Image
 
 from bpp.benchmarks.draw3d.dataset import measure_canvas
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute_approach, ink_chamfer, random_pose
-from bpp.benchmarks.draw3d.photo import photo_chamfer
+from bpp.benchmarks.draw3d.photo import photograph_canvas, rectified_chamfer
 from bpp.benchmarks.draw3d.scene import HOME_QPOS, Scene, canvas_transform
 from bpp.core.contract import RolloutResult, frames_to_record
 from bpp.core.poses import invert, pose_to_vector, vector_to_pose
@@ -28,7 +29,8 @@ from bpp.errors import UserError
 ACTION_KEYS = ("action", "target_in_canvas")
 """The action keys a draw3d policy may act with: relative pen steps, or pen poses in the measured canvas's frame."""
 FRAME_EVERY = 10
-"""A recorded rollout keeps one scene-camera frame every this many steps (and the last)."""
+"""A recorded rollout keeps one scene-camera frame every this many steps (and the last), then the canvas as the photo
+that scored it shows it, rectified upright (when the photo gave the canvas pose)."""
 FRAME_SIZE = 256
 
 _SCENES: list = []
@@ -80,13 +82,15 @@ def relative_step(scene, canvas: np.ndarray, action: np.ndarray, key: str) -> np
     return np.append(pose_to_vector(invert(scene.target) @ target), action[9:])
 
 
-def _from_photo(scene, strokes) -> dict:
-    """The score a lab would measure (:func:`bpp.benchmarks.draw3d.photo.photo_chamfer`), once the rollout is over;
-    ``chamfer_from_photo`` is absent when the photo does not give the canvas pose."""
+def _from_photo(scene, strokes) -> tuple[dict, np.ndarray | None]:
+    """The score a lab would measure (:func:`bpp.benchmarks.draw3d.photo.photograph_canvas`), once the rollout is
+    over, and the rectified photo it was measured from; ``chamfer_from_photo`` is absent, and the photo None, when the
+    photo does not give the canvas pose."""
     try:
-        return {"chamfer_from_photo": float(photo_chamfer(scene, strokes)), "photo_found_canvas": 1.0}
+        rectified = photograph_canvas(scene)
     except CanvasNotFound:
-        return {"photo_found_canvas": 0.0}
+        return {"photo_found_canvas": 0.0}, None
+    return {"chamfer_from_photo": float(rectified_chamfer(rectified, strokes)), "photo_found_canvas": 1.0}, rectified
 
 
 def run_rollouts(
@@ -129,6 +133,11 @@ def run_rollouts(
         if record[i]:
             frames[i].append(scene.render("scene", FRAME_SIZE))
         score = ink_chamfer(scene.ink.polylines(), drawings[i].strokes)
-        extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4), **_from_photo(scene, drawings[i].strokes)}
+        from_photo, rectified = _from_photo(scene, drawings[i].strokes)
+        if record[i] and rectified is not None:
+            # the last frame: the canvas as photographed for the score, upright like the prompt's picture
+            canvas = np.asarray(Image.fromarray(rectified).resize((FRAME_SIZE, FRAME_SIZE), Image.BILINEAR))
+            frames[i] = [*frames[i], canvas] if record[i] == "all" else [canvas]
+        extra = {**extras[i], "ink_length_m": round(scene.ink.length, 4), **from_photo}
         results.append(RolloutResult(score=float(score), steps=max_steps, extra=extra, frames=frames[i]))
     return results
