@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
-# DrawAnything-Real at CPU scale, state-only: BPP and Goal-Image trained on scripted demonstrations of procedural
-# drawings, evaluated on unseen human-made drawings at new random canvas placements (one demonstration of each as the
-# prompt), scored by DrawAnything's Chamfer from the simulator's ink and from a photo of the board.
+# DrawAnything-Real at CPU scale: BPP and Goal-Image trained on scripted demonstrations of procedural drawings (and a
+# person's phone recordings of more), evaluated on unseen human-made drawings at new random canvas placements (one
+# demonstration of each as the prompt: the arm's, a phone's, or both in turn), scored by DrawAnything's Chamfer from
+# the simulator's ink and from a photo of the board.
 #
-#   bash bench/draw3d_cpu.sh            # TASKS=60 DEMOS=3 STEPS=3000 HUMAN=10 ROLLOUTS=2 OBS=state by default
-#   OBS=canvas METHODS=bpp WORKERS=1 bash bench/draw3d_cpu.sh      # one method, in the canvas's frame, on one core
-#   OBS=canvas PHONE=40 PROMPTS=phone bash bench/draw3d_cpu.sh     # the real setup's loop, with a synthetic phone
+#   bash bench/draw3d_cpu.sh    # TASKS=500 DEMOS=3 PHONE=40 STEPS=12000 HUMAN=20 ROLLOUTS=2 OBS=canvas PROMPTS=both
+#   TASKS=60 PHONE=0 STEPS=6000 PROMPTS=arm bash bench/draw3d_cpu.sh     # a smaller run, the arm's prompts only
+#   OBS=state PHONE=0 PROMPTS=arm METHODS=bpp bash bench/draw3d_cpu.sh  # one method, in the robot's base frame
 #
 # HUMAN of the 50 human-made drawings are evaluated, spread evenly. One thread per process; the methods train and
 # evaluate side by side (2 cores), generation runs on WORKERS processes.
@@ -15,10 +16,13 @@
 # the phone has no robot base frame). PROMPTS=phone prompts with phone recordings of the human-made drawings instead
 # of the arm's demonstrations of them (PROMPTS=both: each policy is evaluated with both).
 set -euo pipefail
-TASKS=${TASKS:-60} DEMOS=${DEMOS:-3} STEPS=${STEPS:-3000} HUMAN=${HUMAN:-10} ROLLOUTS=${ROLLOUTS:-2}
-OBS=${OBS:-state} METHODS=${METHODS:-bpp goal_image} WORKERS=${WORKERS:-2} PHONE=${PHONE:-0} PROMPTS=${PROMPTS:-arm}
+TASKS=${TASKS:-500} DEMOS=${DEMOS:-3} STEPS=${STEPS:-12000} HUMAN=${HUMAN:-20} ROLLOUTS=${ROLLOUTS:-2}
+OBS=${OBS:-canvas} METHODS=${METHODS:-bpp goal_image} WORKERS=${WORKERS:-2} PHONE=${PHONE:-40} PROMPTS=${PROMPTS:-both}
+if [ "$PHONE" -gt 0 ] && [ "$OBS" != canvas ]; then
+  echo "PHONE=$PHONE needs OBS=canvas (a phone has no robot base frame): give PHONE=0 PROMPTS=arm" >&2; exit 2
+fi
 with_phone=""; [ "$PHONE" -gt 0 ] && with_phone="-phone$PHONE"
-DATA=${DATA:-data/draw3d} RUNS=${RUNS:-runs/draw3d-cpu-$OBS$with_phone}
+DATA=${DATA:-data/draw3d} RUNS=${RUNS:-runs/draw3d-cpu-$OBS-$TASKS$with_phone}
 export OMP_NUM_THREADS=1 MUJOCO_GL=${MUJOCO_GL:-egl}
 BPP=${BPP:-bpp}
 train="$DATA/procedural-${TASKS}x${DEMOS}.zarr"
