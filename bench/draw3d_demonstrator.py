@@ -8,7 +8,7 @@ DrawAnything's Chamfer metric (pixels of its 512-px canvas; the drawing's unit s
 demonstration fails when the photo gives no pose (a marker hidden or unclear) or its Chamfer is over the threshold.
 
 Each kept demonstration is also scored as a lab would, from a scene-camera photo of the board rectified through the
-markers (:func:`bpp.benchmarks.draw3d.photo.photo_chamfer`), against its own drawing and against the next drawing
+markers (:func:`bpp.benchmarks.draw3d.photo.photograph_canvas`), against its own drawing and against the next drawing
 (a wrong one, for scores in the tens of pixels); the table gives how far the photo's score is from the exact one.
 
 Speed is given against MuJoCo's physics alone (its ``mj_step`` calls, timed in the same run): the rest of a control
@@ -28,7 +28,7 @@ import numpy as np
 
 from bpp.benchmarks.draw3d.dataset import ASIDE
 from bpp.benchmarks.draw3d.demonstrator import ScriptConfig, execute, ink_chamfer, pixels_to_mm, plan_drawing
-from bpp.benchmarks.draw3d.photo import photo_chamfer
+from bpp.benchmarks.draw3d.photo import photograph_canvas, rectified_chamfer
 from bpp.benchmarks.draw3d.scene import BOARD, CONTROL_HZ, HOME_QPOS, Scene, canvas_transform
 from bpp.drawing.marked_canvas import CanvasNotFound, canvas_in_base, canvas_pose, pose_error
 from bpp.drawing.procedural import ProceduralConfig, generate_drawing
@@ -74,10 +74,12 @@ def main() -> None:
         scores.append(score)
         other, _ = generate_drawing(np.random.default_rng([args.seed, i + 1]), ProceduralConfig(), f"d{i + 1}")
         try:
-            for key, strokes in (("own drawing", drawing.strokes), ("another drawing", other.strokes)):
-                photo[key].append((ink_chamfer(recorded.strokes, strokes), photo_chamfer(scene, strokes)))
+            rectified = photograph_canvas(scene)
         except CanvasNotFound:
             photo_refused += 1
+            continue
+        for key, strokes in (("own drawing", drawing.strokes), ("another drawing", other.strokes)):
+            photo[key].append((ink_chamfer(recorded.strokes, strokes), rectified_chamfer(rectified, strokes)))
     scene.close()
     scores = np.array(scores)
     print(f"{args.n} drawings (seed {args.seed}): {len(scores)} demonstrations kept, failures {dict(failures)}")

@@ -97,6 +97,8 @@ GRID_DECIMALS = 6
 
 PEN_DOT_RADIUS = 4.0
 """The authors' pen also stamps a disc of this radius at every path point."""
+INK_REACH = INK_WIDTH / 2 + 1.0
+"""No pixel farther than this from a segment's ends' box (in x or y) is inked by it: half the pen, and a pixel."""
 
 
 def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
@@ -109,15 +111,14 @@ def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
     numbers comparable: a line 10 px apart scores 9.180 (the authors' 9.18), circles of radius 100 and 110 with
     one integer point per degree 9.684 (the authors' 9.69).
 
-    Each segment is tested only on the pixels within its reach (its ends' box widened by half the pen and a pixel):
-    a path recorded at a simulator's rate has thousands of sub-pixel segments.
+    Each segment is tested only on the pixels within :data:`INK_REACH` of its ends' box: a path recorded at a
+    simulator's rate has thousands of sub-pixel segments.
     """
     inked = np.zeros((len(y), len(x)), dtype=bool)
-    reach = INK_WIDTH / 2 + 1.0
     for segment in np.asarray(segments, dtype=np.float64):
         x0, y0, x1, y1 = segment
-        c0, c1 = np.searchsorted(x, (min(x0, x1) - reach, max(x0, x1) + reach))
-        r0, r1 = np.searchsorted(y, (min(y0, y1) - reach, max(y0, y1) + reach))
+        c0, c1 = np.searchsorted(x, (min(x0, x1) - INK_REACH, max(x0, x1) + INK_REACH))
+        r0, r1 = np.searchsorted(y, (min(y0, y1) - INK_REACH, max(y0, y1) + INK_REACH))
         if c0 < c1 and r0 < r1:
             inked[r0:r1, c0:c1] |= _segment_band(x[None, c0:c1], y[r0:r1, None], segment)
     return inked
@@ -154,9 +155,8 @@ class InkMask:
         # flip a pixel whose centre lies exactly on the pen's edge: points on the grid come back exactly.
         path = np.round(np.asarray(path, dtype=np.float64).reshape(-1, 2), GRID_DECIMALS)
         size = self.mask.shape[0]
-        reach = INK_WIDTH / 2 + 1.0
-        lo = np.maximum(np.floor(path.min(axis=0) - reach).astype(int), 0)
-        hi = np.minimum(np.ceil(path.max(axis=0) + reach).astype(int), size)
+        lo = np.maximum(np.floor(path.min(axis=0) - INK_REACH).astype(int), 0)
+        hi = np.minimum(np.ceil(path.max(axis=0) + INK_REACH).astype(int), size)
         if np.any(hi <= lo):
             return None
         rows, cols = slice(lo[1], hi[1]), slice(lo[0], hi[0])
