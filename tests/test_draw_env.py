@@ -8,7 +8,7 @@ from bpp.benchmarks.draw.demonstrator import demonstrate
 from bpp.benchmarks.draw.env import ENV_ID as DRAW_ENV_ID
 from bpp.benchmarks.draw.env import DrawEnv
 from bpp.benchmarks.draw.render import CURSOR_RGB, SceneRenderer
-from bpp.drawing.geometry import canvas_to_upright
+from bpp.drawing.geometry import canvas_to_upright, unit_to_canvas
 from bpp.drawing.human import glyph_drawing
 
 
@@ -115,6 +115,35 @@ def test_replaying_a_demo_reaches_zero_chamfer_against_its_own_ink(rng):
     for a in demo.actions:
         *_, info = env.step(a)
     assert info["chamfer"] == 0.0 and info["best_chamfer"] == 0.0
+
+
+def test_scoring_only_at_the_end_gives_the_scores_of_every_step(rng):
+    """An evaluation's env scores once, at the step that ends the episode: the same final and best score as an env
+    that scores every step, and no score or reward before."""
+    drawing = glyph_drawing("futural", "S", "S")
+    target = [unit_to_canvas(s, 0.0) for s in drawing.strokes]
+    demo = demonstrate(drawing, 0.0, np.array([100.0, 400.0]), rng)
+    # The demonstration drawn, then scribbled over: the best score lies before the end.
+    actions = [*demo.actions, *([450.0, 60.0, 1.0] + rng.normal(0, 30, (30, 3)) * [1, 1, 0])]
+    every, once = (
+        DrawEnv(image_size=None, early_stop=False),
+        DrawEnv(image_size=None, early_stop=False, score_every_step=False),
+    )
+    for env in (every, once):
+        env.max_episode_steps = len(actions)
+        env.reset(options={"board_angle": 0.2, "cursor": demo.states[0, :2], "target": target})
+    for i, a in enumerate(actions):
+        *_, reward, _, truncated, info = every.step(a)
+        *_, lazy_reward, _, lazy_truncated, lazy_info = once.step(a)
+        assert truncated == lazy_truncated == (i == len(actions) - 1)
+        if not truncated:
+            assert lazy_reward == 0.0 and "chamfer" not in lazy_info
+    assert (lazy_reward, lazy_info["chamfer"], lazy_info["best_chamfer"]) == (
+        reward,
+        info["chamfer"],
+        info["best_chamfer"],
+    )
+    assert info["best_chamfer"] < info["chamfer"]
 
 
 def test_bad_actions_and_options_are_refused():

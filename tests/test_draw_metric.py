@@ -69,13 +69,47 @@ def test_incremental_tracker_matches_direct_computation(rng):
         assert score == pytest.approx(chamfer_distance(target, ink.mask), rel=1e-9)
 
 
+@pytest.mark.parametrize("start", [(150.0, 150.0), (256.0, 300.0), (400.0, 120.0)])
+def test_the_best_score_found_by_bisection_is_the_lowest_after_any_addition(start, rng):
+    """Scored only when asked, the tracker finds exactly the lowest of the scores it would have given after every
+    addition, computing the rollout's distance field for fewer additions than there are; a walk that passes the
+    target and goes on has its best score in the middle."""
+    from bpp.drawing.metric import ChamferTracker, InkMask
+
+    target = ink_mask([_circle(60), _line(330)])
+    every, lazy, ink, patches = ChamferTracker(target), ChamferTracker(target), InkMask(), InkMask()
+    walk = np.cumsum(rng.normal(0, 7, (120, 2)), axis=0) + start
+    scores = [every.score()]
+    for a, b in zip(walk[:-1], walk[1:], strict=True):
+        stamp, painted = ink.add(np.stack([a, b])), patches.paint(np.stack([a, b]))
+        if stamp is not None:
+            scores.append(every.add(stamp))
+            lazy.book(painted[1], painted[0])  # the patch of the canvas the segment may ink, not the whole canvas
+    assert lazy.best() == min(scores) and lazy.score() == scores[-1]
+    assert len(lazy.coverage) < len(lazy.to_target_means) == len(every.coverage)
+    assert lazy.score() == pytest.approx(chamfer_distance(target, ink.mask), rel=1e-9)
+
+
+def test_an_empty_target_or_rollout_scores_as_documented():
+    from bpp.drawing.metric import ChamferTracker
+
+    nothing, dot = np.zeros((64, 64), bool), np.zeros((64, 64), bool)
+    dot[30, 30] = True
+    assert ChamferTracker(nothing).best() == 0.0 and ChamferTracker(dot).best() == EMPTY_DISTANCE
+    blank = ChamferTracker(nothing)
+    blank.book(dot)
+    assert (blank.score(), blank.best()) == (EMPTY_DISTANCE, 0.0)
+
+
 def test_each_segment_inks_only_within_its_reach(rng):
-    """The pen's band is tested per segment near the segment only; over the whole canvas it inks exactly the same
-    pixels (a dense sub-pixel path, as a simulator records, and long segments at every slope)."""
+    """The pen's band is tested per segment near the segment only, or for an env step's few segments together; over
+    the whole canvas it inks exactly the same pixels (a dense sub-pixel path, as a simulator records, one env step of
+    it, long segments at every slope, short ones in every direction with a point repeated)."""
     dense = np.cumsum(rng.normal(0, 0.4, (600, 2)), axis=0) + 256
     long = rng.uniform(-20, 530, (12, 2))
+    turns = np.array([[100.0, 100.0], [103.5, 101.2], [103.5, 101.2], [101.1, 106.7], [96.3, 104.0], [99.0, 97.25]])
     x = centers(512)
-    for path in (dense, long, np.array([[100.0, 100.0], [100.0, 100.0]])):
+    for path in (dense, dense[:11], long, turns, np.array([[100.0, 100.0], [100.0, 100.0]])):
         segments = polyline_segments(path)
         everywhere = np.zeros((512, 512), bool)
         for segment in segments:

@@ -59,11 +59,13 @@ def chamfer_distance(target: np.ndarray, rollout: np.ndarray) -> float:
 
 
 class ChamferTracker:
-    """The Chamfer score of a growing rollout ink mask against a fixed target, updated as ink is added.
+    """The Chamfer score of a growing rollout ink mask against a fixed target after each addition of ink, and the
+    best of those scores, each exactly :func:`chamfer_distance` of the ink at that moment.
 
-    Gives exactly :func:`chamfer_distance` but does half the work per update: the rollout->target mean is a
-    running sum over newly inked pixels of the target's distance field (computed once), so only the rollout's
-    distance field is recomputed.
+    The rollout->target mean is a running sum, over each addition's newly inked pixels, of the target's distance
+    field (computed once), so booking an addition costs little. The target->rollout mean needs the rollout's distance
+    field. It never grows as ink is added, so :meth:`best` can bound every addition between two it has scored and
+    compute the field for a few additions only (bound and bisect); :meth:`add` computes it at once.
     """
 
     def __init__(self, target: np.ndarray):
@@ -71,25 +73,73 @@ class ChamferTracker:
         self.has_target = bool(target.any())
         self.to_target = ndimage.distance_transform_edt(~target) if self.has_target else None
         self.rollout = np.zeros_like(target)
+        self.inked_at = np.zeros(target.shape, dtype=np.int32)
+        """The addition (1, 2, ...) that first inked each pixel; 0 where no ink is."""
         self.sum_to_target = 0.0
         self.count = 0
+        self.to_target_means: list[float] = []
+        """The rollout->target mean after each addition that inked a new pixel."""
+        self.coverage: dict[int, float] = {}
+        """Addition -> the target->rollout mean after it, for the additions scored so far."""
+
+    def book(self, mask: np.ndarray, region: tuple[slice, slice] | None = None) -> None:
+        """OR `mask` into the rollout ink, without scoring it yet; with a `region` (rows, columns), `mask` covers only
+        that part of the canvas (:meth:`InkMask.paint`'s patch)."""
+        rollout, inked_at = (
+            (self.rollout, self.inked_at) if region is None else (self.rollout[region], self.inked_at[region])
+        )
+        new = mask & ~rollout
+        if not new.any():
+            return
+        rollout |= new
+        inked_at[new] = len(self.to_target_means) + 1
+        self.count += int(new.sum())
+        if self.has_target:
+            to_target = self.to_target if region is None else self.to_target[region]
+            self.sum_to_target += float(to_target[new].sum())
+            self.to_target_means.append(self.sum_to_target / self.count)
 
     def add(self, mask: np.ndarray) -> float:
         """OR `mask` into the rollout ink and return the new score."""
-        new = mask & ~self.rollout
-        if new.any():
-            self.rollout |= new
-            self.count += int(new.sum())
-            if self.has_target:
-                self.sum_to_target += float(self.to_target[new].sum())
+        self.book(mask)
         return self.score()
 
     def score(self) -> float:
+        """The score of the ink so far."""
         if not self.has_target or self.count == 0:
             return 0.0 if (not self.has_target and self.count == 0) else EMPTY_DISTANCE
-        crop = _joint_crop(self.target, self.rollout)
-        to_rollout = ndimage.distance_transform_edt(~self.rollout[crop])
-        return float(to_rollout[self.target[crop]].mean() + self.sum_to_target / self.count)
+        return self._score_after(len(self.to_target_means))
+
+    def best(self) -> float:
+        """The lowest score after any addition so far, the empty canvas's included."""
+        empty = EMPTY_DISTANCE if self.has_target else 0.0
+        last = len(self.to_target_means)
+        if last == 0:
+            return min(empty, self.score())
+        means = np.asarray(self.to_target_means)
+        best = min(empty, self._score_after(1), self._score_after(last))
+        spans = [(1, last)]
+        while spans:
+            lo, hi = spans.pop()
+            if hi - lo < 2:
+                continue
+            # Inside the span the target->rollout mean is at least hi's, and rounding is monotone: so this bounds
+            # every score strictly between lo and hi from below.
+            if float((self.coverage[hi] + means[lo : hi - 1]).min()) >= best:
+                continue
+            mid = (lo + hi) // 2
+            best = min(best, self._score_after(mid))
+            spans += [(lo, mid), (mid, hi)]
+        return best
+
+    def _score_after(self, addition: int) -> float:
+        """The score of the ink as it was after `addition` (1, 2, ...: the additions that inked a new pixel)."""
+        if addition not in self.coverage:
+            crop = _joint_crop(self.target, self.rollout)
+            inked_at = self.inked_at[crop]
+            ink = (inked_at > 0) & (inked_at <= addition)
+            self.coverage[addition] = ndimage.distance_transform_edt(~ink)[self.target[crop]].mean()
+        return float(self.coverage[addition] + self.to_target_means[addition - 1])
 
 
 GRID_DECIMALS = 6
@@ -112,16 +162,52 @@ def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
     one integer point per degree 9.684 (the authors' 9.69).
 
     Each segment is tested only on the pixels within :data:`INK_REACH` of its ends' box: a path recorded at a
-    simulator's rate has thousands of sub-pixel segments.
+    simulator's rate has thousands of sub-pixel segments. A few short segments (an env step's path) are tested
+    together, on the pixels within reach of any of them (:func:`_segments_band`).
     """
+    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
     inked = np.zeros((len(y), len(x)), dtype=bool)
-    for segment in np.asarray(segments, dtype=np.float64):
+    if not len(segments):
+        return inked
+    c0, c1 = np.searchsorted(x, (segments[:, ::2].min() - INK_REACH, segments[:, ::2].max() + INK_REACH))
+    r0, r1 = np.searchsorted(y, (segments[:, 1::2].min() - INK_REACH, segments[:, 1::2].max() + INK_REACH))
+    if c0 >= c1 or r0 >= r1:
+        return inked
+    if len(segments) * (c1 - c0) * (r1 - r0) <= _TOGETHER:
+        inked[r0:r1, c0:c1] = _segments_band(x[None, c0:c1], y[r0:r1, None], segments)
+        return inked
+    for segment in segments:
         x0, y0, x1, y1 = segment
         c0, c1 = np.searchsorted(x, (min(x0, x1) - INK_REACH, max(x0, x1) + INK_REACH))
         r0, r1 = np.searchsorted(y, (min(y0, y1) - INK_REACH, max(y0, y1) + INK_REACH))
         if c0 < c1 and r0 < r1:
             inked[r0:r1, c0:c1] |= _segment_band(x[None, c0:c1], y[r0:r1, None], segment)
     return inked
+
+
+_TOGETHER = 1 << 16
+"""Segments are tested together while their count times the pixels within their reach stays under this."""
+
+
+def _segments_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """:func:`_segment_band` of (M, 4) segments at once, ORed: the same operations on the same values, per segment
+    along a first axis."""
+    x0, y0, x1, y1 = (segments[:, i, None, None] for i in range(4))
+    inked = (np.hypot(x - x1, y - y1) <= PEN_DOT_RADIUS).any(axis=0)
+    shallow = np.abs(x1 - x0) >= np.abs(y1 - y0)
+    a, b = np.where(shallow, x, y), np.where(shallow, y, x)
+    a0, b0, a1, b1 = (
+        np.where(shallow, x0, y0),
+        np.where(shallow, y0, x0),
+        np.where(shallow, x1, y1),
+        np.where(shallow, y1, x1),
+    )
+    swap = a1 < a0
+    a0, b0, a1, b1 = np.where(swap, a1, a0), np.where(swap, b1, b0), np.where(swap, a0, a1), np.where(swap, b0, b1)
+    offset = b - (b0 + (b1 - b0) * (np.clip(a, a0, a1) - a0) / np.maximum(a1 - a0, 1e-12))
+    band = (a >= a0 - 0.5) & (a < a1 + 0.5) & (offset >= -INK_WIDTH / 2) & (offset < INK_WIDTH / 2)
+    moves = ((x0 != x1) | (y0 != y1))[:, 0, 0]  # a segment of no length inks only its dot
+    return inked | band[moves].any(axis=0)
 
 
 def _segment_band(x: np.ndarray, y: np.ndarray, segment: np.ndarray) -> np.ndarray:
@@ -151,6 +237,17 @@ class InkMask:
 
     def add(self, path: np.ndarray) -> np.ndarray | None:
         """Ink a (N, 2) polyline given in this mask's pixel coordinates; returns a mask of this path's ink."""
+        painted = self.paint(path)
+        if painted is None:
+            return None
+        region, inked = painted
+        stamp = np.zeros_like(self.mask)
+        stamp[region] = inked
+        return stamp
+
+    def paint(self, path: np.ndarray) -> tuple[tuple[slice, slice], np.ndarray] | None:
+        """Ink a (N, 2) polyline given in this mask's pixel coordinates; returns the region (rows, columns) it may
+        ink and which of that region's pixels it inks, or None where the path lies off the mask."""
         # Snapped to a 1e-6 px grid so a rotate / un-rotate round trip (which moves points by ~1e-13 px) cannot
         # flip a pixel whose centre lies exactly on the pen's edge: points on the grid come back exactly.
         path = np.round(np.asarray(path, dtype=np.float64).reshape(-1, 2), GRID_DECIMALS)
@@ -163,9 +260,7 @@ class InkMask:
         coordinate = centers(size)
         inked = pen_band(coordinate[cols], coordinate[rows], polyline_segments(path))
         self.mask[rows, cols] |= inked
-        stamp = np.zeros_like(self.mask)
-        stamp[rows, cols] = inked
-        return stamp
+        return (rows, cols), inked
 
 
 def ink_mask(paths, size: int = CANVAS_SIZE) -> np.ndarray:

@@ -94,7 +94,9 @@ class DrawEnv(gym.Env):
     ``reset(options=...)`` accepts ``board_angle`` (radians, counter-clockwise), ``cursor`` (x, y) and a
     ``target``: a :class:`Drawing` or a list of upright canvas polylines (e.g. a prompt demonstration's ink).
     With a target, ``info["chamfer"]`` holds the Chamfer score of the ink so far and ``info["best_chamfer"]``
-    the best over the episode, and the reward is the negative score.
+    the best over the episode, and the reward is the negative score. With ``score_every_step=False`` (evaluation,
+    which reads the scores once), they are computed only at the step that ends the episode, the best of all steps
+    included, and earlier steps give a reward of 0 and no scores.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": physics.CONTROL_HZ}
@@ -110,6 +112,7 @@ class DrawEnv(gym.Env):
         render_size: int = CANVAS_SIZE,
         action_frame: str = "canvas",
         cameras: tuple[str, ...] = ("image",),
+        score_every_step: bool = True,
     ):
         if action_frame not in ("canvas", "board"):
             raise ValueError(f"action_frame must be 'canvas' or 'board', got {action_frame!r}")
@@ -127,6 +130,7 @@ class DrawEnv(gym.Env):
         self.still_radius = still_radius
         self.render_mode = render_mode
         self.render_size = render_size
+        self.score_every_step = score_every_step
         obs = {
             "agent_pos": spaces.Box(0.0, float(CANVAS_SIZE), (2,), np.float32),
             "pen_down": spaces.Box(0.0, 1.0, (1,), np.float32),
@@ -212,13 +216,20 @@ class DrawEnv(gym.Env):
             if self._video is not None:
                 self._video.add_ink(path)
             if self.tracker is not None:
-                stamp = self.rollout_ink.add(canvas_to_upright(path, self.board_angle))
-                if stamp is not None:
-                    self._set_score(self.tracker.add(stamp))
+                painted = self.rollout_ink.paint(canvas_to_upright(path, self.board_angle))
+                if painted is not None:
+                    region, inked = painted
+                    self.tracker.book(inked, region)
         terminated = self.early_stop and self._is_still()
         truncated = self.steps >= self.max_episode_steps
-        reward = 0.0 if self.target_mask is None else -self.chamfer
-        return self._observation(), reward, terminated, truncated, self._info()
+        scored = self.tracker is not None and (self.score_every_step or terminated or truncated)
+        if scored:
+            if self.score_every_step:
+                self._set_score(self.tracker.score())
+            else:
+                self.chamfer, self.best_chamfer = self.tracker.score(), self.tracker.best()
+        reward = -self.chamfer if scored else 0.0
+        return self._observation(), reward, terminated, truncated, self._info(scored)
 
     def _is_still(self) -> bool:
         if len(self.positions) <= self.still_window:
@@ -243,9 +254,9 @@ class DrawEnv(gym.Env):
         """Canvas points as `camera` draws them: as they are for the canvas camera, turned upright for the board's."""
         return points if camera == "image" else upright_points(points, self.board_angle)
 
-    def _info(self) -> dict[str, Any]:
+    def _info(self, scored: bool = True) -> dict[str, Any]:
         info: dict[str, Any] = {"state": self.state.copy(), "board_angle": self.board_angle, "steps": self.steps}
-        if self.target_mask is not None:
+        if self.target_mask is not None and scored:
             info["chamfer"] = self.chamfer
             info["best_chamfer"] = self.best_chamfer
         return info

@@ -51,6 +51,7 @@ def run_rollouts(
             render_mode="rgb_array" if rec else None,
             render_size=render_size,
             action_frame=frame,
+            score_every_step=False,
         )
         target = prompt_target(store, int(row["target_episode"]))
         o, _ = env.reset(seed=int(row["seed"]), options={"board_angle": float(row["board_angle"]), "target": target})
