@@ -11,8 +11,10 @@ whole training step (``bpp.train.train_step``: loss, backward, clipping, fused A
 fp32 and under bf16 autocast with fp32 weights, alternated for `--rounds` rounds. Prints each round and the medians.
 
 With --limit: the matrix-product rate in fp32, bf16 and fp16, every 1D convolution of the action decoder at its
-real sizes (forward and both gradients) in fp32, and a profile of 10 fp32 training steps: the share of a step spent
-in convolutions, and so the speed-up the step could reach if everything else took no time at all.
+real sizes (forward and both gradients) in fp32, and the same convolution written as one matrix product of its
+unfolded input in bf16 (what reduced precision could give a convolution where bf16 products are fast, as with AMX),
+and a profile of 10 fp32 training steps: the share of a step spent in convolutions, and so the speed-up the step
+could reach if everything else took no time at all.
 
 With --profile: the operators that take most of `--steps` profiled steps in either precision, each with its time in
 both (what reduced precision speeds up on this CPU, and what it slows down).
@@ -28,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from einops import rearrange
 from torch.profiler import ProfilerActivity, profile
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
@@ -146,6 +149,24 @@ def decoder_convolutions(model) -> tuple[list, list[tuple[int, int, int, int]]]:
     return hooks, sizes
 
 
+def unfolded_conv1d(x: torch.Tensor, w: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``F.conv1d(x, w, padding=k // 2)`` as one matrix product of the unfolded input, computed in `dtype`."""
+    k = w.shape[-1]
+    columns = rearrange(F.pad(x, (k // 2, k // 2)).unfold(2, k, 1), "b c t k -> (b t) (c k)")
+    y = (columns.to(dtype) @ rearrange(w, "o c k -> (c k) o").to(dtype)).float()
+    return rearrange(y, "(b t) o -> b o t", b=x.shape[0])
+
+
+def gradient_rate(conv, x: torch.Tensor, w: torch.Tensor, flops: float, seconds: float = 0.5) -> float:
+    """GFLOP/s of ``conv(x, w)`` with both gradients."""
+    conv(x, w).sum().backward()
+    count, t0 = 0, time.perf_counter()
+    while (elapsed := time.perf_counter() - t0) < seconds:
+        conv(x, w).sum().backward()
+        count += 1
+    return flops * count / elapsed / 1e9
+
+
 def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
     """Print what bounds an fp32 step on this CPU (see the module's docstring)."""
     rates = {dt: matmul_peak(dt, threads) for dt in (torch.float32, torch.bfloat16, torch.float16)}
@@ -159,14 +180,11 @@ def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
         x = torch.randn(batch, c_in, t, requires_grad=True)
         w = torch.randn(c_out, c_in, k, requires_grad=True)
         flops = 3 * 2 * batch * t * c_in * c_out * k
-        F.conv1d(x, w, padding=k // 2).sum().backward()
-        count, t0 = 0, time.perf_counter()
-        while (elapsed := time.perf_counter() - t0) < 0.5:
-            F.conv1d(x, w, padding=k // 2).sum().backward()
-            count += 1
-        rate = flops * count / elapsed / 1e9
+        rate = gradient_rate(lambda x, w, pad=k // 2: F.conv1d(x, w, padding=pad), x, w, flops)
+        unfolded = gradient_rate(lambda x, w: unfolded_conv1d(x, w, torch.bfloat16), x, w, flops)
         print(f"conv1d {c_in:4d} -> {c_out:4d}, kernel {k}, {t:2d} steps: {rate:6.1f} GFLOP/s fp32 "
-              f"({rate / rates[torch.float32]:.0%} of the fp32 matmul rate)")  # fmt: skip
+              f"({rate / rates[torch.float32]:.0%} of the fp32 matmul rate); as a bf16 product {unfolded:6.1f} "
+              f"({unfolded / rate:.2f}x)")  # fmt: skip
     for step in range(1, 4):
         train_step(cfg, model, model, ema, optimizer, batches[step], step, False)
     t0 = time.perf_counter()
