@@ -21,9 +21,10 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from bpp.benchmarks.draw.benchmark import BENCHMARK
-from bpp.checkpoint import read_state, resolve_checkpoint
+from bpp.checkpoint import Checkpoint, read_state, resolve_checkpoint
 from bpp.data.prompt_dataset import PromptBatchDataset
 from bpp.data.store import EpisodeStore
+from bpp.evaluation.evaluate import resolve_tasks
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_dict, to_torch, write_json_atomic
@@ -168,6 +169,24 @@ def train_rate(store: Path, args, extra: list[str], env: dict | None = None) -> 
         "samples_per_s": round(float(np.median(steady)), 1),
         "losses": {int(k): round(v, 5) for k, v in losses.items()},
     }
+
+
+def add_eval_arguments(parser: argparse.ArgumentParser, num_tasks: int, rollouts: int) -> None:
+    """The flags of a DrawAnything checkpoint evaluated in the script's own process (:func:`evaluated_tasks`): its run,
+    the task set and how many of its tasks, rollouts per task, torch threads."""
+    parser.add_argument("run", type=Path, help="a DrawAnything training run or checkpoint")
+    parser.add_argument("--tasks", default="human")
+    parser.add_argument("--num-tasks", type=int, default=num_tasks)
+    parser.add_argument("--rollouts", type=int, default=rollouts)
+    parser.add_argument("--threads", type=int, default=1)
+
+
+def evaluated_tasks(args):
+    """(checkpoint, benchmark, task set, task indices) of :func:`add_eval_arguments`' flags, with torch on
+    ``--threads`` threads."""
+    torch.set_num_threads(args.threads)
+    ckpt = Checkpoint.load(args.run, use_ema=True)
+    return ckpt, *resolve_tasks(args.tasks, ckpt, num_tasks=args.num_tasks, workers=1)
 
 
 def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: float = 1.0) -> float:

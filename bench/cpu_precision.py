@@ -49,11 +49,15 @@ def conv_rate(dtype: torch.dtype, seconds: float = 1.0) -> float:
     level, its largest product), forward and both gradients."""
     x = torch.randn(64, 256, 4, dtype=dtype, requires_grad=True)
     w = torch.randn(256, 256, 5, dtype=dtype, requires_grad=True)
-    flops = 3 * 2 * 64 * 4 * 256 * 256 * 5
-    F.conv1d(x, w, padding=2).sum().backward()
+    return gradient_rate(lambda x, w: F.conv1d(x, w, padding=2), x, w, 3 * 2 * 64 * 4 * 256 * 256 * 5, seconds)
+
+
+def gradient_rate(conv, x: torch.Tensor, w: torch.Tensor, flops: float, seconds: float = 0.5) -> float:
+    """GFLOP/s of ``conv(x, w)`` with both gradients."""
+    conv(x, w).sum().backward()
     count, t0 = 0, time.perf_counter()
     while (elapsed := time.perf_counter() - t0) < seconds:
-        F.conv1d(x, w, padding=2).sum().backward()
+        conv(x, w).sum().backward()
         count += 1
     return flops * count / elapsed / 1e9
 
@@ -155,16 +159,6 @@ def unfolded_conv1d(x: torch.Tensor, w: torch.Tensor, dtype: torch.dtype) -> tor
     columns = rearrange(F.pad(x, (k // 2, k // 2)).unfold(2, k, 1), "b c t k -> (b t) (c k)")
     y = (columns.to(dtype) @ rearrange(w, "o c k -> (c k) o").to(dtype)).float()
     return rearrange(y, "(b t) o -> b o t", b=x.shape[0])
-
-
-def gradient_rate(conv, x: torch.Tensor, w: torch.Tensor, flops: float, seconds: float = 0.5) -> float:
-    """GFLOP/s of ``conv(x, w)`` with both gradients."""
-    conv(x, w).sum().backward()
-    count, t0 = 0, time.perf_counter()
-    while (elapsed := time.perf_counter() - t0) < seconds:
-        conv(x, w).sum().backward()
-        count += 1
-    return flops * count / elapsed / 1e9
 
 
 def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:

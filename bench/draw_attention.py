@@ -20,14 +20,12 @@ from pathlib import Path
 
 import matplotlib
 import numpy as np
-import torch
 from scipy import stats
 
-from bpp.checkpoint import Checkpoint
 from bpp.core.prompting import run_prompted
-from bpp.evaluation.evaluate import resolve_tasks
 from bpp.evaluation.protocol import Protocol
 from bpp.policies.agent import PolicyAgent
+from common import add_eval_arguments, evaluated_tasks
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -57,17 +55,11 @@ def mean_sem(values) -> str:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a DrawAnything BPP training run or checkpoint")
-    parser.add_argument("--tasks", default="human")
-    parser.add_argument("--num-tasks", type=int, default=50)
-    parser.add_argument("--rollouts", type=int, default=2)
+    add_eval_arguments(parser, num_tasks=50, rollouts=2)
     parser.add_argument("--prompts", default="own", choices=["own", "shuffled"])
-    parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--figure", type=Path, help="where to draw each rollout's attention centre over time")
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    ckpt = Checkpoint.load(args.run, use_ema=True)
-    benchmark, task_set, tasks = resolve_tasks(args.tasks, ckpt, num_tasks=args.num_tasks, workers=1)
+    ckpt, benchmark, task_set, tasks = evaluated_tasks(args)
     store = task_set.store
     protocol = Protocol(rollouts=args.rollouts, prompts=args.prompts)
     plan = [row for task in tasks for row in protocol.plan(store, task, benchmark)]

@@ -23,12 +23,11 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from bpp.benchmarks.draw.env import DrawEnv
-from bpp.checkpoint import Checkpoint
 from bpp.drawing.metric import ChamferTracker
-from bpp.evaluation.evaluate import evaluate, resolve_tasks
+from bpp.evaluation.evaluate import evaluate
 from bpp.evaluation.protocol import Protocol
 from bpp.policies.agent import PolicyAgent
-from common import matmul_peak
+from common import add_eval_arguments, evaluated_tasks, matmul_peak
 
 
 @contextmanager
@@ -76,16 +75,10 @@ def run(ckpt, task_set, tasks, protocol, out: Path) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run", type=Path, help="a DrawAnything training run or checkpoint")
-    parser.add_argument("--tasks", default="human")
-    parser.add_argument("--num-tasks", type=int, default=8)
-    parser.add_argument("--rollouts", type=int, default=8)
+    add_eval_arguments(parser, num_tasks=8, rollouts=8)
     parser.add_argument("--tasks-per-batch", type=int, default=8)
-    parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
-    ckpt = Checkpoint.load(args.run, use_ema=True)
-    _, task_set, tasks = resolve_tasks(args.tasks, ckpt, num_tasks=args.num_tasks, workers=1)
+    ckpt, _, task_set, tasks = evaluated_tasks(args)
     protocol = Protocol(rollouts=args.rollouts, tasks_per_batch=args.tasks_per_batch)
     seconds = dict.fromkeys(("policy", "env", "end scoring"), 0.0)
     with tempfile.TemporaryDirectory(prefix="draw-eval-profile-") as tmp:

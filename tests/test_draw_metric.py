@@ -113,6 +113,6 @@ def test_each_segment_inks_only_within_its_reach(rng):
         segments = polyline_segments(path)
         everywhere = np.zeros((512, 512), bool)
         for segment in segments:
-            everywhere |= _segment_band(x[None, :], x[:, None], segment)
+            everywhere |= _segment_band(x[None, :], x[:, None], segment[None])
         assert np.array_equal(pen_band(x, x, segments), everywhere)
         assert everywhere.any()

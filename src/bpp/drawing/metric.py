@@ -72,9 +72,8 @@ class ChamferTracker:
         self.target = target
         self.has_target = bool(target.any())
         self.to_target = ndimage.distance_transform_edt(~target) if self.has_target else None
-        self.rollout = np.zeros_like(target)
         self.inked_at = np.zeros(target.shape, dtype=np.int32)
-        """The addition (1, 2, ...) that first inked each pixel; 0 where no ink is."""
+        """The addition (1, 2, ...) that first inked each pixel; 0 where no ink is (the rollout's ink: ``> 0``)."""
         self.sum_to_target = 0.0
         self.count = 0
         self.to_target_means: list[float] = []
@@ -85,13 +84,10 @@ class ChamferTracker:
     def book(self, mask: np.ndarray, region: tuple[slice, slice] | None = None) -> None:
         """OR `mask` into the rollout ink, without scoring it yet; with a `region` (rows, columns), `mask` covers only
         that part of the canvas (:meth:`InkMask.paint`'s patch)."""
-        rollout, inked_at = (
-            (self.rollout, self.inked_at) if region is None else (self.rollout[region], self.inked_at[region])
-        )
-        new = mask & ~rollout
+        inked_at = self.inked_at if region is None else self.inked_at[region]
+        new = mask & (inked_at == 0)
         if not new.any():
             return
-        rollout |= new
         inked_at[new] = len(self.to_target_means) + 1
         self.count += int(new.sum())
         if self.has_target:
@@ -135,7 +131,7 @@ class ChamferTracker:
     def _score_after(self, addition: int) -> float:
         """The score of the ink as it was after `addition` (1, 2, ...: the additions that inked a new pixel)."""
         if addition not in self.coverage:
-            crop = _joint_crop(self.target, self.rollout)
+            crop = _joint_crop(self.target, self.inked_at > 0)
             inked_at = self.inked_at[crop]
             ink = (inked_at > 0) & (inked_at <= addition)
             self.coverage[addition] = ndimage.distance_transform_edt(~ink)[self.target[crop]].mean()
@@ -161,27 +157,11 @@ def pen_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
     numbers comparable: a line 10 px apart scores 9.180 (the authors' 9.18), circles of radius 100 and 110 with
     one integer point per degree 9.684 (the authors' 9.69).
 
-    Each segment is tested only on the pixels within :data:`INK_REACH` of its ends' box: a path recorded at a
-    simulator's rate has thousands of sub-pixel segments. A few short segments (an env step's path) are tested
-    together, on the pixels within reach of any of them (:func:`_segments_band`).
+    Segments are tested only on the pixels within :data:`INK_REACH` of their ends' box, a few consecutive ones at a
+    time (:func:`_ink_band`): a path recorded at a simulator's rate has thousands of sub-pixel segments.
     """
-    segments = np.asarray(segments, dtype=np.float64).reshape(-1, 4)
     inked = np.zeros((len(y), len(x)), dtype=bool)
-    if not len(segments):
-        return inked
-    c0, c1 = np.searchsorted(x, (segments[:, ::2].min() - INK_REACH, segments[:, ::2].max() + INK_REACH))
-    r0, r1 = np.searchsorted(y, (segments[:, 1::2].min() - INK_REACH, segments[:, 1::2].max() + INK_REACH))
-    if c0 >= c1 or r0 >= r1:
-        return inked
-    if len(segments) * (c1 - c0) * (r1 - r0) <= _TOGETHER:
-        inked[r0:r1, c0:c1] = _segments_band(x[None, c0:c1], y[r0:r1, None], segments)
-        return inked
-    for segment in segments:
-        x0, y0, x1, y1 = segment
-        c0, c1 = np.searchsorted(x, (min(x0, x1) - INK_REACH, max(x0, x1) + INK_REACH))
-        r0, r1 = np.searchsorted(y, (min(y0, y1) - INK_REACH, max(y0, y1) + INK_REACH))
-        if c0 < c1 and r0 < r1:
-            inked[r0:r1, c0:c1] |= _segment_band(x[None, c0:c1], y[r0:r1, None], segment)
+    _ink_band(inked, x, y, np.asarray(segments, dtype=np.float64).reshape(-1, 4))
     return inked
 
 
@@ -189,44 +169,38 @@ _TOGETHER = 1 << 16
 """Segments are tested together while their count times the pixels within their reach stays under this."""
 
 
-def _segments_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """:func:`_segment_band` of (M, 4) segments at once, ORed: the same operations on the same values, per segment
-    along a first axis."""
+def _ink_band(inked: np.ndarray, x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> None:
+    """OR into `inked` the band of consecutive `segments`: all of them at once on the pixels within reach of any, or,
+    where those are too many, each half in turn."""
+    if not len(segments):
+        return
+    c0, c1 = np.searchsorted(x, (segments[:, ::2].min() - INK_REACH, segments[:, ::2].max() + INK_REACH))
+    r0, r1 = np.searchsorted(y, (segments[:, 1::2].min() - INK_REACH, segments[:, 1::2].max() + INK_REACH))
+    if c0 >= c1 or r0 >= r1:
+        return
+    if len(segments) == 1 or len(segments) * (c1 - c0) * (r1 - r0) <= _TOGETHER:
+        inked[r0:r1, c0:c1] |= _segment_band(x[None, c0:c1], y[r0:r1, None], segments)
+        return
+    half = len(segments) // 2
+    _ink_band(inked, x, y, segments[:half])
+    _ink_band(inked, x, y, segments[half:])
+
+
+def _segment_band(x: np.ndarray, y: np.ndarray, segments: np.ndarray) -> np.ndarray:
+    """Boolean: which of the pixel centres (x, y) (a row (1, W) and a column (H, 1)) the authors' pen inks for any of
+    (M, 4) segments (see :func:`pen_band`), each segment along a first axis."""
     x0, y0, x1, y1 = (segments[:, i, None, None] for i in range(4))
     inked = (np.hypot(x - x1, y - y1) <= PEN_DOT_RADIUS).any(axis=0)
+    # Work in (major, minor) coordinates so one code path serves shallow and steep segments.
     shallow = np.abs(x1 - x0) >= np.abs(y1 - y0)
     a, b = np.where(shallow, x, y), np.where(shallow, y, x)
-    a0, b0, a1, b1 = (
-        np.where(shallow, x0, y0),
-        np.where(shallow, y0, x0),
-        np.where(shallow, x1, y1),
-        np.where(shallow, y1, x1),
-    )
+    a0, b0, a1, b1 = (np.where(shallow, *pair) for pair in ((x0, y0), (y0, x0), (x1, y1), (y1, x1)))
     swap = a1 < a0
     a0, b0, a1, b1 = np.where(swap, a1, a0), np.where(swap, b1, b0), np.where(swap, a0, a1), np.where(swap, b0, b1)
     offset = b - (b0 + (b1 - b0) * (np.clip(a, a0, a1) - a0) / np.maximum(a1 - a0, 1e-12))
     band = (a >= a0 - 0.5) & (a < a1 + 0.5) & (offset >= -INK_WIDTH / 2) & (offset < INK_WIDTH / 2)
     moves = ((x0 != x1) | (y0 != y1))[:, 0, 0]  # a segment of no length inks only its dot
     return inked | band[moves].any(axis=0)
-
-
-def _segment_band(x: np.ndarray, y: np.ndarray, segment: np.ndarray) -> np.ndarray:
-    """Boolean: which of the pixel centres (x, y) (a row (1, W) and a column (H, 1)) the authors' pen inks for one
-    segment (see :func:`pen_band`)."""
-    x0, y0, x1, y1 = segment
-    inked = np.hypot(x - x1, y - y1) <= PEN_DOT_RADIUS
-    if x0 == x1 and y0 == y1:
-        return inked | (np.hypot(x - x0, y - y0) <= PEN_DOT_RADIUS)
-    # Work in (major, minor) coordinates so one code path serves shallow and steep segments.
-    if abs(x1 - x0) >= abs(y1 - y0):
-        a, b, a0, b0, a1, b1 = x, y, x0, y0, x1, y1
-    else:
-        a, b, a0, b0, a1, b1 = y, x, y0, x0, y1, x1
-    if a1 < a0:
-        a0, b0, a1, b1 = a1, b1, a0, b0
-    lo, hi = a0 - 0.5, a1 + 0.5
-    offset = b - (b0 + (b1 - b0) * (np.clip(a, a0, a1) - a0) / max(a1 - a0, 1e-12))
-    return inked | ((a >= lo) & (a < hi) & (offset >= -INK_WIDTH / 2) & (offset < INK_WIDTH / 2))
 
 
 class InkMask:

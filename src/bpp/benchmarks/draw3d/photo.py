@@ -6,7 +6,7 @@ photograph the board with the fixed scene camera, find the canvas pose from the 
 (:func:`bpp.drawing.marked_canvas.canvas_pose`), resample the photo onto DrawAnything's canvas through that pose
 (one pixel of DrawAnything's 350-px board is 0.66 mm of the drawing area), take the dark pixels as ink, widen them by
 DrawAnything's pen (its ink masks are 12 px wide lines) and score them against the drawing with DrawAnything's
-Chamfer. ``bench/draw3d_photo_chamfer.py`` measures how far it is from the exact score.
+Chamfer. ``bench/draw3d_demonstrator.py`` measures how far it is from the exact score.
 """
 
 from __future__ import annotations
