@@ -7,7 +7,11 @@ the overhead ratio, the check that both give the same store and results, and a s
 Generation: `--tasks` Combination training tasks of the `cpu` preset (state only, 3 demonstrations each).
 Evaluation: a debug BPP trained `--train-steps` steps on that store, `--rollouts` rollouts of each of those tasks
 (`--max-steps` each). Each executor runs the same jobs from a fresh start (its workers import bpp and LIBERO first,
-as in a real run). The scaling model uses the per-job seconds measured on Ray: N nodes of C cores make about
+as in a real run). The anchor outside both executors: the same jobs run one after another in this process, warm
+(after one job of each kind, so that imports and first-environment costs are paid), whose mean is what a job costs
+when nothing else does; a job's cost on Ray "from outside" is Ray's wall time x CPUs / jobs against that mean, and
+the overhead per job inside Ray is that wall time x CPUs less the seconds its workers measured in the jobs.
+The scaling model uses the per-job seconds measured on Ray: N nodes of C cores make about
 N x C x 3600 / (seconds per job + the cluster's overhead per job) x (demonstrations or rollouts per job) an hour,
 for many more jobs than cores (the longest job's tail left out).
 """
@@ -86,12 +90,15 @@ def main() -> None:
                                   "rollouts_per_hour": round(3600 * rollouts / seconds, 1)}  # fmt: skip
     eval_jobs = [seconds for _, seconds in on_ray.done]
     report["eval_same_results"] = all(results["local"][k] == results["ray"][k] for k in ("summary", "rollouts"))
+    warm = warm_job_seconds(cfg, stores["local"], run, protocol, args.runs)
     for what, jobs in (("generate", generation_jobs), ("eval", eval_jobs)):
         wall = report[f"{what}_ray"]["seconds"]
         per_job = (wall * cpus - sum(jobs)) / len(jobs)  # what the cluster spent beyond the jobs themselves
         report[f"{what}_ray_over_local"] = round(wall / report[f"{what}_local"]["seconds"], 3)
         report[f"{what}_jobs"] = {"count": len(jobs), "mean_s": round(float(np.mean(jobs)), 2),
-                                  "max_s": round(max(jobs), 2), "overhead_per_job_s": round(per_job, 2)}  # fmt: skip
+                                  "max_s": round(max(jobs), 2), "overhead_per_job_s": round(per_job, 2),
+                                  "warm_in_process_s": round(warm[what], 2),
+                                  "over_warm_per_job_s": round(wall * cpus / len(jobs) - warm[what], 2)}  # fmt: skip
         per_job_units = report[f"{what}_ray"]["demos" if what == "generate" else "rollouts"] / len(jobs)
         unit_seconds = (float(np.mean(jobs)) + max(per_job, 0.0)) / per_job_units
         # demonstrations (or rollouts) per hour on n nodes of 16 cores, the longest job's tail left out
@@ -99,6 +106,27 @@ def main() -> None:
     print(json.dumps(report, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out, report)
+
+
+def warm_job_seconds(cfg, store, run: Path, protocol, runs: Path) -> dict[str, float]:
+    """Mean seconds of a generation job and of an evaluation job run one after another in this process (the local
+    executor with one worker), after one job of each kind has run here: the same jobs as the executors', warm."""
+    from bpp.checkpoint import Checkpoint
+
+    first = replace(cfg, task_indices=cfg.task_indices[:1])
+    generate(first, runs / "warm-up.zarr", Local(1), overwrite=True, progress=False)
+    t0 = time.perf_counter()
+    generate(cfg, runs / "in-process.zarr", Local(1), overwrite=True, progress=False)
+    seconds = {"generate": (time.perf_counter() - t0) / len(cfg.task_indices)}
+    ckpt = Checkpoint.load(run, use_ema=True)
+    _, task_set, tasks = resolve_tasks(str(store.path), ckpt)
+    evaluate(
+        ckpt, task_set, tasks[:1], runs / "eval-warm-up", protocol, Local(1), videos=0, progress=False, reuse=False
+    )
+    t0 = time.perf_counter()
+    evaluate(ckpt, task_set, tasks, runs / "eval-in-process", protocol, Local(1), videos=0, progress=False, reuse=False)
+    seconds["eval"] = (time.perf_counter() - t0) / -(-len(tasks) // protocol.tasks_per_batch)  # per batch of tasks
+    return seconds
 
 
 if __name__ == "__main__":

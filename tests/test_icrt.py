@@ -202,3 +202,37 @@ def test_image_observations_train_and_act(debug_store):
     model.compute_loss(to_torch(batch, "cpu")).backward()
     assert model.obs_encoder.cameras["image"].stem[0].weight.grad.abs().sum() > 0
     assert rollout(PolicyAgent(model), debug_store, 0, -0.4, seed=0, max_steps=25).steps == 25
+
+
+def test_attention_readout_splits_the_observations_attention_between_prompt_chunks_and_rollout(debug_store):
+    """With every key alike (no query-key weights), attention is even over the tokens a query may see: each prompt
+    chunk's two tokens get 2 shares, the rollout so far its own count, a padded prompt's missing chunks none."""
+    model = _model(debug_store)
+    agent = PolicyAgent(model, record_attention=True)
+    prompts = [prompt_from_store(debug_store, e, KEYS) for e in (0, 7)]
+    chunks = [-(-len(p["action"]) // N) for p in prompts]
+    assert chunks[0] != chunks[1]  # so the shorter prompt is padded
+    episodes = [debug_store.episode(e) for e in (1, 8)]
+    agent.reset_batch(prompts, seeds=[0, 1])
+    for t in range(3 * N):
+        agent.act_batch({k: np.stack([_observe(ep, t)[k] for ep in episodes]) for k in KEYS})
+    real = np.stack(agent.attention_log)  # (calls, B, 1 + chunks)
+    assert real.shape == (3, 2, 1 + max(chunks))
+    np.testing.assert_allclose(real.sum(-1), 1.0, rtol=1e-5)
+    short = int(np.argmin(chunks))
+    assert (real[:, short, 1 + chunks[short] :] == 0).all()  # no attention on padding
+
+    for block in model.transformer.blocks:
+        with torch.no_grad():
+            block.attn.qkv.weight[: 2 * block.attn.qkv.in_features] = 0  # queries and keys
+            block.attn.qkv.bias[: 2 * block.attn.qkv.in_features] = 0
+    agent.reset_batch(prompts, seeds=[0, 1])
+    for t in range(3 * N):
+        agent.act_batch({k: np.stack([_observe(ep, t)[k] for ep in episodes]) for k in KEYS})
+    for call, maps in enumerate(agent.attention_log):
+        rollout_tokens = 2 * call + 1  # the earlier chunks' observation and action tokens, and this observation
+        for b, n in enumerate(chunks):
+            seen = 2 * n + rollout_tokens
+            expected = np.zeros(1 + max(chunks))
+            expected[0], expected[1 : 1 + n] = rollout_tokens / seen, 2 / seen
+            np.testing.assert_allclose(maps[b], expected, rtol=1e-5, atol=1e-7)

@@ -1,4 +1,5 @@
-"""Two training choices for small budgets: several tasks per batch, and actions relative to the robot's state."""
+"""Training choices for small budgets: several tasks per batch, actions relative to the robot's state, and what the
+diffusion decoder predicts."""
 
 from dataclasses import replace
 
@@ -8,6 +9,8 @@ import torch
 
 from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset, index_contexts
+from bpp.policies.config import DEBUG_DIFFUSION, PREDICTION_TYPES
+from bpp.policies.diffusion import DiffusionHead
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
@@ -120,3 +123,38 @@ def test_relative_grouped_training_saves_loads_and_acts(debug_store, tmp_path, m
 
     result = rollout(agent, debug_store, 0, 0.3, seed=0, max_steps=30)
     assert 0 < result.steps <= 30 and np.isfinite(result.best_chamfer)
+
+
+class _Oracle(torch.nn.Module):
+    """A decoder network that knows the clean chunk: from a noised chunk it returns exactly what `kind` asks for."""
+
+    def __init__(self, clean: torch.Tensor, alphas_cumprod: torch.Tensor, kind: str):
+        super().__init__()
+        self.clean, self.alphas, self.kind = clean, alphas_cumprod, kind
+
+    def forward(self, noisy, steps, cond):
+        alpha = self.alphas[steps][:, None, None]
+        eps = (noisy - alpha**0.5 * self.clean) / (1 - alpha) ** 0.5
+        return {
+            "epsilon": eps,
+            "sample": self.clean,
+            "v_prediction": alpha**0.5 * eps - (1 - alpha) ** 0.5 * self.clean,
+        }[self.kind]
+
+
+@pytest.mark.parametrize("kind", PREDICTION_TYPES)
+@pytest.mark.parametrize("sampler", ["ddim", "ddpm"])
+def test_each_prediction_type_trains_on_and_samples_with_its_own_target(kind, sampler):
+    """A network that predicts the right quantity has zero loss and denoises any noise to the clean chunk: the loss's
+    target and the sampler's reading of the output are the same quantity, for each prediction type."""
+    cfg = replace(DEBUG_DIFFUSION, prediction_type=kind, sampler=sampler)
+    head = DiffusionHead(cfg, action_dim=2, cond_dim=3)
+    clean = torch.rand(4, 16, 2, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.8  # inside the clip range
+    head.net = _Oracle(clean, head.alphas_cumprod, kind)
+    cond = torch.zeros(4, 3)
+    assert head.loss(clean, cond, generator=torch.Generator().manual_seed(1)) < 1e-10
+    sampled = head.sample(cond, (16, 2), generator=torch.Generator().manual_seed(2))
+    torch.testing.assert_close(sampled, clean, rtol=0, atol=1e-4)
+    wrong = "sample" if kind != "sample" else "epsilon"
+    head.net = _Oracle(clean, head.alphas_cumprod, wrong)
+    assert head.loss(clean, cond, generator=torch.Generator().manual_seed(1)) > 1e-3  # the test tells them apart

@@ -44,15 +44,21 @@ class CausalSelfAttention(nn.Module):
         self.qkv = nn.Linear(dim, 3 * dim)
         self.out = nn.Linear(dim, dim)
 
-    def forward(self, x, mask, past_keys=None, past_values=None):
+    def forward(self, x, mask, past_keys=None, past_values=None, attention: list | None = None):
         """x (B, S_new, D); mask (B, 1, S_new, S_past + S_new) bool, True = may attend.
 
-        Returns the output (B, S_new, D) and the keys and values of all S_past + S_new tokens (B, H, S, Dh).
+        Returns the output (B, S_new, D) and the keys and values of all S_past + S_new tokens (B, H, S, Dh). Given a
+        list `attention`, appends the last new token's attention weights over all S tokens, averaged over heads
+        (B, S).
         """
         q, k, v = rearrange(self.qkv(x), "b s (three h d) -> three b h s d", three=3, h=self.heads)
         if past_keys is not None:
             k, v = torch.cat([past_keys, k], dim=2), torch.cat([past_values, v], dim=2)
         y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
+        if attention is not None:
+            scores = (q[:, :, -1:] @ k.transpose(-1, -2)) * q.shape[-1] ** -0.5  # (B, H, 1, S)
+            scores = scores.masked_fill(~mask[:, :, -1:], float("-inf"))
+            attention.append(scores.softmax(-1).mean(1)[:, 0])
         return self.out(rearrange(y, "b h s d -> b s (h d)")), k, v
 
 
@@ -67,8 +73,8 @@ class CausalBlock(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(dim, mlp_dim), nn.GELU(), nn.Linear(mlp_dim, dim))
         self.drop = nn.Dropout(dropout)
 
-    def forward(self, x, mask, past_keys=None, past_values=None):
-        h, k, v = self.attn(self.norm1(x), mask, past_keys, past_values)
+    def forward(self, x, mask, past_keys=None, past_values=None, attention: list | None = None):
+        h, k, v = self.attn(self.norm1(x), mask, past_keys, past_values, attention)
         x = x + self.drop(h)
         return x + self.drop(self.mlp(self.norm2(x))), k, v
 
@@ -84,7 +90,7 @@ class CausalTransformer(nn.Module):
         self.norm = nn.LayerNorm(dim)
 
     def forward(
-        self, x: torch.Tensor, valid: torch.Tensor, cache: KVCache | None = None
+        self, x: torch.Tensor, valid: torch.Tensor, cache: KVCache | None = None, attention: list | None = None
     ) -> tuple[torch.Tensor, KVCache]:
         """Run tokens x (B, S_new, D) (positions already added) that follow the cached ones.
 
@@ -92,6 +98,8 @@ class CausalTransformer(nn.Module):
             x: the new tokens.
             valid: (B, S_new) bool; invalid tokens (padding) are never attended by other tokens.
             cache: keys and values of the tokens before x (None: x is the whole sequence).
+            attention: a list to which each layer appends the last token's attention over all cached and new tokens,
+                averaged over heads (B, S); None: not computed.
 
         Returns:
             outputs (B, S_new, D) and the cache extended by x (the given cache is not modified).
@@ -107,7 +115,7 @@ class CausalTransformer(nn.Module):
         for i, block in enumerate(self.blocks):
             past_k = None if cache is None else cache.keys[i]
             past_v = None if cache is None else cache.values[i]
-            x, k, v = block(x, mask, past_k, past_v)
+            x, k, v = block(x, mask, past_k, past_v, attention)
             keys.append(k)
             values.append(v)
         return self.norm(x), KVCache(keys, values, all_valid)

@@ -24,6 +24,7 @@ IMAGE_WIDTHS_RULE = (
 )
 _DOWN = "channel counts, each a multiple of 8 (the decoder's GroupNorm has 8 groups)"
 BETA_SCHEDULES = ("linear", "scaled_linear", "squaredcos_cap_v2")
+PREDICTION_TYPES = ("epsilon", "sample", "v_prediction")
 
 
 def transformer_rules(cfg) -> tuple[tuple[str, bool, str], ...]:
@@ -96,6 +97,10 @@ class DiffusionConfig:
     beta_schedule: str = "squaredcos_cap_v2"
     sampler: str = "ddim"
     """ddim or ddpm."""
+    prediction_type: str = "epsilon"
+    """What the U-Net predicts from a noised chunk: ``epsilon`` (the noise, Diffusion Policy's and the paper's
+    choice), ``sample`` (the clean chunk) or ``v_prediction`` (√ᾱ·ε - √(1-ᾱ)·x₀); the loss is the mean squared
+    error of that prediction, and the sampler reads the network's output as the same quantity."""
 
     def __post_init__(self):
         check_fields(
@@ -107,6 +112,7 @@ class DiffusionConfig:
             ("num_inference_steps", 1 <= self.num_inference_steps <= self.num_train_steps, "in [1, num_train_steps]"),
             ("beta_schedule", self.beta_schedule in BETA_SCHEDULES, f"one of {BETA_SCHEDULES}"),
             ("sampler", self.sampler in ("ddim", "ddpm"), "'ddim' or 'ddpm'"),
+            ("prediction_type", self.prediction_type in PREDICTION_TYPES, f"one of {PREDICTION_TYPES}"),
         )
 
     def check_horizon(self, horizon: int) -> None:

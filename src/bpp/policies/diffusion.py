@@ -16,7 +16,8 @@ from bpp.policies.config import DiffusionConfig
 
 
 class DiffusionHead(nn.Module):
-    """Epsilon-prediction diffusion over normalised action chunks (B, T, A), conditioned on a vector (B, C)."""
+    """Diffusion over normalised action chunks (B, T, A), conditioned on a vector (B, C); the network predicts the
+    noise, the clean chunk or v (``cfg.prediction_type``)."""
 
     def __init__(self, cfg: DiffusionConfig, action_dim: int, cond_dim: int):
         super().__init__()
@@ -29,7 +30,7 @@ class DiffusionHead(nn.Module):
             num_train_timesteps=cfg.num_train_steps,
             beta_schedule=cfg.beta_schedule,
             clip_sample=True,
-            prediction_type="epsilon",
+            prediction_type=cfg.prediction_type,
         )
         self.train_scheduler = DDPMScheduler(**common)
         # ᾱ_t for noising training samples, as a buffer: it moves with the model, so a compiled loss on a GPU reads
@@ -56,14 +57,23 @@ class DiffusionHead(nn.Module):
         generator: torch.Generator | None = None,
         noise: Mapping[str, torch.Tensor] | None = None,
     ):
-        """Mean squared noise-prediction error for normalised actions (B, T, A), with the draws `noise` (see
-        :meth:`draw_noise`; made here from `generator` if None)."""
+        """Mean squared error of the network's prediction (the noise, the clean chunk or v, as
+        ``cfg.prediction_type`` says) for normalised actions (B, T, A), with the draws `noise` (see :meth:`draw_noise`;
+        made here from `generator` if None)."""
         if noise is None:
             noise = self.draw_noise(actions.shape, actions.device, generator)
         eps, steps = noise["noise"], noise["timesteps"]
         alpha = self.alphas_cumprod.to(actions.dtype)[steps][:, None, None]  # the DDPM scheduler's add_noise
         noisy = alpha**0.5 * actions + (1 - alpha) ** 0.5 * eps
-        return nn.functional.mse_loss(self.net(noisy, steps, cond), eps)
+        kind = self.cfg.prediction_type
+        target = (
+            eps
+            if kind == "epsilon"
+            else actions
+            if kind == "sample"
+            else alpha**0.5 * eps - (1 - alpha) ** 0.5 * actions
+        )
+        return nn.functional.mse_loss(self.net(noisy, steps, cond), target)
 
     def set_inference_steps(self, steps: int) -> None:
         """Denoise in `steps` DDIM/DDPM steps at inference from now on (training is unaffected)."""
@@ -105,8 +115,8 @@ class DiffusionHead(nn.Module):
 
     def _denoise(self, cond: torch.Tensor, x: torch.Tensor, generator=None) -> torch.Tensor:
         for t in self.sample_scheduler.timesteps.tolist():
-            eps = self.net(x, torch.full((x.shape[0],), t, dtype=torch.long, device=x.device), cond)
-            x = self.sample_scheduler.step(eps, t, x, generator=generator).prev_sample
+            out = self.net(x, torch.full((x.shape[0],), t, dtype=torch.long, device=x.device), cond)
+            x = self.sample_scheduler.step(out, t, x, generator=generator).prev_sample
         return x
 
     def _graphed_denoise(self, cond: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:

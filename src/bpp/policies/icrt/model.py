@@ -133,18 +133,18 @@ class ICRTModel(PolicyModel):
         return tokens, repeat(valid[:, ::N], "b n -> b (n two)", two=2)  # a chunk exists where its first step does
 
     def run(
-        self, tokens: torch.Tensor, valid: torch.Tensor, cache: KVCache | None = None
+        self, tokens: torch.Tensor, valid: torch.Tensor, cache: KVCache | None = None, attention: list | None = None
     ) -> tuple[torch.Tensor, KVCache]:
         """Tokens (B, S_new, D) after the cached ones -> outputs (B, S_new, D) and the extended cache.
 
         Each token's position is the number of valid tokens before it in its own sample (padding takes its
-        neighbour's position; nothing attends to it).
+        neighbour's position; nothing attends to it). `attention`: see :class:`~bpp.nn.causal.CausalTransformer`.
         """
         start = 0 if cache is None else cache.valid.sum(1, keepdim=True)
         positions = (start + valid.cumsum(1) - 1).clamp_min(0)
         if not torch.compiler.is_compiling():  # a host read; training's sequences fit by construction
             assert int(positions.max()) < self.cfg.max_tokens, "sequence longer than max_tokens"
-        return self.transformer(tokens + self.pos_embed[positions], valid, cache)
+        return self.transformer(tokens + self.pos_embed[positions], valid, cache, attention)
 
     # ------------------------------------------------------------------ train
     def compute_loss(
@@ -238,8 +238,10 @@ class ICRTModel(PolicyModel):
         """The next chunk's N actions (B, N, A) raw, from the observation ``{key: (B, 1, ...)}`` at its first step.
 
         Extends `ctx` by this chunk (it must be called once per N executed steps, as :class:`PolicyAgent` does
-        with ``n_action_steps = N``). Deterministic: `noise` and `generator` are unused, and there is no attention
-        map to return.
+        with ``n_action_steps = N``). Deterministic: `noise` and `generator` are unused. With `return_attention`,
+        also ``"attention"`` (B, n_chunks + 1): the observation token's attention, averaged over layers and heads,
+        summed per prompt chunk (its observation and action tokens) in columns 1.., and on the rollout so far (this
+        observation's token included) in column 0.
         """
         batch = next(iter(obs.values())).shape[0]
         if ctx.valid.shape[0] != batch:
@@ -249,18 +251,28 @@ class ICRTModel(PolicyModel):
             new = torch.cat([ctx.pending, new], dim=1)
         new_valid = torch.ones(new.shape[:2], dtype=torch.bool, device=new.device)
         tokens, valid = torch.cat([ctx.tokens, new], dim=1), torch.cat([ctx.valid, new_valid], dim=1)
+        attention = [] if return_attention else None
         if bool((valid.sum(1) + 1 > self.cfg.max_tokens).any()):  # + 1: this chunk's action token, still to come
             tokens, valid = self.window(tokens, valid, ctx.prompt_slots)
-            out, ctx.cache = self.run(tokens, valid)
+            out, ctx.cache = self.run(tokens, valid, attention=attention)
         else:
-            out, ctx.cache = self.run(new, new_valid, ctx.cache)
+            out, ctx.cache = self.run(new, new_valid, ctx.cache, attention)
         ctx.tokens, ctx.valid = tokens, valid
         chunk = rearrange(self.head(out[:, -1]), "b (t a) -> b t a", t=self.cfg.chunk_len)
         origin = self.action_origin(obs)
         actions = self.unnormalize_actions(chunk, origin)
         executed = torch.ones(actions.shape[:2], dtype=torch.bool, device=actions.device)
         ctx.pending = self.action_tokens(actions, executed, ROLLOUT, origin)
-        return {"action": actions}
+        if attention is None:
+            return {"action": actions}
+        return {"action": actions, "attention": self.prompt_attention(torch.stack(attention).mean(0), ctx.prompt_slots)}
+
+    @staticmethod
+    def prompt_attention(weights: torch.Tensor, prompt_slots: int) -> torch.Tensor:
+        """Attention over the token slots (B, S), prompt first -> (B, 1 + prompt_slots // 2): the rollout's share,
+        then each prompt chunk's (two slots, observation and action, per chunk; padding gets none)."""
+        chunks = weights[:, :prompt_slots].unflatten(1, (-1, 2)).sum(-1)
+        return torch.cat([weights[:, prompt_slots:].sum(1, keepdim=True), chunks], dim=1)
 
     def window(self, tokens: torch.Tensor, valid: torch.Tensor, prompt_slots: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Keep each sample's prompt and its most recent rollout chunks that fit in ``max_tokens``.
