@@ -9,8 +9,9 @@ Evaluation: a debug BPP trained `--train-steps` steps on that store, `--rollouts
 (`--max-steps` each). Each executor runs the same jobs from a fresh start (its workers import bpp and LIBERO first,
 as in a real run). The anchor outside both executors: the same jobs run one after another in this process, warm
 (after one job of each kind, so that imports and first-environment costs are paid), whose mean is what a job costs
-when nothing else does; a job's cost on Ray "from outside" is Ray's wall time x CPUs / jobs against that mean, and
-the overhead per job inside Ray is that wall time x CPUs less the seconds its workers measured in the jobs.
+when nothing else does; a job's cost on Ray "from outside" is Ray's wall time x CPUs / jobs against that mean (and
+the local pool's likewise: what running jobs side by side in fresh workers costs without Ray), and the overhead per
+job inside Ray is that wall time x CPUs less the seconds its workers measured in the jobs.
 The scaling model uses the per-job seconds measured on Ray: N nodes of C cores make about
 N x C x 3600 / (seconds per job + the cluster's overhead per job) x (demonstrations or rollouts per job) an hour,
 for many more jobs than cores (the longest job's tail left out).
@@ -92,13 +93,18 @@ def main() -> None:
     report["eval_same_results"] = all(results["local"][k] == results["ray"][k] for k in ("summary", "rollouts"))
     warm = warm_job_seconds(cfg, stores["local"], run, protocol, args.runs)
     for what, jobs in (("generate", generation_jobs), ("eval", eval_jobs)):
-        wall = report[f"{what}_ray"]["seconds"]
+        wall, local = report[f"{what}_ray"]["seconds"], report[f"{what}_local"]["seconds"]
         per_job = (wall * cpus - sum(jobs)) / len(jobs)  # what the cluster spent beyond the jobs themselves
-        report[f"{what}_ray_over_local"] = round(wall / report[f"{what}_local"]["seconds"], 3)
-        report[f"{what}_jobs"] = {"count": len(jobs), "mean_s": round(float(np.mean(jobs)), 2),
-                                  "max_s": round(max(jobs), 2), "overhead_per_job_s": round(per_job, 2),
-                                  "warm_in_process_s": round(warm[what], 2),
-                                  "over_warm_per_job_s": round(wall * cpus / len(jobs) - warm[what], 2)}  # fmt: skip
+        report[f"{what}_ray_over_local"] = round(wall / local, 3)
+        report[f"{what}_jobs"] = {
+            "count": len(jobs),
+            "mean_s": round(float(np.mean(jobs)), 2),
+            "max_s": round(max(jobs), 2),
+            "overhead_per_job_s": round(per_job, 2),
+            "warm_in_process_s": round(warm[what], 2),
+            "over_warm_per_job_s": round(wall * cpus / len(jobs) - warm[what], 2),
+            "local_over_warm_per_job_s": round(local * cores / len(jobs) - warm[what], 2),
+        }
         per_job_units = report[f"{what}_ray"]["demos" if what == "generate" else "rollouts"] / len(jobs)
         unit_seconds = (float(np.mean(jobs)) + max(per_job, 0.0)) / per_job_units
         # demonstrations (or rollouts) per hour on n nodes of 16 cores, the longest job's tail left out
