@@ -65,14 +65,12 @@ class DiffusionHead(nn.Module):
         eps, steps = noise["noise"], noise["timesteps"]
         alpha = self.alphas_cumprod.to(actions.dtype)[steps][:, None, None]  # the DDPM scheduler's add_noise
         noisy = alpha**0.5 * actions + (1 - alpha) ** 0.5 * eps
-        kind = self.cfg.prediction_type
-        target = (
-            eps
-            if kind == "epsilon"
-            else actions
-            if kind == "sample"
-            else alpha**0.5 * eps - (1 - alpha) ** 0.5 * actions
-        )
+        if self.cfg.prediction_type == "epsilon":
+            target = eps
+        elif self.cfg.prediction_type == "sample":
+            target = actions
+        else:  # v_prediction
+            target = alpha**0.5 * eps - (1 - alpha) ** 0.5 * actions
         return nn.functional.mse_loss(self.net(noisy, steps, cond), target)
 
     def set_inference_steps(self, steps: int) -> None:
