@@ -12,12 +12,14 @@ rollout and inference: the centre of the attention's mass over the prompt's chun
 the rollout has taken as many steps as the prompt). Printed over rollouts: Spearman's rank correlation of the centre
 with the inference's index, the mean distance of the centre from the place in time, the mass on the most attended
 chunk against an even spread's, and the rest's share (sinks or rollout); with ``--prompts shuffled`` the prompt's
-10-step chunks come in a random order, which a policy that finds its place by the chunks' content follows.
+10-step chunks come in a random order, which a policy that finds its place by the chunks' content follows; with
+``--rollout-memory K`` ICRT sees only its last K rollout chunks, its own included (what the rollout so far gives it).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 import matplotlib
@@ -60,12 +62,20 @@ def main() -> None:
     add_eval_arguments(parser, num_tasks=50, rollouts=2)
     parser.add_argument("--prompts", default="own", choices=["own", "shuffled"])
     parser.add_argument("--figure", type=Path, help="where to draw each rollout's attention centre over time")
+    parser.add_argument("--rollout-memory", type=int, default=0, help="ICRT: rollout chunks an inference sees (0: all)")
+    parser.add_argument("--scores", type=Path, help="where to write each rollout's score (JSON), to pair runs")
     args = parser.parse_args()
     ckpt, benchmark, task_set, tasks = evaluated_tasks(args)
     store = task_set.store
     protocol = Protocol(rollouts=args.rollouts, prompts=args.prompts)
-    plan = [row for task in tasks for row in protocol.plan(store, task, benchmark)]
-    agent = PolicyAgent(ckpt.build_model(), record_attention=True, **protocol.agent_options())
+    rows = [(task, row) for task in tasks for row in protocol.plan(store, task, benchmark)]
+    plan, task_of = [row for _, row in rows], np.array([task for task, _ in rows])
+    model = ckpt.build_model()
+    if args.rollout_memory:
+        if not hasattr(model, "limit_rollout_memory"):
+            raise SystemExit(f"{args.run}: --rollout-memory is ICRT's (this run is {NAMES[ckpt.method]})")
+        model.limit_rollout_memory(args.rollout_memory)
+    agent = PolicyAgent(model, record_attention=True, **protocol.agent_options())
     results, attention = run_prompted(agent, benchmark, store, plan, benchmark.max_steps, [False] * len(plan))
     if attention is None:
         raise SystemExit(f"{args.run}: this method reports no prompt attention")
@@ -76,8 +86,17 @@ def main() -> None:
     for row, maps in zip(plan, attention, strict=True):
         sl = store.episode_slice(int(row["prompt_episode"]))
         measures.append(rollout_attention(maps, sl.stop - sl.start, chunk_len, agent.n_action_steps))
-    scores = [r.score for r in results]
-    print(f"{len(plan)} rollouts ({args.prompts} prompts) of {len(tasks)} tasks: mean score {np.mean(scores):.2f} px")
+    scores = np.array([r.score for r in results])
+    memory = f", rollout memory {args.rollout_memory} chunks" if args.rollout_memory else ""
+    by_task = [scores[task_of == t].mean() for t in tasks]
+    sem = np.std(by_task, ddof=1) / np.sqrt(len(tasks))
+    print(f"{len(plan)} rollouts ({args.prompts} prompts{memory}) of {len(tasks)} tasks: "
+          f"mean score {scores.mean():.2f} ± {sem:.2f} px (s.e.m. over tasks)")  # fmt: skip
+    if args.scores:
+        args.scores.parent.mkdir(parents=True, exist_ok=True)
+        args.scores.write_text(
+            json.dumps([{"task": int(t), "score": float(x)} for t, x in zip(task_of, scores, strict=True)])
+        )
     print(f"Spearman's rho of the attention's centre with the inference's index: {mean_sem(m['rho'] for m in measures)}"
           f" (above 0.5 in {np.mean([m['rho'] > 0.5 for m in measures]):.0%} of rollouts)")  # fmt: skip
     print(f"distance of the centre from the place in time (0-1): {mean_sem(m['lag'] for m in measures)}")

@@ -6,6 +6,7 @@ import torch
 
 from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset
+from bpp.errors import UserError
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.icrt.model import PROMPT, ROLLOUT, ICRTModel
 from bpp.policies.model import count_parameters
@@ -236,3 +237,28 @@ def test_attention_readout_splits_the_observations_attention_between_prompt_chun
             expected = np.zeros(1 + max(chunks))
             expected[0], expected[1 : 1 + n] = rollout_tokens / seen, 2 / seen
             np.testing.assert_allclose(maps[b], expected, rtol=1e-5, atol=1e-7)
+
+
+def test_a_limited_rollout_memory_acts_as_the_prompt_and_the_last_chunks_alone(debug_store):
+    """With `limit_rollout_memory(k)` each chunk is what the prompt plus the rollout's last k chunks (its own
+    included) predict from fresh positions, as past the context limit; 0 gives the whole rollout back."""
+    model = _model(debug_store)
+    agent = PolicyAgent(model)
+    prompt = prompt_from_store(debug_store, 0, KEYS)
+    episode = debug_store.episode(8)
+    agent.reset(prompt)
+    whole = _act_open_loop(agent, episode, 6 * N)
+    model.limit_rollout_memory(2)
+    agent.reset(prompt)
+    acted = _act_open_loop(agent, episode, 6 * N)
+    np.testing.assert_allclose(acted[: 2 * N], whole[: 2 * N], rtol=1e-5, atol=1e-5)  # nothing forgotten yet
+    assert not np.allclose(acted[2 * N :], whole[2 * N :], atol=1e-4)
+    for call in range(2, 6):
+        first = call - 1
+        window = _uncached_chunks(model, prompt, episode, acted[first * N : (call + 1) * N], start=first * N)
+        torch.testing.assert_close(torch.from_numpy(acted[call * N : (call + 1) * N]), window[-1], rtol=1e-5, atol=1e-5)
+    model.limit_rollout_memory(0)
+    agent.reset(prompt)
+    np.testing.assert_allclose(_act_open_loop(agent, episode, 6 * N), whole, rtol=1e-5, atol=1e-5)
+    with pytest.raises(UserError, match="rollout memory"):
+        model.limit_rollout_memory(-1)

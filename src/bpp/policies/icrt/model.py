@@ -28,7 +28,8 @@ Context limit (``max_tokens``): when a rollout would outgrow it, each sample kee
 recent rollout chunks that fit; that window is run again without the cache (positions re-assigned from the prompt
 on, as if the rollout had started at the window), then the cache grows from there. A rollout that stays at the limit
 re-runs its window on every call. Training never sees such windows: a training rollout too long to fit after the
-prompt only contributes its first chunks.
+prompt only contributes its first chunks. :meth:`ICRTModel.limit_rollout_memory` applies the same window at a chosen
+number of chunks (an ablation of what the rollout so far gives ICRT).
 
 Tensor shapes at the boundaries (B: batch, Bp: prompt batch, 1 or B; L: steps; n: chunks; S: tokens; A, D):
 
@@ -101,6 +102,17 @@ class ICRTModel(PolicyModel):
         self.pos_embed = nn.Parameter(torch.randn(cfg.max_tokens, D) * 0.02)
         self.transformer = CausalTransformer(D, cfg.layers, cfg.heads, cfg.mlp_dim, cfg.dropout)
         self.head = nn.Sequential(nn.Linear(D, D), nn.GELU(), nn.Linear(D, N * self.action_dim))
+        self.rollout_memory = 0
+        """Rollout chunks an inference sees, its own included (0: all that fit in ``max_tokens``); see
+        :meth:`limit_rollout_memory`."""
+
+    def limit_rollout_memory(self, chunks: int) -> None:
+        """From now on each inference sees the prompt and only the last `chunks` rollout chunks, its own included
+        (0: all that fit), as a rollout past the context limit does: an evaluation-time ablation of what the rollout so
+        far gives ICRT (training always sees whole rollouts)."""
+        if chunks < 0:
+            raise UserError(f"rollout memory must be >= 0 chunks (0: all that fit), got {chunks}")
+        self.rollout_memory = chunks
 
     # ----------------------------------------------------------------- tokens
     def obs_tokens(self, obs: Mapping[str, torch.Tensor], segment: int) -> torch.Tensor:
@@ -252,7 +264,10 @@ class ICRTModel(PolicyModel):
         new_valid = torch.ones(new.shape[:2], dtype=torch.bool, device=new.device)
         tokens, valid = torch.cat([ctx.tokens, new], dim=1), torch.cat([ctx.valid, new_valid], dim=1)
         attention = [] if return_attention else None
-        if bool((valid.sum(1) + 1 > self.cfg.max_tokens).any()):  # + 1: this chunk's action token, still to come
+        too_long = valid.sum(1) + 1 > self.cfg.max_tokens  # + 1: this chunk's action token, still to come
+        if self.rollout_memory:  # the rollout slots: the earlier chunks' two tokens each, and this observation
+            too_long |= valid[:, ctx.prompt_slots :].sum(1) > 2 * self.rollout_memory - 1
+        if bool(too_long.any()):
             tokens, valid = self.window(tokens, valid, ctx.prompt_slots)
             out, ctx.cache = self.run(tokens, valid, attention=attention)
         else:
@@ -275,7 +290,8 @@ class ICRTModel(PolicyModel):
         return torch.cat([weights[:, prompt_slots:].sum(1, keepdim=True), chunks], dim=1)
 
     def window(self, tokens: torch.Tensor, valid: torch.Tensor, prompt_slots: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Keep each sample's prompt and its most recent rollout chunks that fit in ``max_tokens``.
+        """Keep each sample's prompt and its most recent rollout chunks that fit in ``max_tokens`` (at most
+        :attr:`rollout_memory` of them, where set).
 
         tokens (B, S, D), valid (B, S): the prompts, then rollout slots ``o' a' ... o'`` ending with the newest
         observation (whose action token is still to come). Returns the shortened tokens and validity. Because each
@@ -284,6 +300,8 @@ class ICRTModel(PolicyModel):
         prompt_len = valid[:, :prompt_slots].sum(1)
         keep = (self.cfg.max_tokens - prompt_len) // 2 * 2 - 1  # whole chunks, the newest one without its action
         keep = torch.minimum(keep, valid[:, prompt_slots:].sum(1))
+        if self.rollout_memory:
+            keep = keep.clamp_max(2 * self.rollout_memory - 1)
         assert int(keep.min()) >= 1, "a prompt leaves no room for the rollout (validate_context should refuse it)"
         region = tokens.shape[1] - prompt_slots
         first = region - int(keep.max())  # even: a window starts at an observation token
