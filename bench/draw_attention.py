@@ -80,8 +80,10 @@ def main() -> None:
     if attention is None:
         raise SystemExit(f"{args.run}: this method reports no prompt attention")
     cfg = agent.model.cfg
-    chunk_len = cfg.prompt.chunk_len if hasattr(cfg, "prompt") else cfg.chunk_len
-    rest = "the attention sinks'" if hasattr(cfg, "prompt") else "its own rollout's"
+    if hasattr(cfg, "prompt"):  # BPP: column 0 is its attention sinks' mass
+        chunk_len, rest = cfg.prompt.chunk_len, "the attention sinks'"
+    else:  # ICRT: column 0 is its rollout's
+        chunk_len, rest = cfg.chunk_len, "its own rollout's"
     measures = []
     for row, maps in zip(plan, attention, strict=True):
         sl = store.episode_slice(int(row["prompt_episode"]))

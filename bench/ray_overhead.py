@@ -31,6 +31,7 @@ import numpy as np
 
 from bpp.benchmarks.libero.benchmark import BENCHMARK
 from bpp.benchmarks.libero.dataset import PRESETS, generate
+from bpp.checkpoint import Checkpoint
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.executor import Local, Ray
 from bpp.policies.registry import get_method
@@ -78,8 +79,6 @@ def main() -> None:
     results = {}
     protocol = Protocol(rollouts=args.rollouts, max_steps=args.max_steps)
     for name, executor in (("local", local), ("ray", on_ray)):
-        from bpp.checkpoint import Checkpoint
-
         ckpt = Checkpoint.load(run, use_ema=True)
         _, task_set, tasks = resolve_tasks(str(stores["local"].path), ckpt)
         t0 = time.perf_counter()
@@ -117,8 +116,6 @@ def main() -> None:
 def warm_job_seconds(cfg, store, run: Path, protocol, runs: Path) -> dict[str, float]:
     """Mean seconds of a generation job and of an evaluation job run one after another in this process (the local
     executor with one worker), after one job of each kind has run here: the same jobs as the executors', warm."""
-    from bpp.checkpoint import Checkpoint
-
     first = replace(cfg, task_indices=cfg.task_indices[:1])
     generate(first, runs / "warm-up.zarr", Local(1), overwrite=True, progress=False)
     t0 = time.perf_counter()

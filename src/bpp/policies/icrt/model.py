@@ -264,10 +264,7 @@ class ICRTModel(PolicyModel):
         new_valid = torch.ones(new.shape[:2], dtype=torch.bool, device=new.device)
         tokens, valid = torch.cat([ctx.tokens, new], dim=1), torch.cat([ctx.valid, new_valid], dim=1)
         attention = [] if return_attention else None
-        too_long = valid.sum(1) + 1 > self.cfg.max_tokens  # + 1: this chunk's action token, still to come
-        if self.rollout_memory:  # the rollout slots: the earlier chunks' two tokens each, and this observation
-            too_long |= valid[:, ctx.prompt_slots :].sum(1) > 2 * self.rollout_memory - 1
-        if bool(too_long.any()):
+        if bool((valid[:, ctx.prompt_slots :].sum(1) > self.rollout_room(valid, ctx.prompt_slots)).any()):
             tokens, valid = self.window(tokens, valid, ctx.prompt_slots)
             out, ctx.cache = self.run(tokens, valid, attention=attention)
         else:
@@ -289,6 +286,12 @@ class ICRTModel(PolicyModel):
         chunks = weights[:, :prompt_slots].unflatten(1, (-1, 2)).sum(-1)
         return torch.cat([weights[:, prompt_slots:].sum(1, keepdim=True), chunks], dim=1)
 
+    def rollout_room(self, valid: torch.Tensor, prompt_slots: int) -> torch.Tensor:
+        """(B,) rollout slots each sample may keep after its prompt: whole chunks that fit in ``max_tokens`` with the
+        newest one's action token still to come (at most :attr:`rollout_memory` chunks, where set)."""
+        room = (self.cfg.max_tokens - valid[:, :prompt_slots].sum(1)) // 2 * 2 - 1
+        return room.clamp_max(2 * self.rollout_memory - 1) if self.rollout_memory else room
+
     def window(self, tokens: torch.Tensor, valid: torch.Tensor, prompt_slots: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Keep each sample's prompt and its most recent rollout chunks that fit in ``max_tokens`` (at most
         :attr:`rollout_memory` of them, where set).
@@ -297,11 +300,7 @@ class ICRTModel(PolicyModel):
         observation (whose action token is still to come). Returns the shortened tokens and validity. Because each
         sample's valid rollout slots are a suffix, its window is a shorter suffix; slots that no sample keeps go.
         """
-        prompt_len = valid[:, :prompt_slots].sum(1)
-        keep = (self.cfg.max_tokens - prompt_len) // 2 * 2 - 1  # whole chunks, the newest one without its action
-        keep = torch.minimum(keep, valid[:, prompt_slots:].sum(1))
-        if self.rollout_memory:
-            keep = keep.clamp_max(2 * self.rollout_memory - 1)
+        keep = torch.minimum(self.rollout_room(valid, prompt_slots), valid[:, prompt_slots:].sum(1))
         assert int(keep.min()) >= 1, "a prompt leaves no room for the rollout (validate_context should refuse it)"
         region = tokens.shape[1] - prompt_slots
         first = region - int(keep.max())  # even: a window starts at an observation token
