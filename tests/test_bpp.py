@@ -157,6 +157,51 @@ def test_prompt_ablations_train_and_act(debug_store, prompt_cfg):
     assert model.predict_action(batch["obs"], ctx)["action"].shape == (8, 16, 3)
 
 
+def test_rollout_memory_windows_hold_the_episode_earlier(debug_store):
+    """A window with a rollout memory holds the same episode's states Δt and 2Δt steps before its current one
+    (the first one's before the episode starts), then the usual To-step history: the same draws as a 21-step one."""
+    memory = _dataset(debug_store, memory_offsets=(-20, -10))[4]["obs"]
+    long = _dataset(debug_store, n_obs_steps=21, horizon=22)[4]["obs"]
+    plain = _dataset(debug_store)[4]["obs"]
+    for key in KEYS:
+        assert memory[key].shape[1] == 4
+        np.testing.assert_array_equal(memory[key], long[key][:, [0, 10, 19, 20]])
+        np.testing.assert_array_equal(memory[key][:, 2:], plain[key])
+    assert not np.array_equal(memory["agent_pos"][:, 0], memory["agent_pos"][:, 3])  # some windows moved
+
+
+def test_rollout_memory_is_read_from_the_rollout_at_chunk_boundaries(debug_store):
+    model = _model(debug_store, replace(config("bpp"), prompt=PromptConfig(rollout_memory=2, chunk_len=10)))
+    assert model.data_spec().obs_offsets == (-20, -10, -1, 0)
+    seen = []
+    predict = model.predict_action
+    model.predict_action = lambda obs, *a, **kw: seen.append(obs["agent_pos"][0].numpy()) or predict(obs, *a, **kw)
+    agent = PolicyAgent(model, n_action_steps=1)
+    agent.reset(prompt_from_store(debug_store, 0, KEYS), seed=0)
+    ep = debug_store.episode(1)
+    for t in range(25):
+        agent.act({k: ep[k][t] for k in KEYS})
+    for t in (0, 5, 12, 24):
+        np.testing.assert_array_equal(seen[t], ep["agent_pos"][[max(t - 20, 0), max(t - 10, 0), max(t - 1, 0), t]])
+
+
+def test_rollout_memory_trains_and_changes_the_actions(debug_store):
+    cfg = replace(config("bpp"), prompt=PromptConfig(rollout_memory=2))
+    model = _model(debug_store, cfg)
+    ds = PromptBatchDataset(debug_store, model.data_spec(), frames=DRAW_FRAMES, batch_size=8, seed=0)
+    batch = to_torch(ds[0], "cpu")
+    model.compute_loss(batch).backward()
+    assert all(p.grad is not None for p in model.parameters())  # the memory's embeddings included
+    ctx = model.encode_prompt(batch["context"])
+    noise = torch.randn(8, 16, 3, generator=torch.Generator().manual_seed(0))
+    a = model.predict_action(batch["obs"], ctx, noise=noise, return_attention=True)
+    moved = {k: v.clone() for k, v in batch["obs"].items()}
+    moved["agent_pos"][:, 0] += 50.0  # an earlier state, the current ones unchanged
+    b = model.predict_action(moved, ctx, noise=noise)
+    assert a["attention"].shape == (8, ctx.num_chunks + 1)
+    assert not torch.allclose(a["action"], b["action"])
+
+
 def test_paper_preset_size():
     stats = {k: {"min": [0.0] * n, "max": [1.0] * n} for k, n in [("agent_pos", 2), ("pen_down", 1), ("action", 3)]}
     model = BPPModel(config("bpp", "paper", "paper"), stats)

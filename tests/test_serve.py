@@ -7,6 +7,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -128,8 +129,12 @@ def test_the_robot_client_reproduces_bpp_eval_exactly_rollout_for_rollout(debug_
     assert all(row["steps"] > 8 for row in local["rollouts"])  # several replanning requests each
 
 
-def test_concurrent_clients_are_batched_and_act_as_in_process(debug_store):
-    model = _model("bpp", debug_store)
+@pytest.mark.parametrize("memory", [0, 2], ids=["bpp", "with-rollout-memory"])
+def test_concurrent_clients_are_batched_and_act_as_in_process(debug_store, memory):
+    torch.manual_seed(0)
+    cfg = config("bpp")
+    cfg = replace(cfg, prompt=replace(cfg.prompt, rollout_memory=memory))
+    model = get_method("bpp").model_cls(cfg, debug_store.stats).eval()
     episodes, seeds = [0, 7, 20, 30], [5, 6, 7, 8]
     plan = [
         {"target_episode": e, "prompt_episode": e, "board_angle": 0.3 * i, "seed": s}

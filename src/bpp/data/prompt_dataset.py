@@ -288,7 +288,7 @@ class PromptBatchDataset(torch.utils.data.Dataset):
         To, T = self.spec.n_obs_steps, self.spec.horizon
         lengths = self.ends[chosen] - self.starts[chosen]
         t = (rng.random(len(chosen)) * lengths).astype(np.int64)  # current step within each episode
-        obs_idx = np.clip(t[:, None] + np.arange(-To + 1, 1), 0, None)
+        obs_idx = np.clip(t[:, None] + np.asarray(self.spec.obs_offsets), 0, None)  # To steps after any memory
         act_idx = np.clip(t[:, None] + np.arange(-To + 1, T - To + 1), 0, None)
         act_idx = np.minimum(act_idx, lengths[:, None] - 1)  # pad past the end with the final action
         actions = self._data()[self.spec.action_key][self.starts[chosen][:, None] + act_idx]

@@ -68,7 +68,26 @@ class DataSpec:
     observation per prompt chunk, so training renders and sends just those (the context then says ``obs_stride``)."""
     max_episode_steps: int = 400
     """Whole-episode samples are cut to this length."""
+    memory_offsets: tuple[int, ...] = ()
+    """Earlier observations of the rollout itself that the policy reads before its To-step history: step offsets
+    from the current step, negative and increasing (e.g. (-20, -10): the states 20 and 10 steps ago)."""
 
     def __post_init__(self):
         if self.context not in CONTEXT_KINDS:
             raise UserError(f"context must be one of {CONTEXT_KINDS}, got {self.context!r}")
+        offsets = self.memory_offsets
+        if any(o >= 1 - self.n_obs_steps for o in offsets) or list(offsets) != sorted(set(offsets)):
+            raise UserError(
+                f"memory_offsets must increase and lie before the {self.n_obs_steps}-step history, got {offsets}"
+            )
+
+    @property
+    def obs_offsets(self) -> tuple[int, ...]:
+        """Every observation the policy reads, as step offsets from the current step (0), oldest first: the
+        rollout memory, then the To-step history. Before a rollout's first step, its first observation stands in."""
+        return (*self.memory_offsets, *range(1 - self.n_obs_steps, 1))
+
+    @property
+    def history_length(self) -> int:
+        """How many of the latest observations a rollout keeps to read :attr:`obs_offsets` from."""
+        return 1 - self.obs_offsets[0]

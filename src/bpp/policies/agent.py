@@ -1,10 +1,10 @@
 """The inference agent every evaluator and interface uses: numpy in, numpy out, one or many rollouts in lockstep.
 
 It owns what a rollout needs beyond the network: the task context encoded once at :meth:`reset` (for BPP, the
-prompt's chunk embeddings), the observation history (To steps, the first observation repeated at the start),
-the receding-horizon action queue (Ta of each predicted T-step chunk are executed), and one noise generator per
-rollout, seeded by the caller, so that every method sees identical seeds and a rollout does not depend on which
-other rollouts share its batch.
+prompt's chunk embeddings), the observation history (To steps, and the earlier ones a model reads as its rollout
+memory; the first observation repeated at the start), the receding-horizon action queue (Ta of each predicted
+T-step chunk are executed), and one noise generator per rollout, seeded by the caller, so that every method sees
+identical seeds and a rollout does not depend on which other rollouts share its batch.
 
 Any model that implements :class:`bpp.policies.registry.PolicyModelContract` plugs in; the agent uses nothing else.
 """
@@ -84,7 +84,7 @@ class PolicyAgent:
         with torch.no_grad():
             self.context = self.model.encode_context(to_torch(batch, self.device))
         self.generators = [torch.Generator(self.device).manual_seed(int(s)) for s in seeds]
-        self.history: deque = deque(maxlen=self.n_obs_steps)
+        self.history: deque = deque(maxlen=self.data_spec.history_length)
         self.queue: deque = deque()
         self.attention_log: list[np.ndarray] = []  # per inference call: (B, n_chunks + 1)
         self.steps = 0
@@ -95,7 +95,7 @@ class PolicyAgent:
             raise RuntimeError("call reset(context) before act(obs)")
         obs = {k: np.asarray(obs[k]) for k in self.obs_keys}
         if not self.history:
-            self.history.extend([obs] * (self.n_obs_steps - 1))
+            self.history.extend([obs] * (self.history.maxlen - 1))
         self.history.append(obs)
         if not self.queue:
             chunk = self.predict_chunk()
@@ -106,11 +106,18 @@ class PolicyAgent:
 
     def predict_chunk(self) -> np.ndarray:
         """Run the model on the current history: the full (B, T, A) action chunks."""
-        stacked = {k: np.stack([o[k] for o in self.history], axis=1) for k in self.obs_keys}
+        read = history_at(self.history, self.data_spec.obs_offsets)
+        stacked = {k: np.stack([o[k] for o in read], axis=1) for k in self.obs_keys}
         chunk, attention = predict_chunks(self.model, stacked, self.context, self.generators, self.record_attention)
         if attention is not None:
             self.attention_log.append(attention)
         return chunk
+
+
+def history_at(history: Sequence, offsets: Sequence[int]) -> list:
+    """The entries of a rollout's latest observations (`history`, oldest first) that a policy reads: those at step
+    `offsets` (<= 0, :attr:`~bpp.data.spec.DataSpec.obs_offsets`) from the latest."""
+    return [history[len(history) - 1 + o] for o in offsets]
 
 
 def predict_chunks(

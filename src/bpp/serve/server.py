@@ -48,7 +48,7 @@ from bpp import __version__
 from bpp.data.arrays import as_array, check_array
 from bpp.errors import UserError
 from bpp.network import listen, urls
-from bpp.policies.agent import predict_chunks
+from bpp.policies.agent import history_at, predict_chunks
 from bpp.policies.validation import feature_bounds
 from bpp.serve.prompts import PromptLibrary
 from bpp.serve.wire import WireError, pack, unpack
@@ -94,10 +94,10 @@ class Session:
     steps: int = 0
     requests: int = 0
 
-    def start(self, prompt: str, context: Any, seed: int, n_obs_steps: int, device) -> None:
+    def start(self, prompt: str, context: Any, seed: int, history_length: int, device) -> None:
         self.prompt, self.context = prompt, context
         self.generator = torch.Generator(device).manual_seed(seed)
-        self.history = deque(maxlen=n_obs_steps)
+        self.history = deque(maxlen=history_length)
         self.steps = 0
 
     def push(self, steps: list[dict[str, np.ndarray]]) -> None:
@@ -124,6 +124,7 @@ class ModelWorker:
 
     def __init__(self, model, limits: ServerLimits):
         self.model, self.limits = model, limits
+        self.offsets = model.data_spec().obs_offsets
         self.jobs: queue.Queue[_Job | None] = queue.Queue()
         self.thread = threading.Thread(target=self._loop, name="bpp-model", daemon=True)
         self.batch_sizes: Counter[int] = Counter()
@@ -186,9 +187,8 @@ class ModelWorker:
         start = time.perf_counter()
         try:
             sessions = [j.session for j in group]
-            history = {
-                k: np.stack([np.stack([o[k] for o in s.history]) for s in sessions]) for k in self.model.obs_keys()
-            }
+            read = [history_at(s.history, self.offsets) for s in sessions]
+            history = {k: np.stack([np.stack([o[k] for o in r]) for r in read]) for k in self.model.obs_keys()}
             # with the prompt attention, as `bpp eval` records it: the same arithmetic, so the same actions
             chunks, attention = predict_chunks(
                 self.model, history, context, [s.generator for s in sessions], return_attention=True
@@ -379,7 +379,7 @@ class PolicyServer:
         if reset or (entry is not None and entry.id != session.prompt):
             entry = entry or await self.worker.call(self.library.get, session.prompt)
             context = await self.worker.call(self._encode, entry.context)
-            session.start(entry.id, context, seed, self.n_obs_steps, self.device)
+            session.start(entry.id, context, seed, self.spec.history_length, self.device)
             self.library.run(session, entry.id)
         session.push(steps)
         chunk, attention, timing = await self.worker.infer(session)

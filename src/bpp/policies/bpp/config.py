@@ -38,6 +38,10 @@ class PromptConfig:
     """Learned attention-sink tokens at the start of the prompt."""
     max_steps: int = 800
     """Longest prompt (steps) accepted; sets the number of learned chunk positions."""
+    rollout_memory: int = 0
+    """K > 0: the policy also reads its own rollout's observations at the last K chunk boundaries (Δt, 2Δt, ...
+    KΔt steps ago), which attend to the prompt beside the current ones; 0: the paper's BPP, which reads only its
+    To-step history. A state-only stand-in for what a camera shows of the rollout so far."""
 
     def __post_init__(self):
         check_fields(
@@ -46,6 +50,7 @@ class PromptConfig:
             ("action_fourier_octaves", 0 <= self.action_fourier_octaves <= 16, "in [0, 16]"),
             ("num_sinks", self.num_sinks >= 0, ">= 0"),
             ("max_steps", self.max_steps >= 1, ">= 1"),
+            ("rollout_memory", 0 <= self.rollout_memory <= 64, "in [0, 64]"),
         )
         if not (self.use_obs or self.use_proprio or self.use_action):
             raise UserError("the prompt must use at least one of obs, proprio, action")
@@ -55,6 +60,11 @@ class PromptConfig:
     @property
     def max_chunks(self) -> int:
         return -(-self.max_steps // self.chunk_len)
+
+    @property
+    def memory_offsets(self) -> tuple[int, ...]:
+        """The rollout memory's step offsets from the current step, oldest first."""
+        return tuple(-k * self.chunk_len for k in range(self.rollout_memory, 0, -1))
 
 
 @dataclass(frozen=True)

@@ -107,6 +107,9 @@ class BPPModel(ContextDiffusionPolicy):
         self.chunk_pos = nn.Parameter(torch.randn(pcfg.max_chunks, D) * 0.02)
         self.sinks = nn.Parameter(torch.randn(pcfg.num_sinks, D) * 0.02)
         self.obs_pos = nn.Parameter(torch.randn(h.n_obs_steps * len(self.entries), D) * 0.02)
+        self.memory_steps = len(pcfg.memory_offsets)
+        if self.memory_steps:  # created only when used (see above)
+            self.memory_pos = nn.Parameter(torch.randn(self.memory_steps * len(self.entries), D) * 0.02)
         self.prompt_encoder = CrossAttentionDecoder(D, cfg.layers, cfg.heads, cfg.mlp_dim, cfg.dropout)
         self.build_head(h.n_obs_steps * len(self.entries) * D)  # the prompt encoder's outputs for To steps
 
@@ -166,17 +169,25 @@ class BPPModel(ContextDiffusionPolicy):
 
     # ------------------------------------------------------------- conditioning
     def condition(self, obs: Mapping[str, torch.Tensor], ctx: PromptContext, return_attention: bool = False):
-        """Observation history + encoded prompt -> conditioning vector (B, C) [and cross-attention maps]."""
-        features = self.obs_encoder(obs)  # list of (B, To, F_e)
+        """Observation history + encoded prompt -> conditioning vector (B, C) [and cross-attention maps].
+
+        With a rollout memory of K steps, `obs` holds K + To steps, the memory's first: its tokens attend to the
+        prompt and are attended to by the current ones; the decoder reads the To current steps' outputs."""
+        features = self.obs_encoder(obs)  # list of (B, K + To, F_e)
         tokens = torch.stack([proj(f) for proj, f in zip(self.entry_proj, features, strict=True)], dim=2)
-        tokens = rearrange(tokens, "b t e d -> b (t e) d") + self.obs_pos
+        tokens = rearrange(tokens, "b t e d -> b (t e) d")
+        pos = torch.cat([self.memory_pos, self.obs_pos]) if self.memory_steps else self.obs_pos
         ctx = ctx.expand(tokens.shape[0])
-        out, attentions = self.prompt_encoder(tokens, ctx.tokens, ctx.valid, return_attention, ctx.index)
+        out, attentions = self.prompt_encoder(tokens + pos, ctx.tokens, ctx.valid, return_attention, ctx.index)
+        current = len(self.obs_pos)  # the To steps' tokens come last
+        out, attentions = out[:, -current:], [a[:, -current:] for a in attentions]
+        features = [f[:, self.memory_steps :] for f in features]
         return torch.cat([out.flatten(1), self.flatten_obs(features)], dim=-1), attentions
 
     # -------------------------------------------------------------- inference
     def context_spec(self) -> dict:
-        return {"max_prompt_steps": self.cfg.prompt.max_steps, "context_obs_stride": self.cfg.prompt.chunk_len}
+        p = self.cfg.prompt
+        return {"max_prompt_steps": p.max_steps, "context_obs_stride": p.chunk_len, "memory_offsets": p.memory_offsets}
 
     def validate_context(self, prompt: Mapping) -> dict:
         """Check a raw prompt ``{"obs": {key: (L, ...)}, "action": (L, A)}`` and batch it; clear errors if bad."""
