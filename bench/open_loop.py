@@ -42,6 +42,7 @@ def main() -> None:
     spec, keys = probe.data_spec, probe.obs_keys
     print("| episode | steps | prompt | mean abs error per action dimension | gripper sign agrees |")
     print("| --- | --- | --- | --- | --- |")
+    means: dict[str, list[np.ndarray]] = {"same task": [], "another task": []}
     for episode in args.episodes:
         same = [e for e in np.flatnonzero(tasks == tasks[episode]) if e != episode]
         if not same:
@@ -59,6 +60,13 @@ def main() -> None:
             agrees = np.mean(np.sign(predicted[:, -1]) == np.sign(actions[:, -1]))
             errors = ", ".join(f"{e:.3f}" for e in error)
             print(f"| {episode} | {len(actions)} | {name} (episode {prompt}) | {errors} | {agrees:.2f} |")
+            means[name].append(error)
+    for name, errors in means.items():
+        if errors:
+            per_episode = np.stack(errors).mean(1)
+            sem = per_episode.std(ddof=1) / np.sqrt(len(per_episode)) if len(per_episode) > 1 else float("nan")
+            mean = per_episode.mean()
+            print(f"{name}: mean abs error over {len(errors)} episodes and dimensions {mean:.4f} ± {sem:.4f}")
 
 
 if __name__ == "__main__":
