@@ -1,3 +1,4 @@
+import json
 import subprocess
 import sys
 import textwrap
@@ -188,6 +189,9 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     report = (tmp_path / "out" / "report.md").read_text()
     assert "| Chamfer distance, mean over tasks | **" in report and "rollout_" in report and "paper | BPP" in report
     assert " px px" not in report and "| rollouts under 5 px |" in report
+    assert "its decoder sampling from noise x 0 (1: as trained)" in report  # the main job's choice, said
+    saved = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert saved["model_config"]["diffusion"]["noise_scale"] == 0.0  # and kept with the policy
     for name in ("grid.png", "attention.png", "results.json", "results.md"):
         assert (tmp_path / "out" / "eval-human" / name).stat().st_size > 300
     assert list((tmp_path / "out" / "eval-human").glob("rollout_*"))
@@ -195,6 +199,10 @@ def test_demo_main_job_runs_and_reuses(tmp_path):
     assert second.returncode == 0, second.stderr[-3000:]
     assert second.stdout.count("reusing") == 3  # training data, trained policy, evaluation
     assert "the evaluation set: " in second.stdout
+    # The decoder's noise is how the policy acts, not what it learned: the policy is reused, the evaluation is not.
+    sampled = _bpp(*args, "--noise-scale", "1")
+    assert sampled.returncode == 0 and sampled.stdout.count("reusing") == 2, sampled.stderr[-3000:]
+    assert "sampling from noise x 1 " in (tmp_path / "out" / "report.md").read_text()
     # The same run folder asked for another observation preset: refused, not evaluated as if it were that model.
     other = _bpp(*args, "--obs", "canvas")
     assert other.returncode != 0 and "holds a policy trained with another model" in other.stderr

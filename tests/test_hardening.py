@@ -59,6 +59,13 @@ def test_resume_refuses_settings_other_than_the_runs_own(debug_store, tmp_path):
     before = (tmp_path / "run" / "config.json").read_text()
     train(resume, config("bpp"), progress=False)  # the same settings: resumes (nothing left to do)
     assert (tmp_path / "run" / "config.json").read_text() == before
+    record = json.loads(before)  # a run started before bpp had a field: its record lacks it
+    del record["model_config"]["prompt"]["rollout_memory"]
+    (tmp_path / "run" / "config.json").write_text(json.dumps(record))
+    train(resume, config("bpp"), progress=False)  # read at the field's default: the same settings
+    memory = config("bpp", prompt=replace(config("bpp").prompt, rollout_memory=2))
+    with pytest.raises(ValueError, match="model_config.prompt.rollout_memory: 0 in the run, 2 now"):
+        train(resume, memory, progress=False)
 
 
 @pytest.mark.slow

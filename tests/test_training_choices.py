@@ -9,8 +9,12 @@ import torch
 
 from bpp.checkpoint import load_agent
 from bpp.data.prompt_dataset import PromptBatchDataset, index_contexts
+from bpp.evaluation.protocol import Protocol
+from bpp.policies.agent import PolicyAgent
+from bpp.policies.bpp.model import BPPModel
 from bpp.policies.config import DEBUG_DIFFUSION, PREDICTION_TYPES
 from bpp.policies.diffusion import DiffusionHead
+from bpp.policies.icrt.model import ICRTModel
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, train
 from bpp.utils import to_torch
@@ -158,3 +162,34 @@ def test_each_prediction_type_trains_on_and_samples_with_its_own_target(kind, sa
     wrong = "sample" if kind != "sample" else "epsilon"
     head.net = _Oracle(clean, head.alphas_cumprod, wrong)
     assert head.loss(clean, cond, generator=torch.Generator().manual_seed(1)) > 1e-3  # the test tells them apart
+
+
+def test_the_noise_scale_scales_the_samplers_starting_noise_and_zero_gives_one_chunk():
+    """A head whose noise scale is s samples from noise x as a plain head samples from s * x; at 0, DDIM gives the
+    same chunk whatever the noise. Set by the agent, refused by a model without a diffusion decoder."""
+    torch.manual_seed(0)
+    head = DiffusionHead(DEBUG_DIFFUSION, action_dim=2, cond_dim=3).eval()
+    cond = torch.randn(3, 3, generator=torch.Generator().manual_seed(1))
+    a, b = (torch.randn(3, 16, 2, generator=torch.Generator().manual_seed(s)) for s in (2, 3))
+    plain = head.sample(cond, (16, 2), noise=0.5 * a)
+    head.set_noise_scale(0.5)
+    torch.testing.assert_close(head.sample(cond, (16, 2), noise=a), plain, rtol=0, atol=0)
+    head.set_noise_scale(0.0)
+    torch.testing.assert_close(head.sample(cond, (16, 2), noise=a), head.sample(cond, (16, 2), noise=b))
+    head.set_noise_scale(1.0)
+    assert not torch.allclose(head.sample(cond, (16, 2), noise=a), head.sample(cond, (16, 2), noise=b))
+    with pytest.raises(ValueError, match="noise_scale"):
+        head.set_noise_scale(-0.1)
+
+
+def test_the_agent_and_the_protocol_set_the_noise_scale(debug_store):
+    model = BPPModel(config("bpp"), debug_store.stats)
+    assert model.head.cfg.noise_scale == 1.0
+    PolicyAgent(model, **Protocol(noise_scale=0.25).agent_options())
+    assert model.head.cfg.noise_scale == 0.25
+    PolicyAgent(model, **Protocol().agent_options())  # None: the model's own is kept
+    assert model.head.cfg.noise_scale == 0.25
+    with pytest.raises(ValueError, match="no diffusion decoder"):
+        PolicyAgent(ICRTModel(config("icrt"), debug_store.stats), noise_scale=0.5)
+    with pytest.raises(ValueError, match="noise_scale"):
+        Protocol(noise_scale=3.0)

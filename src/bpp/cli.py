@@ -259,6 +259,9 @@ class Eval:
     """Actions executed per inference (0: the checkpoint's Ta; fewer replans more often)."""
     inference_steps: int = 0
     """Denoising steps per inference for diffusion decoders (0: the checkpoint's own)."""
+    noise_scale: float = -1.0
+    """A diffusion decoder's initial noise times this, in [0, 2]: below 1 samples nearer the most likely chunk
+    (-1: the checkpoint's own, 1 unless trained with --model.diffusion.noise-scale)."""
     tasks_per_batch: int = 1
     """Tasks whose rollouts step together through the policy, in the order evaluated: faster on a CPU (e.g. 8); each
     task's scores then depend in their last bits on the tasks batched with it. A benchmark that keeps a simulator per
@@ -300,6 +303,7 @@ def eval_cmd(args: Eval) -> None:
         prompts=args.prompts,
         n_action_steps=args.n_action_steps,
         inference_steps=args.inference_steps,
+        noise_scale=None if args.noise_scale == -1 else args.noise_scale,
         tasks_per_batch=args.tasks_per_batch,
     )
     # Every argument is checked (checkpoints read, agent options tried, task sets resolved) before anything is

@@ -6,6 +6,7 @@ Read it top to bottom: set up (distributed, data, model, optimiser, resume), the
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
 import os
@@ -27,7 +28,7 @@ from bpp.errors import UserError
 from bpp.policies.model import count_parameters, keep_eager
 from bpp.policies.registry import PolicyModelContract, get_method
 from bpp.train_config import TrainConfig
-from bpp.utils import read_json, resolve_device, to_dict, to_torch, usable_cores, write_json_atomic
+from bpp.utils import from_dict, read_json, resolve_device, to_dict, to_torch, usable_cores, write_json_atomic
 
 
 def lr_at(step: int, cfg: TrainConfig) -> float:
@@ -162,6 +163,11 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
     if not isinstance(recorded, dict):
         raise UserError(f"{run / 'config.json'}: expected a JSON object (the run's configuration)")
     now = {"method": cfg.method, "train_config": to_dict(cfg), "model_config": to_dict(model_cfg)}
+    # A field added to bpp after the run started is absent from its record: read the record as bpp reads a saved
+    # config (absent fields at their defaults), so that only values that differ are named.
+    for key, cls in (("train_config", TrainConfig), ("model_config", type(model_cfg))):
+        with contextlib.suppress(UserError, TypeError, ValueError, AttributeError):  # unreadable: compared raw
+            recorded[key] = to_dict(from_dict(cls, recorded[key]))
     differences = []
     absent = object()  # a key the run's record lacks
 
@@ -171,6 +177,8 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
                 compare(f"{path}.{key}" if path else key, old.get(key, absent), new.get(key, absent))
         elif path in ("train_config.out", "train_config.resume", "train_config.threads"):
             return  # where the run is now (it may have been moved), whether this call resumes, and the cores it has
+        elif path == "model_config.diffusion.noise_scale":
+            return  # how the decoder samples at inference, not what is trained
         elif path == "train_config.data" and old and new and old is not absent:
             if Path(old).resolve() != Path(new).resolve():
                 differences.append(f"{path}: {old!r} in the run, {new!r} now")

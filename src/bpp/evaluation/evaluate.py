@@ -296,6 +296,8 @@ def _overrides(protocol: Protocol) -> str:
         text += f", {protocol.n_action_steps} actions per inference"
     if protocol.inference_steps:
         text += f", {protocol.inference_steps} denoising steps"
+    if protocol.noise_scale is not None:
+        text += f", the decoder's noise x {protocol.noise_scale:g}"
     if protocol.tasks_per_batch > 1:
         text += f", {protocol.tasks_per_batch} tasks a batch"
     return text

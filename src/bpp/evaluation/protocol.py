@@ -41,6 +41,8 @@ class Protocol:
     """Actions executed per inference (0: the checkpoint's Ta)."""
     inference_steps: int = 0
     """Denoising steps per inference of a diffusion decoder (0: the checkpoint's own)."""
+    noise_scale: float | None = None
+    """A diffusion decoder's initial noise times this (None: the checkpoint's own)."""
     tasks_per_batch: int = 1
     """Tasks whose rollouts step together as one batch through the policy, in the order of the evaluated task list
     (the batches depend on that list, never on the workers). More is faster on a CPU, whose kernels do more per call
@@ -57,11 +59,16 @@ class Protocol:
             ("n_action_steps", self.n_action_steps >= 0, ">= 0 (0: the checkpoint's)"),
             ("inference_steps", self.inference_steps >= 0, ">= 0 (0: the checkpoint's)"),
             ("tasks_per_batch", self.tasks_per_batch >= 1, ">= 1"),
+            ("noise_scale", self.noise_scale is None or 0 <= self.noise_scale <= 2, "in [0, 2] (None: the model's)"),
         )
 
     def agent_options(self) -> dict:
         """The :class:`~bpp.policies.agent.PolicyAgent` overrides this protocol asks for."""
-        return {"n_action_steps": self.n_action_steps or None, "num_inference_steps": self.inference_steps or None}
+        return {
+            "n_action_steps": self.n_action_steps or None,
+            "num_inference_steps": self.inference_steps or None,
+            "noise_scale": self.noise_scale,
+        }
 
     def plan(self, store: EpisodeStore, task: int, benchmark: Benchmark) -> list[dict]:
         """The rollouts of `task`: target episode (whose task scores it), prompt episode, the benchmark's conditions

@@ -33,6 +33,8 @@ class PolicyAgent:
         n_action_steps: actions executed per inference (default: the model's Ta).
         num_inference_steps: denoising steps per inference for models with a diffusion decoder (default: the
             model's own); fewer is faster, more may be more precise.
+        noise_scale: a diffusion decoder's initial noise times this (default: the model's own, see
+            :attr:`~bpp.policies.config.DiffusionConfig.noise_scale`).
         record_attention: keep the prompt attention of every inference in :attr:`attention_log`
             (models that have none ignore it).
         cuda_graphs: on a GPU, replay a diffusion decoder's DDIM sampling loop from a CUDA graph (the same
@@ -45,6 +47,7 @@ class PolicyAgent:
         device: str | torch.device = "cpu",
         n_action_steps: int | None = None,
         num_inference_steps: int | None = None,
+        noise_scale: float | None = None,
         record_attention: bool = False,
         cuda_graphs: bool = True,
     ):
@@ -52,6 +55,8 @@ class PolicyAgent:
         self.model = model.to(device).eval()
         if num_inference_steps is not None:
             model.set_inference_steps(num_inference_steps)
+        if noise_scale is not None:
+            model.set_noise_scale(noise_scale)
         self.device = torch.device(device)
         head = getattr(model, "head", None)
         if isinstance(head, DiffusionHead):

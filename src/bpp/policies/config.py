@@ -101,6 +101,9 @@ class DiffusionConfig:
     """What the U-Net predicts from a noised chunk: ``epsilon`` (the noise, Diffusion Policy's and the paper's
     choice), ``sample`` (the clean chunk) or ``v_prediction`` (√ᾱ·ε - √(1-ᾱ)·x₀); the loss is the mean squared
     error of that prediction, and the sampler reads the network's output as the same quantity."""
+    noise_scale: float = 1.0
+    """The sampler starts from its noise times this (inference only): 1 draws from the distribution the decoder
+    learned; below 1 draws nearer the chunk it finds most likely, and 0 always returns that one chunk (DDIM)."""
 
     def __post_init__(self):
         check_fields(
@@ -113,6 +116,7 @@ class DiffusionConfig:
             ("beta_schedule", self.beta_schedule in BETA_SCHEDULES, f"one of {BETA_SCHEDULES}"),
             ("sampler", self.sampler in ("ddim", "ddpm"), "'ddim' or 'ddpm'"),
             ("prediction_type", self.prediction_type in PREDICTION_TYPES, f"one of {PREDICTION_TYPES}"),
+            ("noise_scale", 0.0 <= self.noise_scale <= 2.0, "in [0, 2]"),
         )
 
     def check_horizon(self, horizon: int) -> None:

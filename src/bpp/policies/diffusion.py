@@ -81,6 +81,10 @@ class DiffusionHead(nn.Module):
             )
         self.cfg = replace(self.cfg, num_inference_steps=steps)
 
+    def set_noise_scale(self, scale: float) -> None:
+        """Start sampling from the noise times `scale` from now on (training is unaffected)."""
+        self.cfg = replace(self.cfg, noise_scale=scale)  # checked by the config
+
     @torch.no_grad()
     def sample(
         self,
@@ -89,7 +93,7 @@ class DiffusionHead(nn.Module):
         noise: torch.Tensor | None = None,
         generator: torch.Generator | list[torch.Generator] | None = None,
     ):
-        """Denoise from `noise` (B, T, A) (drawn if None) to normalised actions (B, T, A).
+        """Denoise from `noise` (B, T, A) (drawn if None), times ``cfg.noise_scale``, to normalised actions (B, T, A).
 
         `generator`: one for the batch, or a list of B, one per sample, so that a sample's result (including the
         DDPM sampler's per-step noise) does not depend on which other samples share its batch. With
@@ -99,6 +103,8 @@ class DiffusionHead(nn.Module):
 
         if noise is None:
             noise = randn_tensor((cond.shape[0], *shape), generator=generator, device=cond.device)
+        if self.cfg.noise_scale != 1.0:
+            noise = noise * self.cfg.noise_scale
         # The time steps stay on the CPU and the loop reads them as Python ints: nothing waits for the GPU between
         # denoising steps (a CUDA time step made the scheduler read it back three times per step).
         self.sample_scheduler.set_timesteps(self.cfg.num_inference_steps)

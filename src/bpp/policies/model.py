@@ -144,6 +144,10 @@ class PolicyModel(nn.Module):
         """Denoise in `steps` steps per inference from now on; models without a diffusion decoder refuse."""
         raise UserError(f"{type(self).__name__} has no diffusion decoder: it takes no inference steps")
 
+    def set_noise_scale(self, scale: float) -> None:
+        """Sample from the decoder's noise times `scale` from now on; models without a diffusion decoder refuse."""
+        raise UserError(f"{type(self).__name__} has no diffusion decoder: it samples no noise to scale")
+
     def check_action_steps(self, n_action_steps: int) -> None:
         """Refuse (ValueError) an agent that would execute `n_action_steps` actions of each predicted chunk."""
         h = self.cfg.horizons
@@ -197,6 +201,9 @@ class ContextDiffusionPolicy(PolicyModel):
 
     def set_inference_steps(self, steps: int) -> None:
         self.head.set_inference_steps(steps)
+
+    def set_noise_scale(self, scale: float) -> None:
+        self.head.set_noise_scale(scale)
 
     def build_head(self, context_dim: int) -> None:
         """The action decoder, conditioned on `context_dim` context features + the observation history."""
