@@ -33,7 +33,7 @@ CANVAS_INK = ObservationPreset(
         "canvas, plus the ink drawn so far (the progress an image would show): the state analog of the paper's visual "
         "setting, canvas actions and all, and the default of the state size presets (32.77 and 32.52 px against "
         "canvas's 47.96 and 42.18 on the unseen drawings at 6,000 steps, two seeds; board, the main job's: "
-        "19.10 and 20.40 there, 11.75 px at 12,000 steps; BENCHMARKS.md)"
+        "19.10 and 20.40 there, 11.75 px at 12,000 steps sampling as trained; BENCHMARKS.md)"
     ),
 )
 BOARD = ObservationPreset(
