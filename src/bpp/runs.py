@@ -99,6 +99,11 @@ class WholeRun:
             ("seed", self.seed >= 0, ">= 0"),
         )
 
+    @property
+    def sampling_noise(self) -> float | None:
+        """The decoder's noise scale this run asks for; None: the method's own."""
+        return None if self.noise_scale == -1 else self.noise_scale
+
 
 RUNS: dict[str, WholeRun] = {
     # The main job: BPP on the default benchmark, state observations, training on every core (it runs alone).
@@ -157,7 +162,7 @@ def whole_run(args: WholeRun, name: str = "") -> None:
         raise UserError(f"--tasks {args.tasks!r}: {benchmark.name}'s task sets are {', '.join(benchmark.task_sets)}")
     method = get_method(args.method)
     model_cfg = method.config(args.preset, args.obs, benchmark)  # flags refused before any data is made
-    noise_scale = None if args.noise_scale == -1 else args.noise_scale
+    noise_scale = args.sampling_noise
     if noise_scale is not None:
         if not hasattr(model_cfg, "diffusion"):
             raise UserError(f"--noise-scale: {args.method} has no diffusion decoder, so no noise to scale")
@@ -242,9 +247,9 @@ def _training_data(args: WholeRun, benchmark, stage) -> EpisodeStore:
 
 def _sampling(args: WholeRun) -> str:
     """How the policy's decoder sampled, as a phrase for the report ("" for the method's own way)."""
-    if args.noise_scale == -1:
+    if args.sampling_noise is None:
         return ""
-    return f", its decoder sampling from noise x {args.noise_scale:g} (1: as trained)"
+    return f", its decoder sampling from noise x {args.sampling_noise:g} (1: as trained)"
 
 
 def write_report(args: WholeRun, name: str, benchmark, label: str, result: dict, seconds: float) -> None:

@@ -166,8 +166,9 @@ def run_differences(run: Path, cfg: TrainConfig, model_cfg) -> list[str]:
     # A field added to bpp after the run started is absent from its record: read the record as bpp reads a saved
     # config (absent fields at their defaults), so that only values that differ are named.
     for key, cls in (("train_config", TrainConfig), ("model_config", type(model_cfg))):
-        with contextlib.suppress(UserError, TypeError, ValueError, AttributeError):  # unreadable: compared raw
-            recorded[key] = to_dict(from_dict(cls, recorded[key]))
+        if isinstance(recorded.get(key), dict):
+            with contextlib.suppress(TypeError, ValueError, AttributeError):  # unreadable (UserError too): compared raw
+                recorded[key] = to_dict(from_dict(cls, recorded[key]))
     differences = []
     absent = object()  # a key the run's record lacks
 

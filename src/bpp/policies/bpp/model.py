@@ -107,9 +107,8 @@ class BPPModel(ContextDiffusionPolicy):
         self.chunk_pos = nn.Parameter(torch.randn(pcfg.max_chunks, D) * 0.02)
         self.sinks = nn.Parameter(torch.randn(pcfg.num_sinks, D) * 0.02)
         self.obs_pos = nn.Parameter(torch.randn(h.n_obs_steps * len(self.entries), D) * 0.02)
-        self.memory_steps = len(pcfg.memory_offsets)
-        if self.memory_steps:  # created only when used (see above)
-            self.memory_pos = nn.Parameter(torch.randn(self.memory_steps * len(self.entries), D) * 0.02)
+        if pcfg.rollout_memory:  # created only when used (see above)
+            self.memory_pos = nn.Parameter(torch.randn(pcfg.rollout_memory * len(self.entries), D) * 0.02)
         self.prompt_encoder = CrossAttentionDecoder(D, cfg.layers, cfg.heads, cfg.mlp_dim, cfg.dropout)
         self.build_head(h.n_obs_steps * len(self.entries) * D)  # the prompt encoder's outputs for To steps
 
@@ -176,12 +175,13 @@ class BPPModel(ContextDiffusionPolicy):
         features = self.obs_encoder(obs)  # list of (B, K + To, F_e)
         tokens = torch.stack([proj(f) for proj, f in zip(self.entry_proj, features, strict=True)], dim=2)
         tokens = rearrange(tokens, "b t e d -> b (t e) d")
-        pos = torch.cat([self.memory_pos, self.obs_pos]) if self.memory_steps else self.obs_pos
+        memory = self.cfg.prompt.rollout_memory
+        pos = torch.cat([self.memory_pos, self.obs_pos]) if memory else self.obs_pos
         ctx = ctx.expand(tokens.shape[0])
         out, attentions = self.prompt_encoder(tokens + pos, ctx.tokens, ctx.valid, return_attention, ctx.index)
         current = len(self.obs_pos)  # the To steps' tokens come last
         out, attentions = out[:, -current:], [a[:, -current:] for a in attentions]
-        features = [f[:, self.memory_steps :] for f in features]
+        features = [f[:, memory:] for f in features]
         return torch.cat([out.flatten(1), self.flatten_obs(features)], dim=-1), attentions
 
     # -------------------------------------------------------------- inference
