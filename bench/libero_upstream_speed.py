@@ -192,7 +192,9 @@ def report(result: dict) -> None:
     if "demonstrations_per_hour" in result:
         d = result["demonstrations_per_hour"]
         ratio = d["bpp generating"] / d["upstream replaying"]
-        print(f"demonstrations per hour: bpp generating {d['bpp generating']:.0f}, ", end="")
+        g = result["generation"]
+        print(f"demonstrations per hour: bpp generating {d['bpp generating']:.0f} ", end="")
+        print(f"({g['demonstrations']} in {g['seconds']:.1f} s), ", end="")
         print(f"upstream replaying them {d['upstream replaying']:.0f} ({ratio:.2f}x)")
 
 
@@ -204,7 +206,8 @@ def main() -> None:
         "--episodes",
         type=int,
         nargs="+",
-        help="demonstrations replayed, of one task (default: all the store's, if it holds one task)",
+        help="demonstrations replayed, of one task (default: all the store's, if it holds one task); with a store "
+        "generated here, a sample of it times the replays and its rate per hour counts all its demonstrations",
     )
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_upstream_speed.json"))
@@ -219,7 +222,8 @@ def main() -> None:
         generation_s, store = None, args.store
         if store is None:
             store, generation_s = generated_store(Path(tmp), args.demos)
-        chosen = args.episodes or list(range(EpisodeStore(store).num_episodes))
+        stored = EpisodeStore(store).num_episodes
+        chosen = args.episodes or list(range(stored))
         runs = sides(args, *export_episodes(store, chosen, Path(tmp)))
     median = {side: medians(res) for side, res in runs.items()}
     rollout_s = {s: m["build_s"] + m["reset_s"] + (SETTLE + LIMIT) * m["step_ms"] / 1e3 for s, m in median.items()}
@@ -232,12 +236,13 @@ def main() -> None:
         "rollouts_per_hour": {s: 3600 / v for s, v in rollout_s.items()},
         "runs": runs,
     }
-    if generation_s is not None:
+    if generation_s is not None:  # per demonstration of the store, upstream's first env shared by as many
         up = median["upstream"]
         result["demonstrations_per_hour"] = {
-            "bpp generating": 3600 * len(chosen) / generation_s,
-            "upstream replaying": 3600 / (up["replay_s"] + up["first_build_s"] / len(chosen)),
+            "bpp generating": 3600 * stored / generation_s,
+            "upstream replaying": 3600 / (up["replay_s"] + up["first_build_s"] / stored),
         }
+        result["generation"] = {"demonstrations": stored, "seconds": generation_s}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
     report(result)
