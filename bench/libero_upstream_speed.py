@@ -2,6 +2,7 @@
 controller and demonstrations, simulated by LIBERO's code as its own scripts use it and by bpp's.
 
     OMP_NUM_THREADS=1 python bench/libero_upstream_speed.py                          # Combination task 0, 3 demos
+    OMP_NUM_THREADS=1 python bench/libero_upstream_speed.py --demos 150 --goal-size 0 --episodes $(seq 0 29)
     OMP_NUM_THREADS=1 python bench/libero_upstream_speed.py --store data/libero/drawer.zarr --episodes 0 1 2 --rounds 5
 
 Each side runs in a process of its own (bpp replaces robosuite's step process-wide), the two taking turns round by
@@ -16,13 +17,14 @@ round, so that a busy moment of a shared machine hits both:
   same 10 steps, ``seat`` with the first stored state, the same actions through bpp's step. Its replays must pass
   through the stored states bit for bit.
 
-Printed per side: building an env (a process's first, with its imports, and another), a reset, a step, a
-demonstration's replay, and whether each replay reached its goal; then what they make per hour: rollouts of
-LIBERO-Gen's 550-step limit (another env built, reset, 10 + 550 steps; no policy on either side) and
-demonstrations, bpp's as this store was generated (demonstrator, failed tries and writing included) against
-upstream's replay of the same demonstrations, the least any generator running on upstream's environment would
-spend. Needs the `libero` extra; LIBERO's package as bpp installs it (its checks:
-docs/installation.md).
+Printed per side: building an env (a process's first, with its imports, and another), a reset, a step, a demonstration's
+replay, and whether each replay reached its goal; then what they make per hour: rollouts of LIBERO-Gen's 550-step limit
+(another env built, reset, 10 + 550 steps; no policy on either side) and demonstrations, bpp's as this store was
+generated (demonstrator, failed tries and writing included) against upstream's replay of the same demonstrations, the
+least any generator running on upstream's environment would spend (which renders nothing: a store generated with goal
+frames, the `cpu` preset's default, pays for drawing them and upstream's side does not; ``--goal-size 0`` generates a
+state-only store, as a ladder of BPP alone needs). Needs the `libero` extra; LIBERO's package as bpp installs it (its
+checks: docs/installation.md).
 """
 
 from __future__ import annotations
@@ -140,11 +142,13 @@ def export_episodes(store_path: Path, chosen: list[int], folder: Path) -> tuple[
     return problem, path
 
 
-def generated_store(folder: Path, demos: int) -> tuple[Path, float]:
-    """Combination's training task 0, `demos` demonstrations, generated here on one core (timed)."""
+def generated_store(folder: Path, demos: int, goal_size: int) -> tuple[Path, float]:
+    """Combination's training task 0, `demos` demonstrations, generated here on one core (timed); `goal_size`: the
+    side of each demonstration's goal frame (0: none, a state-only store)."""
     out = folder / "store.zarr"
+    cfg = replace(PRESETS["cpu"], task_indices=(0,), demos_per_task=demos, goal_size=goal_size)
     start = time.perf_counter()
-    generate(replace(PRESETS["cpu"], task_indices=(0,), demos_per_task=demos), out, workers=1, progress=False)
+    generate(cfg, out, workers=1, progress=False)
     return out, time.perf_counter() - start
 
 
@@ -174,7 +178,7 @@ def sides(args, problem: Path, arrays: Path) -> dict[str, list[dict]]:
 
 def report(result: dict) -> None:
     runs, median = result["runs"], result["median"]
-    print(f"\n{len(result['episodes'])} demonstrations, {result['rounds']} rounds, medians over rounds")
+    print(f"\n{result['store']}: {len(result['episodes'])} demonstrations replayed, {result['rounds']} rounds, medians")
     columns = ["first env (s)", "another env (s)", "a reset (s)", "a step (ms)", "a replay (s)", "reached goal"]
     print("| side | " + " | ".join(columns) + " | bit for bit |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
@@ -209,6 +213,13 @@ def main() -> None:
         help="demonstrations replayed, of one task (default: all the store's, if it holds one task); with a store "
         "generated here, a sample of it times the replays and its rate per hour counts all its demonstrations",
     )
+    parser.add_argument(
+        "--goal-size",
+        type=int,
+        default=PRESETS["cpu"].goal_size,
+        help="without --store: the side (px) of each demonstration's goal frame, rendered for Goal-Image's prompts "
+        "(default: the cpu preset's; 0: a state-only store, which builds its env without textures and renders nothing)",
+    )
     parser.add_argument("--rounds", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_upstream_speed.json"))
     parser.add_argument("--side", choices=["upstream", "bpp"], help=argparse.SUPPRESS)
@@ -221,14 +232,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="libero-upstream-") as tmp:
         generation_s, store = None, args.store
         if store is None:
-            store, generation_s = generated_store(Path(tmp), args.demos)
+            store, generation_s = generated_store(Path(tmp), args.demos, args.goal_size)
         stored = EpisodeStore(store).num_episodes
         chosen = args.episodes or list(range(stored))
         runs = sides(args, *export_episodes(store, chosen, Path(tmp)))
     median = {side: medians(res) for side, res in runs.items()}
+    frames = f"goal frames of {args.goal_size} px" if args.goal_size else "state only (no goal frames)"
     rollout_s = {s: m["build_s"] + m["reset_s"] + (SETTLE + LIMIT) * m["step_ms"] / 1e3 for s, m in median.items()}
     result = {
-        "store": str(args.store or f"generated here: Combination task 0, {args.demos} demonstrations"),
+        "store": str(args.store or f"generated here: Combination task 0, {args.demos} demonstrations, {frames}"),
         "episodes": chosen,
         "rounds": args.rounds,
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",

@@ -112,7 +112,9 @@ class LiberoDataConfig:
     need them (the state-only preset does not)."""
     image_size: int = 128
     goal_size: int = 128
-    """Size of each demonstration's stored final agent-view frame (0: none; the Goal-Image baseline needs it)."""
+    """Size of each demonstration's stored final agent-view frame, the Goal-Image baseline's goal (0: none, a
+    state-only store: generation builds its envs without textures and draws nothing; Goal-Image then renders each
+    goal from the demonstration's last state when it first needs it)."""
     demo: DemoConfig = field(default_factory=DemoConfig)
 
     def __post_init__(self):
