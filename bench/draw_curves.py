@@ -12,7 +12,10 @@ human-made drawings (the paper's protocol), once the choice is made.
 
 A checkpoint's training minutes are its `state.json`'s modification time minus the run's `config.json`'s (written
 when training starts): wall time, including any time the cores were shared. Each evaluation is kept under --out and
-reused when the script runs again; the script writes results.json, table.md and curves.png there.
+reused when the script runs again; the script writes results.json, table.md and curves.png there. Once checkpoints
+are deleted, `--replot` draws the curves of several such results.json files (e.g. one per seed) in one figure:
+
+    python bench/draw_curves.py --replot outputs/curves0/results.json outputs/curves1/results.json --out outputs/all
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from bpp.checkpoint import Checkpoint, read_state, step_folders
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.media import pyplot, save_figure
-from bpp.utils import write_json_atomic
+from bpp.utils import read_json, write_json_atomic
 from common import NAMES
 from draw_cpu_benchmark import store_for
 
@@ -55,11 +58,22 @@ def score(ckpt: Path, tasks: str, num: int, out: Path, rollouts: int, workers: i
     return summary
 
 
+MARKERS = "osD^v<>"
+"""A run's marker among its method's runs (its colour is its method's)."""
+
+
 def plot(curves: dict[str, list[dict]], path: Path) -> None:
     fig, axes = pyplot().subplots(1, 2, figsize=(10, 4), sharey=True)
+    colours: dict[str, str] = {}  # a method's colour, by the name before the run's
+    runs_of: dict[str, int] = {}
     for name, points in curves.items():
+        method = name.split(" (")[0]
+        colour = colours.setdefault(method, f"C{len(colours)}")
+        marker = MARKERS[runs_of.setdefault(method, 0) % len(MARKERS)]
+        runs_of[method] += 1
         for ax, key in zip(axes, ("minutes", "samples"), strict=True):
-            ax.plot([p[key] for p in points], [p["val"] for p in points], marker="o", label=name)
+            x, y = [p[key] for p in points], [p["val"] for p in points]
+            ax.plot(x, y, marker=marker, color=colour, alpha=0.85, label=name)
     axes[0].set_xlabel("training wall time (min)")
     axes[1].set_xlabel("training samples (windows or whole demonstrations)")
     axes[1].set_xscale("log")
@@ -70,18 +84,21 @@ def plot(curves: dict[str, list[dict]], path: Path) -> None:
     save_figure(fig, path, dpi=120)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--val", type=Path, default=Path("data/draw/val.zarr"), help="validation store (made once)")
-    parser.add_argument("--num-tasks", type=int, default=20, help="validation tasks evaluated")
-    parser.add_argument("--rollouts", type=int, default=4, help="rollouts per validation task")
-    parser.add_argument("--human-final", action="store_true", help="also score each run's last checkpoint on human")
-    parser.add_argument("--at", type=int, nargs="*", default=[], help="score only the checkpoints of these steps")
-    parser.add_argument("--workers", type=int, default=1, help="evaluation processes")
-    parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_curves"))
-    args = parser.parse_args()
+def row(name: str, point: dict) -> tuple:
+    return name, point["step"], f"{point['minutes']:.1f}", f"{point['val']:.2f}", f"{point['val_median']:.2f}"
 
+
+def replot(files: list[Path]) -> tuple[dict[str, list[dict]], list[tuple]]:
+    """The curves of saved results.json files, merged (a run named twice keeps its last file's curve)."""
+    curves: dict[str, list[dict]] = {}
+    for path in files:
+        curves |= read_json(path, "curves file")
+    curves = dict(sorted(curves.items()))  # a method's runs side by side
+    return curves, [row(name, point) for name, points in curves.items() for point in points]
+
+
+def score_runs(args) -> tuple[dict[str, list[dict]], list[tuple]]:
+    """Every chosen checkpoint of `args.runs` scored on the validation split (and the last on human, if asked)."""
     store_for(args.val, VAL)
     curves: dict[str, list[dict]] = {}
     rows = []
@@ -102,11 +119,29 @@ def main() -> None:
             point = {"step": step, "samples": step * batch_size(run), "minutes": minutes_into(run, ckpt)}
             point |= {"val": summary["score_mean"], "val_median": summary["score_median_rollout"]}
             points.append(point)
-            rows.append((name, step, f"{point['minutes']:.1f}", f"{point['val']:.2f}", f"{point['val_median']:.2f}"))
+            rows.append(row(name, point))
         if args.human_final:
             human = score(ckpts[-1], "human", 0, args.out / run.name / f"human-{ckpts[-1].name}", 8, args.workers)
             points[-1] |= {"human": human["score_mean"], "human_median": human["score_median_rollout"]}
         curves[name] = points
+    return curves, rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="*", type=Path)
+    parser.add_argument("--replot", type=Path, nargs="*", default=[], help="results.json files to draw together")
+    parser.add_argument("--val", type=Path, default=Path("data/draw/val.zarr"), help="validation store (made once)")
+    parser.add_argument("--num-tasks", type=int, default=20, help="validation tasks evaluated")
+    parser.add_argument("--rollouts", type=int, default=4, help="rollouts per validation task")
+    parser.add_argument("--human-final", action="store_true", help="also score each run's last checkpoint on human")
+    parser.add_argument("--at", type=int, nargs="*", default=[], help="score only the checkpoints of these steps")
+    parser.add_argument("--workers", type=int, default=1, help="evaluation processes")
+    parser.add_argument("--out", type=Path, default=Path("outputs/bench/draw_curves"))
+    args = parser.parse_args()
+    if bool(args.runs) == bool(args.replot):
+        parser.error("give training runs to score, or --replot with results.json files, not both")
+    curves, rows = replot(args.replot) if args.replot else score_runs(args)
     args.out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(args.out / "results.json", curves)
     header = ["run", "step", "train min", "validation mean (px)", "validation median rollout (px)"]
