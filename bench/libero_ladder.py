@@ -6,7 +6,10 @@ method; rollouts are pooled over the folder's tasks, and over the folders given 
     python bench/libero_ladder.py --out outputs/bench/libero_ladder \\
         "a. one task, 50 demos|BPP|outputs/libero/one-task-50" "a. one task, 150 demos|BPP|outputs/libero/one-task-150"
 
-Writes ``ladder.md`` (the table) and ``ladder.png`` (the figure) under ``--out``.
+Writes ``ladder.md`` (the table), ``ladder.png`` (the figure) and ``ladder.json`` (each row's counts) under ``--out``.
+``--keep`` adds the rows of an earlier ``ladder.json`` (``docs/figures/libero_ladder.json`` keeps the figure's), so
+that a new rung joins the figure without the evaluation folders of the others; an entry replaces a kept row of the
+same rung and method.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from bpp.utils import read_json  # noqa: E402
+from bpp.utils import read_json, write_json_atomic  # noqa: E402
 
 Z95 = 1.959964
 GOALS = {"a": 90, "b": 70}
@@ -58,15 +61,20 @@ def pooled(folders: list[Path]) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("entries", nargs="+", help='"rung|method|eval folder" (repeat a rung and method for seeds)')
+    parser.add_argument("entries", nargs="*", help='"rung|method|eval folder" (repeat a rung and method for seeds)')
+    parser.add_argument("--keep", type=Path, help="an earlier ladder.json whose rows stay in the table and figure")
     parser.add_argument("--out", type=Path, default=Path("outputs/bench/libero_ladder"))
     args = parser.parse_args()
+    if not args.entries and not args.keep:
+        parser.error("give evaluation entries, --keep with a ladder.json, or both")
 
     groups: dict[tuple[str, str], list[Path]] = defaultdict(list)
     for entry in args.entries:
         rung, method, folder = entry.split("|")
         groups[(rung, method)].append(Path(folder))
-    stats = {key: pooled(folders) for key, folders in groups.items()}
+    stats = {(row["rung"], row["method"]): row["stats"] for row in read_json(args.keep)} if args.keep else {}
+    stats |= {key: pooled(folders) for key, folders in groups.items()}
+    stats = dict(sorted(stats.items(), key=lambda item: item[0][0][:1]))  # by rung, rows in their order within one
 
     lines = [
         "| rung | method | evaluations | success | each evaluation's | 95% interval (Wilson) | failed rollouts that "
@@ -83,6 +91,7 @@ def main() -> None:
         )
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ladder.md").write_text("\n".join(lines) + "\n")
+    write_json_atomic(args.out / "ladder.json", [{"rung": r, "method": m, "stats": s} for (r, m), s in stats.items()])
     print("\n".join(lines))
 
     fig, ax = plt.subplots(figsize=(max(4.5, 1.6 + 1.4 * len(stats)), 3.8))
@@ -101,7 +110,7 @@ def main() -> None:
     ax.set_title("LIBERO-Gen ladder\n(LIBERO's predicates; dashed: the rung's goal)", fontsize=9)
     fig.tight_layout()
     fig.savefig(args.out / "ladder.png", dpi=120)
-    print(f"wrote {args.out / 'ladder.md'} and {args.out / 'ladder.png'}")
+    print(f"wrote {args.out / 'ladder.md'}, {args.out / 'ladder.png'} and {args.out / 'ladder.json'}")
 
 
 if __name__ == "__main__":
