@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 from pathlib import Path
 
 from bpp.benchmarks.draw.dataset import DrawDataConfig
@@ -65,11 +66,11 @@ MARKERS = "osD^v<>"
 def plot(curves: dict[str, list[dict]], path: Path) -> None:
     fig, axes = pyplot().subplots(1, 2, figsize=(10, 4), sharey=True)
     colours: dict[str, str] = {}  # a method's colour, by the name before the run's
-    runs_of: dict[str, int] = {}
+    runs_of: Counter[str] = Counter()  # runs of each method drawn so far
     for name, points in curves.items():
         method = name.split(" (")[0]
         colour = colours.setdefault(method, f"C{len(colours)}")
-        marker = MARKERS[runs_of.setdefault(method, 0) % len(MARKERS)]
+        marker = MARKERS[runs_of[method] % len(MARKERS)]
         runs_of[method] += 1
         for ax, key in zip(axes, ("minutes", "samples"), strict=True):
             x, y = [p[key] for p in points], [p["val"] for p in points]
