@@ -13,8 +13,8 @@ fp32 and under bf16 autocast with fp32 weights, alternated for `--rounds` rounds
 With --limit: the matrix-product rate in fp32, bf16 and fp16, every 1D convolution of the action decoder at its
 real sizes (forward and both gradients) in fp32, and the same convolution written as one matrix product of its
 unfolded input in bf16 (what reduced precision could give a convolution where bf16 products are fast, as with AMX),
-and a profile of 10 fp32 training steps: the share of a step spent in convolutions, and so the speed-up the step
-could reach if everything else took no time at all.
+and a profile of 10 training steps in fp32, then under bf16 autocast: the share of a step spent in convolutions, and
+so the speed-up over the fp32 step that each could reach if everything else took no time at all.
 
 With --profile: the operators that take most of `--steps` profiled steps in either precision, each with its time in
 both (what reduced precision speeds up on this CPU, and what it slows down).
@@ -179,21 +179,30 @@ def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
         print(f"conv1d {c_in:4d} -> {c_out:4d}, kernel {k}, {t:2d} steps: {rate:6.1f} GFLOP/s fp32 "
               f"({rate / rates[torch.float32]:.0%} of the fp32 matmul rate); as a bf16 product {unfolded:6.1f} "
               f"({unfolded / rate:.2f}x)")  # fmt: skip
+    fp32_ms, fp32_share = step_and_convolutions(cfg, model, ema, optimizer, batches, False)
+    print(f"a step: {fp32_ms:.1f} ms unprofiled; convolutions {fp32_share:.1%} of its profiled time: with everything "
+          f"else taking no time the step would run {1 / fp32_share:.2f}x faster at these kernels' speed")  # fmt: skip
+    bf16_ms, bf16_share = step_and_convolutions(cfg, model, ema, optimizer, batches, True)
+    bound = fp32_ms / (bf16_share * bf16_ms)
+    print(f"under bf16 autocast: a step {bf16_ms:.1f} ms ({fp32_ms / bf16_ms:.3f}x), convolutions {bf16_share:.1%}: "
+          f"with everything else taking no time, at most {bound:.2f}x the fp32 step")  # fmt: skip
+
+
+def step_and_convolutions(cfg, model, ema, optimizer, batches, amp: bool, steps: int = 10) -> tuple[float, float]:
+    """A training step's unprofiled time (ms, the mean of `steps`) in fp32 or under bf16 autocast, and the share of
+    its profiled time spent in convolutions (forward and backward)."""
     for step in range(1, 4):
-        train_step(cfg, model, model, ema, optimizer, batches[step], step, False)
+        train_step(cfg, model, model, ema, optimizer, batches[step], step, amp)
     t0 = time.perf_counter()
-    for step in range(4, 14):
-        train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, False)
-    step_ms = (time.perf_counter() - t0) / 10 * 1e3
+    for step in range(4, 4 + steps):
+        train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, amp)
+    step_ms = (time.perf_counter() - t0) / steps * 1e3
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        for step in range(4, 14):
-            train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, False)
+        for step in range(4, 4 + steps):
+            train_step(cfg, model, model, ema, optimizer, batches[step % len(batches)], step, amp)
     events = prof.key_averages()
     total = sum(e.self_cpu_time_total for e in events)
-    conv = sum(e.self_cpu_time_total for e in events if "convolution" in e.key)
-    share = conv / total
-    print(f"a step: {step_ms:.1f} ms unprofiled; convolutions {share:.1%} of its profiled time: with everything else "
-          f"taking no time the step would run {1 / share:.2f}x faster at these kernels' speed")  # fmt: skip
+    return step_ms, sum(e.self_cpu_time_total for e in events if "convolution" in e.key) / total
 
 
 if __name__ == "__main__":
