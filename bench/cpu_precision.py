@@ -162,7 +162,7 @@ def unfolded_conv1d(x: torch.Tensor, w: torch.Tensor, dtype: torch.dtype) -> tor
 
 
 def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
-    """Print what bounds an fp32 step on this CPU (see the module's docstring)."""
+    """Print what bounds a step on this CPU, in fp32 and under bf16 autocast (see the module's docstring)."""
     rates = {dt: matmul_peak(dt, threads) for dt in (torch.float32, torch.bfloat16, torch.float16)}
     print("matmul GFLOP/s: " + ", ".join(f"{str(dt).split('.')[-1]} {r:.1f}" for dt, r in rates.items()))
     hooks, sizes = decoder_convolutions(model)
