@@ -63,12 +63,22 @@ MARKERS = "osD^v<>"
 """A run's marker among its method's runs (its colour is its method's)."""
 
 
+def curve_name(method: str, run: Path) -> str:
+    """A curve's name in results.json, the table and the legend: "BPP (bpp-s0)"."""
+    return f"{NAMES.get(method, method)} ({run.name})"
+
+
+def method_of(curve: str) -> str:
+    """The method's display name in a :func:`curve_name` (saved curves keep no other record of it)."""
+    return curve.split(" (")[0]
+
+
 def plot(curves: dict[str, list[dict]], path: Path) -> None:
     fig, axes = pyplot().subplots(1, 2, figsize=(10, 4), sharey=True)
     colours: dict[str, str] = {}  # a method's colour, by the name before the run's
     runs_of: Counter[str] = Counter()  # runs of each method drawn so far
     for name, points in curves.items():
-        method = name.split(" (")[0]
+        method = method_of(name)
         colour = colours.setdefault(method, f"C{len(colours)}")
         marker = MARKERS[runs_of[method] % len(MARKERS)]
         runs_of[method] += 1
@@ -110,7 +120,7 @@ def score_runs(args) -> tuple[dict[str, list[dict]], list[tuple]]:
             print(f"skipping {run}: no complete checkpoint to score yet")
             continue
         method = states[ckpts[-1]]["method"]
-        name = f"{NAMES.get(method, method)} ({run.name})"
+        name = curve_name(method, run)
         points = []
         for ckpt in ckpts:
             summary = score(
