@@ -1,5 +1,6 @@
 """Helpers that several scripts in bench/ share: DrawAnything and LIBERO-Gen training runs that are reused, finished
-or resumed; training budgets per method; `bpp train` as a subprocess and its logged rates; a training step's FLOPs.
+or resumed; training budgets per method; `bpp train` as a subprocess and its logged rates; a training step's FLOPs;
+the machine's yardsticks (matrix-product rate, copy bandwidth); paired differences between evaluations.
 
 The scripts import it as a sibling module (``from common import train_run``): ``python bench/<script>.py`` puts
 bench/ first on the module path, so nothing needs to change ``sys.path``.
@@ -14,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -210,6 +212,25 @@ def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: f
         torch.set_num_threads(before)
 
 
+def copy_bandwidth(threads: int, mib: int = 256, seconds: float = 1.0) -> float:
+    """This machine's memory bandwidth in GB/s on `threads` torch threads: the best rate of copying one `mib` MiB
+    fp32 tensor into another (read and write counted, as STREAM's copy counts them), repeated for about `seconds`
+    (the yardstick for memory-bound work such as a parameter update)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        source, target = torch.ones(mib * 2**18), torch.empty(mib * 2**18)
+        target.copy_(source)
+        best, t0 = 0.0, time.perf_counter()
+        while time.perf_counter() - t0 < seconds:
+            start = time.perf_counter()
+            target.copy_(source)
+            best = max(best, 2 * source.nbytes / (time.perf_counter() - start) / 1e9)
+        return best
+    finally:
+        torch.set_num_threads(before)
+
+
 def main_job_flops_per_sample(store: Path, args) -> float:
     """GFLOP of one training window sample (forward and backward, :func:`step_flops`) in the setting of
     :func:`add_main_job_arguments` on `store`, with this checkout's code, averaged over 4 batches (prompts differ
@@ -241,3 +262,45 @@ def step_flops(model, batch: dict, amp: bool) -> int:
         loss.backward()
     model.zero_grad(set_to_none=True)
     return counter.get_total_flops()
+
+
+def sem(values) -> float:
+    """The standard error of the mean of `values` (0 for fewer than two)."""
+    values = np.asarray(values, dtype=float)
+    return float(values.std(ddof=1) / np.sqrt(len(values))) if len(values) > 1 else 0.0
+
+
+@dataclass(frozen=True)
+class Paired:
+    """`b` minus `a`, paired over the tasks both scored: the means, the mean difference and its standard error, and
+    the count of tasks on which `b` scores better."""
+
+    tasks: int
+    mean_a: float
+    mean_b: float
+    diff: float
+    sem: float
+    b_better: int
+
+    def __str__(self) -> str:
+        return f"{self.diff:+.2f} ± {self.sem:.2f}"
+
+
+def paired(a: dict[str, float], b: dict[str, float], lower_is_better: bool = True) -> Paired:
+    """`b` minus `a` over the task ids both hold (each a task's score, e.g. its mean over rollouts and seeds)."""
+    common = sorted(a.keys() & b.keys())
+    if not common:
+        raise ValueError("the two evaluations share no task")
+    x, y = np.array([a[t] for t in common]), np.array([b[t] for t in common])
+    better = (y < x) if lower_is_better else (y > x)
+    return Paired(len(common), float(x.mean()), float(y.mean()), float((y - x).mean()), sem(y - x), int(better.sum()))
+
+
+def task_scores(paths: list[Path]) -> tuple[dict[str, float], dict]:
+    """Each task's score (its mean over rollouts) averaged over the evaluations `paths` (``bpp eval``'s results.json,
+    e.g. one per seed, all of the same tasks), and their metric."""
+    results = [json.loads(Path(path).read_text()) for path in paths]
+    tasks = [{t["task_id"]: t["score_mean"] for t in r["tasks"]} for r in results]
+    if any(t.keys() != tasks[0].keys() for t in tasks):
+        raise ValueError(f"{', '.join(map(str, paths))}: the evaluations scored different tasks")
+    return {task: float(np.mean([t[task] for t in tasks])) for task in tasks[0]}, results[0]["metric"]

@@ -14,7 +14,9 @@ With --limit: the matrix-product rate in fp32, bf16 and fp16, every 1D convoluti
 real sizes (forward and both gradients) in fp32, and the same convolution written as one matrix product of its
 unfolded input in bf16 (what reduced precision could give a convolution where bf16 products are fast, as with AMX),
 and a profile of 10 training steps in fp32, then under bf16 autocast: the share of a step spent in convolutions, and
-so the speed-up over the fp32 step that each could reach if everything else took no time at all.
+so the speed-up over the fp32 step that each could reach if everything else took no time at all; then the same
+bound with the parameter update's memory traffic added at the copy bandwidth measured in the same call (fp32 weights,
+AdamW's moments and the EMA cannot be updated faster than they can be streamed).
 
 With --profile: the operators that take most of `--steps` profiled steps in either precision, each with its time in
 both (what reduced precision speeds up on this CPU, and what it slows down).
@@ -41,7 +43,11 @@ from bpp.data.store import EpisodeStore, stored_with
 from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, build_training, train_step
 from bpp.utils import to_torch
-from common import matmul_peak
+from common import copy_bandwidth, matmul_peak
+
+# A step reads and writes every parameter's fp32 weight, AdamW's two moments and the EMA's copy at least once (the
+# gradient's read counted as free): the update's memory traffic, bytes per parameter.
+UPDATE_BYTES_PER_PARAMETER = 32
 
 
 def conv_rate(dtype: torch.dtype, seconds: float = 1.0) -> float:
@@ -186,6 +192,13 @@ def limit(cfg, model, ema, optimizer, batches, threads: int) -> None:
     bound = fp32_ms / (bf16_share * bf16_ms)
     print(f"under bf16 autocast: a step {bf16_ms:.1f} ms ({fp32_ms / bf16_ms:.3f}x), convolutions {bf16_share:.1%}: "
           f"with everything else taking no time, at most {bound:.2f}x the fp32 step")  # fmt: skip
+    parameters = sum(p.numel() for p in model.parameters())
+    bandwidth = copy_bandwidth(threads)
+    update_ms = UPDATE_BYTES_PER_PARAMETER * parameters / (bandwidth * 1e9) * 1e3
+    print(f"the parameter update's memory traffic ({parameters / 1e6:.2f} M parameters x {UPDATE_BYTES_PER_PARAMETER} "
+          f"bytes at {bandwidth:.1f} GB/s, this core's copy rate) takes at least {update_ms:.1f} ms: with it and the "
+          f"convolutions, everything else free, at most {fp32_ms / (fp32_share * fp32_ms + update_ms):.2f}x in fp32 "
+          f"and {fp32_ms / (bf16_share * bf16_ms + update_ms):.2f}x under bf16")  # fmt: skip
 
 
 def step_and_convolutions(cfg, model, ema, optimizer, batches, amp: bool, steps: int = 10) -> tuple[float, float]:

@@ -44,7 +44,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
-from common import train_run
+from common import paired, sem, train_run
 
 PARTS = {"1-3": ProceduralConfig(min_parts=1, max_parts=3), "4-6": ProceduralConfig(min_parts=4, max_parts=6)}
 
@@ -242,32 +242,21 @@ def report(args) -> str:
                 continue
             x = np.array(list(values.values()))
             means.append(x.mean())
-            errs.append(x.std(ddof=1) / np.sqrt(len(x)))
+            errs.append(sem(x))
             if arm.key == "base" or base is None:
                 rows.append(
                     (panel, arm.label, f"{x.mean():.2f} ± {errs[-1]:.2f}", "(baseline)", "", train_minutes(arm))
                 )
                 continue
-            common = sorted(values.keys() & base.keys())
-            diff = np.array([values[t] - base[t] for t in common])
-            se = diff.std(ddof=1) / np.sqrt(len(diff))
+            diff = paired(base, values)
             expected = PAPER_SIGN.get(arm.key, 0)
-            if abs(diff.mean()) < 2 * se:
+            if abs(diff.diff) < 2 * diff.sem:
                 verdict = "no measurable effect" + (" (paper: none either)" if expected == 0 else "")
             elif expected == 0:
                 verdict = "an effect the paper does not show"
             else:
-                verdict = "same way as the paper" if np.sign(diff.mean()) == expected else "opposite to the paper"
-            rows.append(
-                (
-                    panel,
-                    arm.label,
-                    f"{x.mean():.2f} ± {errs[-1]:.2f}",
-                    f"{diff.mean():+.2f} ± {se:.2f}",
-                    verdict,
-                    train_minutes(arm),
-                )
-            )
+                verdict = "same way as the paper" if np.sign(diff.diff) == expected else "opposite to the paper"
+            rows.append((panel, arm.label, f"{x.mean():.2f} ± {errs[-1]:.2f}", str(diff), verdict, train_minutes(arm)))
         bars = ax.bar(range(len(labels)), means, yerr=errs, capsize=3, color=colours)
         ax.bar_label(bars, fmt="%.1f", fontsize=7, padding=2)
         ax.set_xticks(range(len(labels)), labels, fontsize=8, rotation=15)
@@ -295,8 +284,7 @@ def report(args) -> str:
                 continue
             cell = f"{np.mean(list(values.values())):.2f}"
             if arm.key != "base" and reference:
-                diff = np.array([values[t] - reference[t] for t in sorted(values.keys() & reference.keys())])
-                cell += f" ({diff.mean():+.2f} ± {diff.std(ddof=1) / np.sqrt(len(diff)):.2f})"
+                cell += f" ({paired(reference, values)})"
             row.append(cell)
         complexity.append(tuple(row))
     lines += [

@@ -38,7 +38,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
-from common import NAMES, add_budget_arguments, budgets, train_run, trained_to
+from common import NAMES, add_budget_arguments, budgets, paired, train_run, trained_to
 
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
@@ -78,12 +78,10 @@ def _kept_entry(folder: Path, wanted: dict) -> dict | None:
 def _paired(a: str, b: str, drawings: dict[str, dict[str, float]]) -> str:
     """`a` minus `b` paired over the drawings both evaluated: the mean difference, its standard error and the count
     of drawings where `a` is better (lower)."""
-    common = sorted(drawings[a].keys() & drawings[b].keys())
-    diff = np.array([drawings[a][t] - drawings[b][t] for t in common])
-    sem = diff.std(ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else 0.0
+    result = paired(drawings[b], drawings[a])
     return (
-        f"{a} minus {b}, paired over the {len(diff)} unseen drawings (each averaged over seeds): "
-        f"{diff.mean():+.2f} ± {sem:.2f} px (s.e.m.); {a} is better on {int((diff < 0).sum())} of them"
+        f"{a} minus {b}, paired over the {result.tasks} unseen drawings (each averaged over seeds): "
+        f"{result} px (s.e.m.); {a} is better on {result.b_better} of them"
     )
 
 
