@@ -6,6 +6,9 @@ request), the server runs in its own process, as `bpp serve` does:
 * in process: one inference call of the agent (a chunk), p50 / p95;
 * over the socket: one client's `infer` round trip (one observation step per request), p50 / p95, and so the
   protocol's overhead;
+* the anchor, the transport alone: the `websockets` library's own server and client, no bpp code, echoing a reply
+  of the served reply's size to a request of the served request's size, p50 / p95 (in its own process, as the
+  server is);
 * 1, 4 and 16 concurrent clients sending requests back to back: requests per second, p50 / p95 round trip and the
   mean batch the server formed;
 * memory: the server's resident memory per connected client with a started episode (16 clients).
@@ -60,6 +63,42 @@ def _serve(size: str, obs: str, store_path: str, threads: int, ports) -> None:
     library = PromptLibrary(model.data_spec(), model.validate_context, store, BENCHMARK.frames)
     server = PolicyServer(model, library, {"method": "bpp"})
     asyncio.run(server.serve("127.0.0.1", 0, ports.put))
+
+
+def _echo(reply_bytes: int, ports) -> None:
+    """A bare `websockets` server that answers every message with `reply_bytes` bytes (the transport's floor)."""
+    from websockets.sync.server import serve
+
+    reply = bytes(reply_bytes)
+
+    def handler(connection) -> None:
+        for _ in connection:
+            connection.send(reply)
+
+    with serve(handler, "127.0.0.1", 0, compression=None, max_size=None) as server:
+        ports.put(server.socket.getsockname()[1])
+        server.serve_forever()
+
+
+def transport_floor(request_bytes: int, reply_bytes: int, requests: int) -> list[float]:
+    """Round trips (ms) of `requests` messages of `request_bytes` to :func:`_echo` in its own process."""
+    from websockets.sync.client import connect
+
+    ports: mp.Queue = mp.get_context("spawn").Queue()
+    proc = mp.get_context("spawn").Process(target=_echo, args=(reply_bytes, ports), daemon=True)
+    proc.start()
+    try:
+        with connect(f"ws://127.0.0.1:{ports.get(timeout=60)}", compression=None, max_size=None) as ws:
+            message, times = bytes(request_bytes), []
+            for _ in range(requests + 2):
+                t0 = time.perf_counter()
+                ws.send(message)
+                ws.recv()
+                times.append(1e3 * (time.perf_counter() - t0))
+    finally:
+        proc.terminate()
+        proc.join()
+    return times[2:]
 
 
 def _observation(store, spec, episode: int, step: int) -> dict:
@@ -165,7 +204,8 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         store = generate(PRESETS["debug"], Path(tmp) / "prompts.zarr", workers=1, progress=False)
-        print("| setting | in process p50 / p95 (ms) | socket p50 / p95 (ms) | request bytes |", end=" ")
+        print("| setting | in process p50 / p95 (ms) | socket p50 / p95 (ms) |", end=" ")
+        print("transport alone p50 / p95 (ms) | request / reply bytes |", end=" ")
         print(" | ".join(f"{k} clients: req/s, p50 / p95 ms, batch" for k in args.concurrency), "| KB per client |")
         for setting in args.settings:
             size, obs = setting.split(":")
@@ -179,9 +219,14 @@ def main() -> None:
             url = f"ws://127.0.0.1:{ports.get(timeout=300)}"
             try:
                 spec = _model(size, obs, store).data_spec()
+                from bpp.serve.client import PolicyClient
                 from bpp.serve.wire import pack
 
-                size_bytes = len(pack(_observation(store, spec, 0, 0)))
+                first = _observation(store, spec, 0, 0)
+                size_bytes = len(pack(first))
+                probe = PolicyClient(url)
+                reply_bytes = len(pack(probe.infer({**first, "prompt": 0, "seed": 0})))
+                probe.close()
                 single = clients_run(url, store, spec, 1, requests)
                 rows = [clients_run(url, store, spec, k, max(2, requests // k)) for k in args.concurrency]
                 mem = memory_per_client(url, proc.pid, store, spec, 16)
@@ -189,12 +234,13 @@ def main() -> None:
                 proc.terminate()
                 proc.join()
             lp50, lp95 = _percentiles(local)
+            fp50, fp95 = _percentiles(transport_floor(size_bytes, reply_bytes, requests))
             cells = " | ".join(
                 f"{r['requests_per_s']:.1f}, {r['p50_ms']:.0f} / {r['p95_ms']:.0f}, {r['mean_batch']:.1f}" for r in rows
             )
             print(
                 f"| bpp {size} / {obs} | {lp50:.1f} / {lp95:.1f} | {single['p50_ms']:.1f} / {single['p95_ms']:.1f} | "
-                f"{size_bytes:,} | {cells} | {mem:.0f} |",
+                f"{fp50:.2f} / {fp95:.2f} | {size_bytes:,} / {reply_bytes:,} | {cells} | {mem:.0f} |",
                 flush=True,
             )
 
