@@ -31,10 +31,10 @@ def main() -> None:
     except (OSError, ValueError, KeyError) as error:  # a missing or unreadable file, tasks that do not match
         parser.error(f"{type(error).__name__}: {error}")
     unit = f" {metric['unit']}" if metric.get("unit") else ""
+    ratio = f"{result.mean_b / result.mean_a:.3f}" if result.mean_a else "undefined"
     print(
         f"{metric['name']} over {result.tasks} tasks: A {result.mean_a:.2f}, B {result.mean_b:.2f}{unit}; "
-        f"B minus A {result}{unit} (± s.e.m.), B / A {result.mean_b / result.mean_a:.3f}; "
-        f"B better on {result.b_better} of {result.tasks}"
+        f"B minus A {result}{unit} (± s.e.m.), B / A {ratio}; B better on {result.b_better} of {result.tasks}"
     )
 
 
