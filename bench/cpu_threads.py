@@ -5,7 +5,9 @@
 Each setting trains BPP (the demo's preset, batch 64, 8 tasks per step) in a fresh process for `--steps` steps and
 reads the steps/s the training loop logged to TensorBoard (the median over logging intervals after the first, so
 start-up is not counted). `--busy N` runs N pure-Python busy loops beside it, as another program on a laptop would.
-A setting that makes no progress within `--timeout` seconds is reported as an upper bound.
+A setting that makes no progress within `--timeout` seconds is reported as an upper bound. The anchor, measured in
+the same run under the same load: the cores' fp32 matrix-product rate on the setting's threads (``matmul_peak``), and
+the training's rate as a fraction of it (a step's FLOPs counted once, ``main_job_flops_per_sample``).
 """
 
 from __future__ import annotations
@@ -17,6 +19,10 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import torch
+
+from common import main_job_flops_per_sample, matmul_peak
 
 CHILD = """
 import json, sys
@@ -63,6 +69,8 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("outputs/cpu_threads.json"))
     args = parser.parse_args()
+    batch = argparse.Namespace(preset=args.preset, obs=args.obs, batch_size=64, tasks_per_batch=8)
+    step_gflop = 64 * main_job_flops_per_sample(args.data, batch)  # a step of 64 windows, forward and backward
     rows = []
     for busy in args.busy:
         for setting in args.settings:
@@ -94,17 +102,22 @@ def main() -> None:
                         rate = args.steps / args.timeout if not rates else max(rates)
                         bound = "<"
                     seconds = time.perf_counter() - t0
+                peak = matmul_peak(torch.float32, threads) if threads else float("nan")  # under the same load
             finally:
                 for h in hogs:
                     h.kill()
             row = {"setting": setting, "busy": busy, "steps_per_s": rate, "bound": bound, "wall_s": seconds}
+            row |= {"peak_gflops": peak, "of_peak": rate * step_gflop / peak}
             rows.append(row)
             print(json.dumps(row), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(rows, indent=1))
-    print("| threads,workers | busy processes | steps/s |\n| --- | --- | --- |")
+    print(f"a step: {step_gflop:.2f} GFLOP")
+    print("| threads,workers | busy processes | steps/s | fp32 matmul GFLOP/s, those threads, same load | of it |")
+    print("| --- | --- | --- | --- | --- |")
     for r in rows:
-        print(f"| {r['setting']} | {r['busy']} | {r['bound']}{r['steps_per_s']:.2f} |")
+        print(f"| {r['setting']} | {r['busy']} | {r['bound']}{r['steps_per_s']:.2f} | {r['peak_gflops']:.1f} | "
+              f"{r['of_peak']:.1%} |")  # fmt: skip
 
 
 if __name__ == "__main__":
