@@ -67,7 +67,7 @@ def _serve(size: str, obs: str, store_path: str, threads: int, ports) -> None:
 
 def _echo(reply_bytes: int, ports) -> None:
     """A bare `websockets` server that answers every message with `reply_bytes` bytes (the transport's floor)."""
-    from websockets.sync.server import serve
+    from websockets.sync.server import serve  # websockets: the serve extra
 
     reply = bytes(reply_bytes)
 
@@ -82,7 +82,7 @@ def _echo(reply_bytes: int, ports) -> None:
 
 def transport_floor(request_bytes: int, reply_bytes: int, requests: int) -> list[float]:
     """Round trips (ms) of `requests` messages of `request_bytes` to :func:`_echo` in its own process."""
-    from websockets.sync.client import connect
+    from websockets.sync.client import connect  # websockets: the serve extra
 
     ports: mp.Queue = mp.get_context("spawn").Queue()
     proc = mp.get_context("spawn").Process(target=_echo, args=(reply_bytes, ports), daemon=True)
