@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# DrawAnything's BPP against ICRT at equal training wall time, one seed: both train side by side, one thread and one
+# core each, on the main job's store (`board` observations, the `cpu` size, 8 prompts a step; BPP 64 windows a step
+# from zero noise, ICRT 16 whole demonstrations), for step counts that take about the same time. Then, on each
+# method's own lane: every checkpoint on the procedural validation split (bench/draw_curves.py), the step with the
+# lowest validation mean chosen (the rule is fixed before any unseen drawing is seen), the 50 unseen human-made
+# drawings x 8 rollouts at the schedule's end and at the chosen step, and the 20 training drawings x 8 at the end.
+#
+#   bash bench/draw_equal_time.sh 1                        # seed 1: BPP 32,000 steps, ICRT 18,000 (about 80 min each)
+#   BPP_STEPS=8000 ICRT_STEPS=4500 VAL_TASKS=20 bash bench/draw_equal_time.sh 0   # a quarter of it
+#   BPP_STEPS=16 ICRT_STEPS=18 VAL_TASKS=2 HUMAN=2 ROLLOUTS=1 RUNS=/tmp/r OUT=/tmp/o \
+#     bash bench/draw_equal_time.sh 0                     # a check that it all runs (3 minutes)
+#
+# Compare two seeds or more afterwards, drawing by drawing:
+#   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
+#       OUT/human/bpp-s0-32000/results.json,OUT/human/bpp-s1-32000/results.json
+set -euo pipefail
+SEED=${1:?usage: bash bench/draw_equal_time.sh SEED}
+BPP_STEPS=${BPP_STEPS:-32000} ICRT_STEPS=${ICRT_STEPS:-18000}
+VAL_TASKS=${VAL_TASKS:-50} HUMAN=${HUMAN:-50} ROLLOUTS=${ROLLOUTS:-8}
+DATA=${DATA:-data/draw/train-500.zarr} RUNS=${RUNS:-runs/long} OUT=${OUT:-outputs/long} BPP=${BPP:-bpp}
+PYTHON=${PYTHON:-python}
+export OMP_NUM_THREADS=1
+[ -d "$DATA" ] || $BPP draw generate --preset cpu --out "$DATA" --workers 2
+mkdir -p "$OUT/logs"
+common=(--data "$DATA" --preset cpu --obs board --tasks-per-batch 8 --threads 1 --workers 0 --keep-checkpoints 50
+  --seed "$SEED")
+$BPP train --method bpp "${common[@]}" --out "$RUNS/bpp-s$SEED" --steps "$BPP_STEPS" --save-every $((BPP_STEPS / 8)) \
+  --model.diffusion.noise-scale 0 > "$OUT/logs/train-bpp-s$SEED.log" 2>&1 &
+bpp_lane=$!
+$BPP train --method icrt "${common[@]}" --out "$RUNS/icrt-s$SEED" --steps "$ICRT_STEPS" --batch-size 16 \
+  --save-every $((ICRT_STEPS / 9)) > "$OUT/logs/train-icrt-s$SEED.log" 2>&1 &
+icrt_lane=$!
+wait "$bpp_lane"; wait "$icrt_lane"  # either failing stops here (its log is in $OUT/logs)
+echo "trained: $RUNS/bpp-s$SEED, $RUNS/icrt-s$SEED"
+
+lane() {  # lane METHOD END: validation, the chosen step, then the unseen and training drawings
+  local method=$1 end=$2 run="$RUNS/$1-s$SEED" val="$OUT/val-$1-s$SEED" chosen step
+  $PYTHON bench/draw_curves.py "$run" --num-tasks "$VAL_TASKS" --rollouts 2 --out "$val" \
+    > "$OUT/logs/val-$method-s$SEED.log" 2>&1
+  chosen=$($PYTHON -c "import json, sys; curve = next(iter(json.load(open(sys.argv[1])).values()));
+print(min(curve, key=lambda point: point['val'])['step'])" "$val/results.json")
+  echo "$method, seed $SEED: validation chose step $chosen of $end"
+  for step in $end $chosen; do
+    [ -f "$OUT/human/$method-s$SEED-$step/results.json" ] ||
+      $BPP eval "$run/checkpoints/step_$(printf %08d "$step")" --tasks human --num-tasks "$HUMAN" \
+        --rollouts "$ROLLOUTS" --workers 1 --videos 0 --out "$OUT/human/$method-s$SEED-$step" \
+        > "$OUT/logs/human-$method-s$SEED-$step.log" 2>&1
+  done
+  $BPP eval "$run/checkpoints/step_$(printf %08d "$end")" --tasks train --num-tasks 20 --rollouts "$ROLLOUTS" \
+    --workers 1 --videos 0 --out "$OUT/train/$method-s$SEED-$end" > "$OUT/logs/train-eval-$method-s$SEED.log" 2>&1
+}
+lane bpp "$BPP_STEPS" &
+bpp_lane=$!
+lane icrt "$ICRT_STEPS" &
+icrt_lane=$!
+wait "$bpp_lane"; wait "$icrt_lane"
+echo "unseen drawings: $OUT/human/{bpp,icrt}-s$SEED-*/results.md"
