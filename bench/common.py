@@ -191,14 +191,23 @@ def evaluated_tasks(args):
     return ckpt, *resolve_tasks(args.tasks, ckpt, num_tasks=args.num_tasks, workers=1)
 
 
+@contextlib.contextmanager
+def torch_threads(threads: int):
+    """torch on `threads` threads inside the block, its previous count restored after."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: float = 1.0) -> float:
     """This machine's matrix-product rate in GFLOP/s for `dtype` on `threads` torch threads: the best of square
     products of `sizes`, each repeated for about `seconds` after a warm-up (the yardstick a training rate is set
     against: what the cores do on the operation that dominates a step)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
-        best = 0.0
+    best = 0.0
+    with torch_threads(threads):
         for n in sizes:
             a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
             a @ b
@@ -207,28 +216,23 @@ def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: f
                 a @ b
                 count += 1
             best = max(best, 2 * n**3 * count / elapsed / 1e9)
-        return best
-    finally:
-        torch.set_num_threads(before)
+    return best
 
 
 def copy_bandwidth(threads: int, mib: int = 256, seconds: float = 1.0) -> float:
     """This machine's memory bandwidth in GB/s on `threads` torch threads: the best rate of copying one `mib` MiB
     fp32 tensor into another (read and write counted, as STREAM's copy counts them), repeated for about `seconds`
     (the yardstick for memory-bound work such as a parameter update)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    best = 0.0
+    with torch_threads(threads):
         source, target = torch.ones(mib * 2**18), torch.empty(mib * 2**18)
         target.copy_(source)
-        best, t0 = 0.0, time.perf_counter()
+        t0 = time.perf_counter()
         while time.perf_counter() - t0 < seconds:
             start = time.perf_counter()
             target.copy_(source)
             best = max(best, 2 * source.nbytes / (time.perf_counter() - start) / 1e9)
-        return best
-    finally:
-        torch.set_num_threads(before)
+    return best
 
 
 def main_job_flops_per_sample(store: Path, args) -> float:
@@ -294,13 +298,3 @@ def paired(a: dict[str, float], b: dict[str, float], lower_is_better: bool = Tru
     x, y = np.array([a[t] for t in common]), np.array([b[t] for t in common])
     better = (y < x) if lower_is_better else (y > x)
     return Paired(len(common), float(x.mean()), float(y.mean()), float((y - x).mean()), sem(y - x), int(better.sum()))
-
-
-def task_scores(paths: list[Path]) -> tuple[dict[str, float], dict]:
-    """Each task's score (its mean over rollouts) averaged over the evaluations `paths` (``bpp eval``'s results.json,
-    e.g. one per seed, all of the same tasks), and their metric."""
-    results = [json.loads(Path(path).read_text()) for path in paths]
-    tasks = [{t["task_id"]: t["score_mean"] for t in r["tasks"]} for r in results]
-    if any(t.keys() != tasks[0].keys() for t in tasks):
-        raise ValueError(f"{', '.join(map(str, paths))}: the evaluations scored different tasks")
-    return {task: float(np.mean([t[task] for t in tasks])) for task in tasks[0]}, results[0]["metric"]

@@ -11,9 +11,22 @@ on how many tasks B is better (the metric's direction read from the results).
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
-from common import paired, task_scores
+import numpy as np
+
+from common import paired
+
+
+def task_scores(paths: list[Path]) -> tuple[dict[str, float], dict]:
+    """Each task's score (its mean over rollouts) averaged over the evaluations `paths` (``bpp eval``'s results.json,
+    e.g. one per seed, all of the same tasks), and their metric."""
+    results = [json.loads(Path(path).read_text()) for path in paths]
+    tasks = [{t["task_id"]: t["score_mean"] for t in r["tasks"]} for r in results]
+    if any(t.keys() != tasks[0].keys() for t in tasks):
+        raise ValueError(f"{', '.join(map(str, paths))}: the evaluations scored different tasks")
+    return {task: float(np.mean([t[task] for t in tasks])) for task in tasks[0]}, results[0]["metric"]
 
 
 def main() -> None:
