@@ -202,20 +202,27 @@ def torch_threads(threads: int):
         torch.set_num_threads(before)
 
 
-def matmul_peak(dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: float = 1.0) -> float:
-    """This machine's matrix-product rate in GFLOP/s for `dtype` on `threads` torch threads: the best of square
-    products of `sizes`, each repeated for about `seconds` after a warm-up (the yardstick a training rate is set
-    against: what the cores do on the operation that dominates a step)."""
+def matmul_peak(
+    dtype: torch.dtype, threads: int, sizes=(1024, 2048), seconds: float = 1.0, device: str | torch.device = "cpu"
+) -> float:
+    """This machine's matrix-product rate in GFLOP/s for `dtype` on `threads` torch threads (or on `device`, a GPU):
+    the best of square products of `sizes`, each repeated for about `seconds` after a warm-up (the yardstick a
+    training rate is set against: what the chip does on the operation that dominates a step)."""
+    device = torch.device(device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     best = 0.0
     with torch_threads(threads):
         for n in sizes:
-            a, b = torch.randn(n, n).to(dtype), torch.randn(n, n).to(dtype)
+            a, b = (torch.randn(n, n, device=device).to(dtype) for _ in range(2))
             a @ b
+            sync()
             count, t0 = 0, time.perf_counter()
-            while (elapsed := time.perf_counter() - t0) < seconds:
-                a @ b
-                count += 1
-            best = max(best, 2 * n**3 * count / elapsed / 1e9)
+            while time.perf_counter() - t0 < seconds:
+                for _ in range(10 if device.type == "cuda" else 1):  # a GPU's products queued ten at a time
+                    a @ b
+                    count += 1
+                sync()
+            best = max(best, 2 * n**3 * count / (time.perf_counter() - t0) / 1e9)
     return best
 
 

@@ -18,7 +18,7 @@ first, it measures:
 * model: samples/s of the training step of `bpp train` (`bpp.train.train_step`: forward, backward, clipping, AdamW,
   EMA) on a batch already on the device, at each batch size of ``--batch-sizes``, the peak memory, and the TFLOP/s
   it achieves (the step's FLOPs counted as ``bench/step_ops.py`` counts them: matrix products, convolutions and
-  attention, on the same batch; to set against the chip's bf16 peak); with
+  attention, on the same batch; set against the chip's peak, below); with
   variants (paper), the same with channels-first weights, with cuDNN's timed algorithm choice, with the 5x5-stem
   encoder of the CPU presets, and with fp32 GroupNorm under autocast, for comparison;
 * end to end: samples/s of `bpp train` itself (a subprocess, its default loader workers), the median of its logged
@@ -27,7 +27,9 @@ first, it measures:
   GPU cudagraphs, the captured operators replayed as CUDA graphs, and reduce-overhead, inductor's kernels replayed
   so), with the warm-up's time (compiling); end to end with ``--frames-on device``;
 * act: ms per inference call of :class:`bpp.policies.agent.PolicyAgent` (its prompt encoded once at reset), eager
-  and, on a GPU, replayed from a CUDA graph, with the largest difference between the two.
+  and, on a GPU, replayed from a CUDA graph, with the largest difference between the two;
+* peak: the chip's own bf16 and fp32 matrix-product rates (TFLOP/s), measured first in the same run: the anchor the
+  model-bound TFLOP/s are set against.
 
 Every number is written to ``--out`` (JSON) as soon as it is measured, so a run cut short keeps what it measured;
 a measurement that fails is recorded with its error and the next one runs.
@@ -63,13 +65,13 @@ from bpp.policies.registry import get_method
 from bpp.train import TrainConfig, batch_loader, build_training, compiled, cpu_plan, train_step, uses_amp
 from bpp.train_config import COMPILE_MODES
 from bpp.utils import to_torch, usable_cores
-from common import step_flops, train_subprocess
+from common import matmul_peak, step_flops, train_subprocess
 
 PRESETS = {"paper": ("paper", "paper"), "cpu-image": ("cpu", "image64")}
 """Preset name -> (method size preset, DrawAnything observation preset)."""
 BATCHES = {"paper": ([64, 128, 256], [64, 256]), "cpu-image": ([128, 256, 512], [256])}
 """Preset name -> (model-bound batch sizes, end-to-end batch sizes) on a GPU."""
-PARTS = ("loader", "pipeline", "frames", "model", "variants", "e2e", "act", "compile")
+PARTS = ("peak", "loader", "pipeline", "frames", "model", "variants", "e2e", "act", "compile")
 """What the script can measure (the module docstring says what each is); all by default."""
 
 
@@ -514,6 +516,11 @@ def main() -> None:
         draw_data.generate(cfg, store_path, overwrite=True, progress=False)
         print(f"generated {store_path} in {time.perf_counter() - t0:.1f} s", flush=True)
     store = EpisodeStore(store_path)
+    if "peak" in args.parts:
+        sizes = (256,) if small else (4096, 8192)
+        for dtype in (torch.bfloat16, torch.float32):
+            rate = lambda dtype=dtype: round(matmul_peak(dtype, usable_cores(), sizes, 1.0, device) / 1e3, 3)  # noqa: E731
+            measure(results, "chip", f"matmul_tflops_{str(dtype).removeprefix('torch.')}", rate)
     for name in args.presets:
         bench_preset(results, name, store, device, args)
     print(json.dumps(results.data, indent=1))

@@ -33,7 +33,7 @@ if [ -n "$SMALL" ]; then limit2=480 test_limit=400 test_processes=2; else limit2
 #    cudagraphs (seconds to compile) with the eager end-to-end runs, then reduce-overhead (inductor: minutes), each
 #    with its own time limit, so a slow compile cannot take the other's time.
 if [ -n "$SMALL" ]; then presets=(--small --presets cpu-image); else presets=(--presets cpu-image paper); fi
-timeout ${LIMIT1:-260} $PY bench/gpu_throughput.py "${presets[@]}" --parts loader pipeline frames compile e2e --compile-modes cudagraphs \
+timeout ${LIMIT1:-260} $PY bench/gpu_throughput.py "${presets[@]}" --parts peak loader pipeline frames compile e2e --compile-modes cudagraphs \
   --data-dir /tmp/bench-gpu --out "$OUT/throughput-cudagraphs.json" >"$OUT/bench-cudagraphs.log" 2>&1
 echo "bench cudagraphs: exit $?" | tee -a "$OUT/machine.txt"
 # The paper preset first here: its 2,000 samples/s end to end is the first target, and a cold inductor compile may use up the limit.

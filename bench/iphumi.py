@@ -5,7 +5,8 @@
    alignment error (ms): the time shift of the true motion that best explains the processed positions. A bimanual
    export measures the second arm the same way.
 2. Speed: recording seconds processed per wall-clock second (`bpp iphumi process`, one worker per core), with the
-   main camera at the synthetic 160x120 and at the app's 1920x1440.
+   main camera at the synthetic 160x120 and at the app's 1920x1440. The anchor, same run: FFmpeg alone (the binary
+   the processing decodes with) decoding the same videos to nothing, one process per core.
 3. Hand-off: `bpp iphumi prompt` to a `bpp serve` on loopback (BPP, cpu preset, the wrist camera observation;
    weights barely trained, since latency does not depend on them): processing, upload and first action.
 
@@ -19,6 +20,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -59,12 +61,28 @@ def accuracy(root: Path, settings: SyntheticSettings, arms: tuple[str, ...]) -> 
 
 
 def speed(root: Path, settings: SyntheticSettings) -> tuple[float, float, float]:
+    """(recording seconds, processing's wall seconds, FFmpeg's alone on the same videos)."""
     truths = write_export(root / "export", settings)
     seconds = sum(t.times[-1] - t.times[0] for t in truths.values())
     t0 = time.perf_counter()
     process_export(root / "export", root / "store.zarr", workers=2, progress=False)
     wall = time.perf_counter() - t0
-    return seconds, wall, seconds / wall
+    return seconds, wall, decoding_alone(sorted((root / "export").rglob("*.mp4")), workers=2)
+
+
+def decoding_alone(videos: list[Path], workers: int) -> float:
+    """Wall seconds FFmpeg takes to decode `videos` to nothing, `workers` processes at a time, one thread each."""
+    # imageio-ffmpeg: the FFmpeg binary the processing reads videos with
+    import imageio_ffmpeg
+
+    def decode(video: Path) -> None:
+        command = [imageio_ffmpeg.get_ffmpeg_exe(), "-v", "error", "-threads", "1", "-i", str(video), "-f", "null", "-"]
+        subprocess.run(command, check=True, capture_output=True)
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(decode, videos))
+    return time.perf_counter() - t0
 
 
 def hand_off_latency(root: Path, repeats: int) -> list:
@@ -129,8 +147,12 @@ def report_speed(root: Path, args) -> None:
     small = speed(root / "small", SyntheticSettings(demonstrations=args.demonstrations, tasks=3, seed=13))
     large = speed(root / "large", SyntheticSettings(demonstrations=args.large_demonstrations, tasks=2, seed=14,
                                                     main_size=(1920, 1440)))  # fmt: skip
-    for name, (seconds, wall, rate) in (("160x120 main camera", small), ("1920x1440 main camera", large)):
-        print(f"speed, {name}: {seconds:.0f} s of recording in {wall:.1f} s: {rate:.2f} recording s per s")
+    for name, (seconds, wall, ffmpeg) in (("160x120 main camera", small), ("1920x1440 main camera", large)):
+        print(
+            f"speed, {name}: {seconds:.0f} s of recording in {wall:.1f} s: {seconds / wall:.2f} recording s per s; "
+            f"FFmpeg decoding its videos alone {ffmpeg:.1f} s: {seconds / ffmpeg:.2f}; processing at "
+            f"{ffmpeg / wall:.0%} of it"
+        )
 
 
 def report_handoff(root: Path, args) -> None:
