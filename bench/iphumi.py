@@ -9,7 +9,8 @@
    anchor, same run: FFmpeg alone (the binary the processing decodes with) decoding the same videos to nothing, one
    process per core.
 3. Hand-off: `bpp iphumi prompt` to a `bpp serve` on loopback (BPP, cpu preset, the wrist camera observation;
-   weights barely trained, since latency does not depend on them): processing, upload and first action.
+   weights barely trained, since latency does not depend on them): processing, upload and first action; the upload's
+   anchor, same run: the `websockets` library alone on loopback echoing a message of the same size.
 
     python bench/iphumi.py [--demonstrations 6] [--large-demonstrations 2]
 """
@@ -31,6 +32,7 @@ from bpp.benchmarks.iphumi.pipeline import process_export
 from bpp.benchmarks.iphumi.process import ProcessSettings
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export
 from bpp.core.poses import invert, rotation_angle, vector_to_pose
+from common import transport_floor
 
 
 def accuracy(root: Path, settings: SyntheticSettings, arms: tuple[str, ...]) -> dict:
@@ -164,6 +166,8 @@ def report_handoff(root: Path, args) -> None:
     for name in ("process_s", "upload_s", "first_action_s"):
         values = np.array([getattr(r, name) for r in results]) * 1e3
         print(f"hand-off {name}: p50 {np.median(values):.0f} ms, max {values.max():.0f} ms")
+    floor = np.array(transport_floor(results[0].upload_bytes, 64, args.repeats))
+    print(f"the transport alone (websockets, as many bytes): p50 {np.median(floor):.1f} ms, max {floor.max():.1f} ms")
     print(f"the whole command: {', '.join(f'{s:.2f}' for s in command)} s")
     print(f"hand-off upload size: {results[0].upload_bytes / 1024:.0f} KiB, {results[0].steps} steps")
 

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from common import transport_floor
+
 
 def _rss_mb(pid: int) -> float:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
@@ -63,42 +65,6 @@ def _serve(size: str, obs: str, store_path: str, threads: int, ports) -> None:
     library = PromptLibrary(model.data_spec(), model.validate_context, store, BENCHMARK.frames)
     server = PolicyServer(model, library, {"method": "bpp"})
     asyncio.run(server.serve("127.0.0.1", 0, ports.put))
-
-
-def _echo(reply_bytes: int, ports) -> None:
-    """A bare `websockets` server that answers every message with `reply_bytes` bytes (the transport's floor)."""
-    from websockets.sync.server import serve  # websockets: the serve extra
-
-    reply = bytes(reply_bytes)
-
-    def handler(connection) -> None:
-        for _ in connection:
-            connection.send(reply)
-
-    with serve(handler, "127.0.0.1", 0, compression=None, max_size=None) as server:
-        ports.put(server.socket.getsockname()[1])
-        server.serve_forever()
-
-
-def transport_floor(request_bytes: int, reply_bytes: int, requests: int) -> list[float]:
-    """Round trips (ms) of `requests` messages of `request_bytes` to :func:`_echo` in its own process."""
-    from websockets.sync.client import connect  # websockets: the serve extra
-
-    ports: mp.Queue = mp.get_context("spawn").Queue()
-    proc = mp.get_context("spawn").Process(target=_echo, args=(reply_bytes, ports), daemon=True)
-    proc.start()
-    try:
-        with connect(f"ws://127.0.0.1:{ports.get(timeout=60)}", compression=None, max_size=None) as ws:
-            message, times = bytes(request_bytes), []
-            for _ in range(requests + 2):
-                t0 = time.perf_counter()
-                ws.send(message)
-                ws.recv()
-                times.append(1e3 * (time.perf_counter() - t0))
-    finally:
-        proc.terminate()
-        proc.join()
-    return times[2:]
 
 
 def _observation(store, spec, episode: int, step: int) -> dict:
