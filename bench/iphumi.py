@@ -149,10 +149,17 @@ def report_accuracy(root: Path, args) -> None:
 
 def report_speed(root: Path, args) -> None:
     # A first processing: each export's gripper calibrations measured, not read from an earlier run's cache.
-    os.environ["BPP_CACHE"] = str(root / "cache")
-    small = speed(root / "small", SyntheticSettings(demonstrations=args.demonstrations, tasks=3, seed=13))
-    large = speed(root / "large", SyntheticSettings(demonstrations=args.large_demonstrations, tasks=2, seed=14,
-                                                    main_size=(1920, 1440)))  # fmt: skip
+    before = os.environ.get("BPP_CACHE")
+    os.environ["BPP_CACHE"] = str(root / "cache")  # read by each call's new worker processes
+    try:
+        small = speed(root / "small", SyntheticSettings(demonstrations=args.demonstrations, tasks=3, seed=13))
+        large = speed(root / "large", SyntheticSettings(demonstrations=args.large_demonstrations, tasks=2, seed=14,
+                                                        main_size=(1920, 1440)))  # fmt: skip
+    finally:
+        if before is None:
+            os.environ.pop("BPP_CACHE")
+        else:
+            os.environ["BPP_CACHE"] = before
     for name, (seconds, wall, ffmpeg) in (("160x120 main camera", small), ("1920x1440 main camera", large)):
         print(
             f"speed, {name}: {seconds:.0f} s of recording in {wall:.1f} s: {seconds / wall:.2f} recording s per s; "
