@@ -32,7 +32,7 @@ from bpp.benchmarks.iphumi.pipeline import process_export
 from bpp.benchmarks.iphumi.process import ProcessSettings
 from bpp.benchmarks.iphumi.synthetic import SyntheticSettings, write_export
 from bpp.core.poses import invert, rotation_angle, vector_to_pose
-from common import transport_floor
+from transport import transport_floor
 
 
 def accuracy(root: Path, settings: SyntheticSettings, arms: tuple[str, ...]) -> dict:

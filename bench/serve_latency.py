@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common import transport_floor
+from transport import transport_floor
 
 
 def _rss_mb(pid: int) -> float:
