@@ -11,6 +11,11 @@
 #   BPP_STEPS=16 ICRT_STEPS=18 VAL_TASKS=2 HUMAN=2 ROLLOUTS=1 RUNS=/tmp/r OUT=/tmp/o \
 #     bash bench/draw_equal_time.sh 0                     # a check that it all runs (3 minutes)
 #
+# Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS, LANGUAGE_STEPS) and
+# the decoder sampling from zero noise as BPP's does. Two seeds of one method side by side, one lane each:
+#   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 0 &
+#   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
+#
 # Compare two seeds or more afterwards, drawing by drawing:
 #   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
 #       OUT/human/bpp-s0-32000/results.json,OUT/human/bpp-s1-32000/results.json
@@ -23,16 +28,31 @@ PYTHON=${PYTHON:-python}
 export OMP_NUM_THREADS=1
 [ -d "$DATA" ] || $BPP draw generate --preset cpu --out "$DATA" --workers 2
 mkdir -p "$OUT/logs"
+METHODS=${METHODS:-bpp icrt}
 common=(--data "$DATA" --preset cpu --obs board --tasks-per-batch 8 --threads 1 --workers 0 --keep-checkpoints 50
   --seed "$SEED")
-$BPP train --method bpp "${common[@]}" --out "$RUNS/bpp-s$SEED" --steps "$BPP_STEPS" --save-every $((BPP_STEPS / 8)) \
-  --model.diffusion.noise-scale 0 > "$OUT/logs/train-bpp-s$SEED.log" 2>&1 &
-bpp_lane=$!
-$BPP train --method icrt "${common[@]}" --out "$RUNS/icrt-s$SEED" --steps "$ICRT_STEPS" --batch-size 16 \
-  --save-every $((ICRT_STEPS / 9)) > "$OUT/logs/train-icrt-s$SEED.log" 2>&1 &
-icrt_lane=$!
-wait "$bpp_lane"; wait "$icrt_lane"  # either failing stops here (its log is in $OUT/logs)
-echo "trained: $RUNS/bpp-s$SEED, $RUNS/icrt-s$SEED"
+
+steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_IMAGE_STEPS, ...)
+  local name="${1^^}_STEPS"
+  echo "${!name:?set $name}"
+}
+
+train() {  # train METHOD: one lane's training; ICRT takes 16 whole demonstrations a step and samples as trained
+  local method=$1 total
+  total=$(steps "$method")
+  local flags=(--save-every $((total / 8)) --model.diffusion.noise-scale 0)
+  [ "$method" = icrt ] && flags=(--save-every $((total / 9)) --batch-size 16)
+  $BPP train --method "$method" "${common[@]}" --out "$RUNS/$method-s$SEED" --steps "$total" "${flags[@]}" \
+    > "$OUT/logs/train-$method-s$SEED.log" 2>&1
+}
+
+lanes=()
+for method in $METHODS; do
+  train "$method" &
+  lanes+=($!)
+done
+for pid in "${lanes[@]}"; do wait "$pid"; done  # any failing stops here (its log is in $OUT/logs)
+echo "trained: $(for method in $METHODS; do printf '%s ' "$RUNS/$method-s$SEED"; done)"
 
 lane() {  # lane METHOD END: validation, the chosen step, then the unseen and training drawings
   local method=$1 end=$2 run="$RUNS/$1-s$SEED" val="$OUT/val-$1-s$SEED" chosen step
@@ -50,9 +70,10 @@ print(min(curve, key=lambda point: point['val'])['step'])" "$val/results.json")
   $BPP eval "$run/checkpoints/step_$(printf %08d "$end")" --tasks train --num-tasks 20 --rollouts "$ROLLOUTS" \
     --workers 1 --videos 0 --out "$OUT/train/$method-s$SEED-$end" > "$OUT/logs/train-eval-$method-s$SEED.log" 2>&1
 }
-lane bpp "$BPP_STEPS" &
-bpp_lane=$!
-lane icrt "$ICRT_STEPS" &
-icrt_lane=$!
-wait "$bpp_lane"; wait "$icrt_lane"
-echo "unseen drawings: $OUT/human/{bpp,icrt}-s$SEED-*/results.md"
+lanes=()
+for method in $METHODS; do
+  lane "$method" "$(steps "$method")" &
+  lanes+=($!)
+done
+for pid in "${lanes[@]}"; do wait "$pid"; done
+echo "unseen drawings: $OUT/human/*-s$SEED-*/results.md"

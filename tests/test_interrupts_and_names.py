@@ -19,9 +19,11 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bpp.cli import main
+from bpp.evaluation import report
 
 V = [[[0.2, 0.2], [0.5, 0.8], [0.8, 0.2]]]
 """A drawing's strokes: one V."""
@@ -89,6 +91,20 @@ def test_eval_writes_one_video_per_task_id(run, tmp_path):
     assert len(set(videos)) == len(IDS) and all(name in results["outputs"] for name in videos)
     assert sorted(p.name for p in out.glob("rollout_*")) == sorted(videos)  # none overwrote another
     assert all(len(name) < 120 for name in videos)
+
+
+def test_a_video_the_mp4_encoder_fails_on_is_a_gif_with_a_warning_naming_the_cause(tmp_path, monkeypatch):
+    written = report.save_animation
+
+    def encoder(frames, path):
+        if Path(path).suffix == ".mp4":
+            raise RuntimeError("no libx264")
+        return written(frames, path)
+
+    monkeypatch.setattr(report, "save_animation", encoder)
+    with pytest.warns(UserWarning, match=r"rollout_a\.mp4 failed \(RuntimeError: no libx264\); writing a GIF"):
+        path = report.write_video([np.zeros((16, 16, 3), np.uint8)] * 3, tmp_path / "rollout_a")
+    assert path.name == "rollout_a.gif" and [p.name for p in tmp_path.iterdir()] == ["rollout_a.gif"]
 
 
 def test_eval_refuses_an_output_folder_it_cannot_write_before_any_rollout(run, debug_store, tmp_path, monkeypatch):

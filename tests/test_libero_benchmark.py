@@ -213,7 +213,7 @@ def test_a_second_generation_into_the_same_store_is_refused_before_it_touches_th
         ("bpp", "image"),
     ],
 )
-def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, obs, capsys):
+def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_path, method, obs, capsys, recwarn):
     run = tmp_path / "run"
     flags = ["--preset", "debug", "--obs", obs, "--steps=2"]
     if obs == "image":  # the stored camera only, at its stored size: a wrist camera would be rendered from the
@@ -229,7 +229,9 @@ def test_every_method_trains_on_a_store_and_is_evaluated_by_libero(store, tmp_pa
     (row,) = results["rollouts"]
     assert row["score"] in (0.0, 1.0) and row["steps"] == 12  # an untrained policy does not succeed in 12 steps
     assert row["lifted"] in (0.0, 1.0) and row["lifted_other"] in (0.0, 1.0)
-    assert "init_seed" in row and (out / "grid.png").is_file() and list(out.glob("rollout_*.mp4"))
+    assert "init_seed" in row and (out / "grid.png").is_file()
+    written = sorted(p.name for p in out.iterdir())
+    assert list(out.glob("rollout_*.mp4")), f"no MP4 among {written}; {[str(w.message) for w in recwarn]}"
 
 
 def test_bad_input_is_refused_with_a_clear_message(store, debug_store, tmp_path, capsys):

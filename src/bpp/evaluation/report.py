@@ -3,6 +3,7 @@ prompt-attention heatmaps, Markdown tables and bar charts."""
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -62,7 +63,8 @@ def write_video(frames: Sequence[np.ndarray], stem: Path) -> Path:
     suffix is added to `stem`, never put in place of a part of it ('rollout_star.v1' stays whole)."""
     try:
         return save_animation(frames, stem.with_name(f"{stem.name}.mp4"))
-    except Exception:  # noqa: BLE001 - any encoder failure: fall back to the always-available GIF writer
+    except Exception as err:  # noqa: BLE001 - any encoder failure: fall back to the always-available GIF writer
+        warnings.warn(f"{stem.name}.mp4 failed ({type(err).__name__}: {err}); writing a GIF", stacklevel=2)
         return save_animation(frames, stem.with_name(f"{stem.name}.gif"))
 
 
