@@ -15,6 +15,10 @@
 # the decoder sampling from zero noise as BPP's does. Two seeds of one method side by side, one lane each:
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 0 &
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
+# OBS picks the observation (`board` unless set); a `board-image` step costs more (BENCHMARKS.md), so fewer fill the
+# same time:
+#   OBS=board-image BPP_STEPS=20000 ICRT_STEPS=9000 RUNS=runs/long-image OUT=outputs/long-image \
+#     bash bench/draw_equal_time.sh 0
 #
 # Compare two seeds or more afterwards, drawing by drawing:
 #   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
@@ -28,8 +32,8 @@ PYTHON=${PYTHON:-python}
 export OMP_NUM_THREADS=1
 [ -d "$DATA" ] || $BPP draw generate --preset cpu --out "$DATA" --workers 2
 mkdir -p "$OUT/logs"
-METHODS=${METHODS:-bpp icrt}
-common=(--data "$DATA" --preset cpu --obs board --tasks-per-batch 8 --threads 1 --workers 0 --keep-checkpoints 50
+METHODS=${METHODS:-bpp icrt} OBS=${OBS:-board}
+common=(--data "$DATA" --preset cpu --obs "$OBS" --tasks-per-batch 8 --threads 1 --workers 0 --keep-checkpoints 50
   --seed "$SEED")
 
 steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_IMAGE_STEPS, ...)
