@@ -11,7 +11,7 @@
 #   BPP_STEPS=16 ICRT_STEPS=18 VAL_TASKS=2 HUMAN=2 ROLLOUTS=1 RUNS=/tmp/r OUT=/tmp/o \
 #     bash bench/draw_equal_time.sh 0                     # a check that it all runs (3 minutes)
 #
-# Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS, LANGUAGE_STEPS) and
+# Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS for goal_image) and
 # the decoder sampling from zero noise as BPP's does. Two seeds of one method side by side, one lane each:
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 0 &
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
