@@ -93,18 +93,23 @@ def test_eval_writes_one_video_per_task_id(run, tmp_path):
     assert all(len(name) < 120 for name in videos)
 
 
-def test_a_video_the_mp4_encoder_fails_on_is_a_gif_with_a_warning_naming_the_cause(tmp_path, monkeypatch):
-    written = report.save_animation
+def test_a_video_the_mp4_encoder_fails_on_is_a_gif_with_a_warning_and_a_full_disk_is_an_error(tmp_path, monkeypatch):
+    written, frames = report.save_animation, [np.zeros((16, 16, 3), np.uint8)] * 3
+    failure = RuntimeError("no libx264")
 
     def encoder(frames, path):
         if Path(path).suffix == ".mp4":
-            raise RuntimeError("no libx264")
+            raise failure
         return written(frames, path)
 
     monkeypatch.setattr(report, "save_animation", encoder)
     with pytest.warns(UserWarning, match=r"rollout_a\.mp4 failed \(RuntimeError: no libx264\); writing a GIF"):
-        path = report.write_video([np.zeros((16, 16, 3), np.uint8)] * 3, tmp_path / "rollout_a")
+        path = report.write_video(frames, tmp_path / "rollout_a")
     assert path.name == "rollout_a.gif" and [p.name for p in tmp_path.iterdir()] == ["rollout_a.gif"]
+    failure = OSError(errno.ENOSPC, FULL)
+    with pytest.raises(OSError, match=FULL):
+        report.write_video(frames, tmp_path / "rollout_b")
+    assert [p.name for p in tmp_path.iterdir()] == ["rollout_a.gif"]
 
 
 def test_eval_refuses_an_output_folder_it_cannot_write_before_any_rollout(run, debug_store, tmp_path, monkeypatch):

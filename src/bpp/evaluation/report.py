@@ -3,6 +3,7 @@ prompt-attention heatmaps, Markdown tables and bar charts."""
 
 from __future__ import annotations
 
+import errno
 import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -59,11 +60,14 @@ def write_attention(attention: np.ndarray, n_action_steps: int, path: Path, titl
 
 
 def write_video(frames: Sequence[np.ndarray], stem: Path) -> Path:
-    """``<stem>.mp4`` through imageio-ffmpeg; ``<stem>.gif`` if that fails (e.g. an ffmpeg without libx264). The
-    suffix is added to `stem`, never put in place of a part of it ('rollout_star.v1' stays whole)."""
+    """``<stem>.mp4`` through imageio-ffmpeg; ``<stem>.gif``, with a warning, if the encoder fails (e.g. an ffmpeg
+    without libx264). A full disk is an error, not a reason for a GIF. The suffix is added to `stem`, never put in
+    place of a part of it ('rollout_star.v1' stays whole)."""
     try:
         return save_animation(frames, stem.with_name(f"{stem.name}.mp4"))
     except Exception as err:  # noqa: BLE001 - any encoder failure: fall back to the always-available GIF writer
+        if isinstance(err, OSError) and err.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise
         warnings.warn(f"{stem.name}.mp4 failed ({type(err).__name__}: {err}); writing a GIF", stacklevel=2)
         return save_animation(frames, stem.with_name(f"{stem.name}.gif"))
 
