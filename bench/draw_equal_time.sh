@@ -56,7 +56,7 @@ for method in $METHODS; do
   lanes+=($!)
 done
 for pid in "${lanes[@]}"; do wait "$pid"; done  # any failing stops here (its log is in $OUT/logs)
-echo "trained: $(for method in $METHODS; do printf '%s ' "$RUNS/$method-s$SEED"; done)"
+echo "trained: $METHODS, seed $SEED, in $RUNS"
 
 lane() {  # lane METHOD END: validation, the chosen step, then the unseen and training drawings
   local method=$1 end=$2 run="$RUNS/$1-s$SEED" val="$OUT/val-$1-s$SEED" chosen step
