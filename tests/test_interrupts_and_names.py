@@ -112,6 +112,20 @@ def test_a_video_the_mp4_encoder_fails_on_is_a_gif_with_a_warning_and_a_full_dis
     assert [p.name for p in tmp_path.iterdir()] == ["rollout_a.gif"]
 
 
+def test_ffmpeg_is_started_by_vfork_so_a_large_process_can_write_a_video(tmp_path, monkeypatch):
+    monkeypatch.delenv("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", raising=False)
+    started, popen = [], subprocess.Popen
+
+    def spy(cmd, *args, **kwargs):  # a preexec function makes Python fork, copying the caller's page tables
+        started.append((Path(cmd[0]).name, kwargs.get("preexec_fn")))
+        return popen(cmd, *args, **kwargs)
+
+    monkeypatch.setattr(subprocess, "Popen", spy)
+    path = report.write_video([np.zeros((16, 16, 3), np.uint8)] * 3, tmp_path / "rollout_a")
+    assert path.name == "rollout_a.mp4"
+    assert len(started) >= 2 and all("ffmpeg" in name and pre is None for name, pre in started)  # writer, checker
+
+
 def test_eval_refuses_an_output_folder_it_cannot_write_before_any_rollout(run, debug_store, tmp_path, monkeypatch):
     import bpp.evaluation.evaluate as evaluate
 

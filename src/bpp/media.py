@@ -26,6 +26,19 @@ def headless_opengl() -> None:
         import triton._C.libtriton  # noqa: F401
 
 
+def ffmpeg():
+    """imageio-ffmpeg, set to start ffmpeg by vfork rather than fork. It forks to give ffmpeg a process group of its
+    own (out of reach of Ctrl-C), and a fork copies the page tables of the whole process: gigabytes for an evaluation
+    that holds torch and a simulator, which fails with ENOMEM where memory is tight. Started by vfork, ffmpeg gets
+    Ctrl-C with the rest of the job, and the file it was writing is dropped (:func:`bpp.utils.atomic_path`).
+    ``IMAGEIO_FFMPEG_NO_PREVENT_SIGINT=0`` in the environment restores the fork."""
+    os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
+    # imageio-ffmpeg: for video files only
+    import imageio_ffmpeg
+
+    return imageio_ffmpeg
+
+
 def resize_frames(frames: np.ndarray, size: int) -> np.ndarray:
     """(T, H, W, 3) uint8 frames as (T, size, size, 3), bilinearly resized (returned as they are if already so)."""
     frames = np.asarray(frames, dtype=np.uint8)
@@ -44,6 +57,7 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         if path.suffix.lower() == ".mp4":
+            ffmpeg()  # before imageio's writer starts it
             import imageio.v2 as iio2  # the ffmpeg writer (imageio-ffmpeg ships its own ffmpeg binary)
 
             with iio2.get_writer(
@@ -62,11 +76,8 @@ def save_animation(frames: Sequence[np.ndarray], path: str | Path, fps: int = 10
 def _check_video(path: Path, frames: int) -> None:
     """Refuse the video ffmpeg wrote to `path` unless it holds all `frames`: imageio-ffmpeg ignores how ffmpeg ended,
     so a video cut short (a full disk) would otherwise pass as written."""
-    # imageio-ffmpeg: for video files only
-    import imageio_ffmpeg
-
     try:
-        count, _ = imageio_ffmpeg.count_frames_and_secs(str(path))
+        count, _ = ffmpeg().count_frames_and_secs(str(path))
     except (RuntimeError, OSError):  # ffmpeg cannot read it (cut short before its index)
         count = None
     if count != frames:

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from bpp.benchmarks.iphumi.recording import RecordingError
+from bpp.media import ffmpeg
 
 FULL_DISK = 16 << 20
 """Free bytes under which a video FFmpeg stopped writing is reported as written to a full disk."""
@@ -29,8 +30,7 @@ def read_frames(path: Path, indices: Sequence[int], logged: int, fit: int | None
     """Frames `indices` (any order, repeats allowed) of the video `path` whose time list has `logged` entries ->
     ((len(indices), H, W, 3) uint8 RGB, how many indices were past the decoded frames). With `fit`, frames are
     scaled while decoding to fit inside a fit x fit square, keeping their aspect ratio."""
-    # imageio-ffmpeg: for video files only
-    import imageio_ffmpeg
+    imageio_ffmpeg = ffmpeg()
 
     indices = np.asarray(indices, dtype=np.int64)
     if len(indices) and (indices.min() < 0 or indices.max() >= logged):
@@ -76,8 +76,7 @@ def read_frames(path: Path, indices: Sequence[int], logged: int, fit: int | None
 
 def write_video(path: Path, frames, fps: float, size: tuple[int, int]) -> None:
     """Write (H, W, 3) uint8 frames as H.264 in a QuickTime container, as the phone app does. `size` = (W, H)."""
-    # imageio-ffmpeg: for video files only
-    import imageio_ffmpeg
+    imageio_ffmpeg = ffmpeg()
 
     writer = imageio_ffmpeg.write_frames(
         str(path),

@@ -10,6 +10,7 @@ from PIL import Image
 from bpp.benchmarks.draw.env import DrawEnv
 from bpp.benchmarks.draw.studio.state import Rollout
 from bpp.benchmarks.draw.viz import TARGET_RGB, target_coverage
+from bpp.media import ffmpeg
 
 
 class Cancelled(Exception):
@@ -45,6 +46,7 @@ def render_animation(
                 yield np.rint(env.render() * (1.0 - cover) + tint).astype(np.uint8)
 
     if fmt == "mp4":
+        ffmpeg()  # before imageio's writer starts it
         # imageio: for video and GIF files only
         import imageio.v2 as iio2
 
