@@ -11,8 +11,9 @@
 #   BPP_STEPS=16 ICRT_STEPS=18 VAL_TASKS=2 HUMAN=2 ROLLOUTS=1 RUNS=/tmp/r OUT=/tmp/o \
 #     bash bench/draw_equal_time.sh 0                     # a check that it all runs (3 minutes)
 #
-# Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS for goal_image) and
-# the decoder sampling from zero noise as BPP's does. Two seeds of one method side by side, one lane each:
+# Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS for goal_image); only
+# BPP samples from zero noise, the others as trained (each method's choice on the validation split, BENCHMARKS.md).
+# Two seeds of one method side by side, one lane each:
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 0 &
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
 # OBS picks the observation (`board` unless set); a `board-image` step costs more (BENCHMARKS.md), so fewer fill the
@@ -41,10 +42,11 @@ steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_
   echo "${!name:?set $name}"
 }
 
-train() {  # train METHOD: one lane's training; ICRT takes 16 whole demonstrations a step and samples as trained
+train() {  # train METHOD: one lane's training; BPP samples from zero noise, ICRT takes 16 whole demonstrations a step
   local method=$1 total
   total=$(steps "$method")
-  local flags=(--save-every $((total / 8)) --model.diffusion.noise-scale 0)
+  local flags=(--save-every $((total / 8)))
+  [ "$method" = bpp ] && flags+=(--model.diffusion.noise-scale 0)
   [ "$method" = icrt ] && flags=(--save-every $((total / 9)) --batch-size 16)
   $BPP train --method "$method" "${common[@]}" --out "$RUNS/$method-s$SEED" --steps "$total" "${flags[@]}" \
     > "$OUT/logs/train-$method-s$SEED.log" 2>&1
