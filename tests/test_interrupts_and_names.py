@@ -408,7 +408,8 @@ def test_a_command_interrupted_while_it_loads_ends_in_one_line(signum):
     """The command line takes seconds to import torch and the benchmarks: a signal then ends it as it would later."""
     from importlib.metadata import entry_points
 
-    assert entry_points(group="console_scripts", name="bpp")[0].value == "bpp.launch:main"  # the `bpp` program too
+    (program,) = entry_points(group="console_scripts", name="bpp")
+    assert program.value == "bpp.launch:main"  # the `bpp` program too
     proc = subprocess.Popen(
         [sys.executable, "-m", "bpp", "train", "--help"],
         stdout=subprocess.DEVNULL,
