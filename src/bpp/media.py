@@ -28,9 +28,9 @@ def headless_opengl() -> None:
 
 def ffmpeg():
     """imageio-ffmpeg, set to start ffmpeg by vfork rather than fork. It forks to give ffmpeg a process group of its
-    own (out of reach of Ctrl-C), and a fork copies the page tables of the whole process: gigabytes for an evaluation
-    that holds torch and a simulator, which fails with ENOMEM where memory is tight. Started by vfork, ffmpeg gets
-    Ctrl-C with the rest of the job, and the file it was writing is dropped (:func:`bpp.utils.atomic_path`).
+    own (out of reach of Ctrl-C), and a fork duplicates the caller's address space (gigabytes for an evaluation that
+    holds torch and a simulator), which fails with ENOMEM where memory is tight. Started by vfork, ffmpeg gets Ctrl-C
+    with the rest of the job, and the file it was writing is dropped (:func:`bpp.utils.atomic_path`).
     ``IMAGEIO_FFMPEG_NO_PREVENT_SIGINT=0`` in the environment restores the fork."""
     os.environ.setdefault("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", "1")
     # imageio-ffmpeg: for video files only
