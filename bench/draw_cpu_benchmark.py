@@ -183,6 +183,8 @@ def main() -> None:
                 entry[f"{name}_per_task"] = {str(t["task"]): t["score_mean"] for t in data["tasks"]}  # as JSON keeps it
             results[f"{method}/s{seed}"] = entry
             write_json_atomic(args.out / run.name / ENTRY, entry)
+    if args.train_only:
+        return  # nothing evaluated: a later --report-only call tabulates
     write_json_atomic(args.out / "results.json", results)
 
     chart: dict[str, dict[str, tuple[float, float]]] = {"unseen human drawings": {}, "training drawings": {}}
