@@ -116,7 +116,7 @@ def test_ffmpeg_is_started_by_vfork_so_a_large_process_can_write_a_video(tmp_pat
     monkeypatch.delenv("IMAGEIO_FFMPEG_NO_PREVENT_SIGINT", raising=False)
     started, popen = [], subprocess.Popen
 
-    def spy(cmd, *args, **kwargs):  # a preexec function makes Python fork, copying the caller's page tables
+    def spy(cmd, *args, **kwargs):  # a preexec function makes Python fork, duplicating the caller's address space
         started.append((Path(cmd[0]).name, kwargs.get("preexec_fn")))
         return popen(cmd, *args, **kwargs)
 
