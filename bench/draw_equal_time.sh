@@ -13,12 +13,13 @@
 #
 # Other methods take the same lanes: METHODS names them, each with its steps (GOAL_IMAGE_STEPS for goal_image); only
 # BPP samples from zero noise, the others as trained (each method's choice on the validation split, BENCHMARKS.md).
+# BPP_NOISE sets BPP's (1: as trained, the validation split's choice on `board-image`).
 # Two seeds of one method side by side, one lane each:
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 0 &
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
 # OBS picks the observation (`board` unless set); a `board-image` step costs more (BENCHMARKS.md), so fewer fill the
 # same time:
-#   OBS=board-image BPP_STEPS=20000 ICRT_STEPS=9000 RUNS=runs/long-image OUT=outputs/long-image \
+#   OBS=board-image BPP_STEPS=20000 ICRT_STEPS=9000 BPP_NOISE=1 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0
 #
 # Compare two seeds or more afterwards, drawing by drawing:
@@ -29,7 +30,7 @@ SEED=${1:?usage: bash bench/draw_equal_time.sh SEED}
 BPP_STEPS=${BPP_STEPS:-32000} ICRT_STEPS=${ICRT_STEPS:-18000}
 VAL_TASKS=${VAL_TASKS:-50} HUMAN=${HUMAN:-50} ROLLOUTS=${ROLLOUTS:-8}
 DATA=${DATA:-data/draw/train-500.zarr} RUNS=${RUNS:-runs/long} OUT=${OUT:-outputs/long} BPP=${BPP:-bpp}
-PYTHON=${PYTHON:-python}
+PYTHON=${PYTHON:-python} BPP_NOISE=${BPP_NOISE:-0}
 export OMP_NUM_THREADS=1
 [ -d "$DATA" ] || $BPP draw generate --preset cpu --out "$DATA" --workers 2
 mkdir -p "$OUT/logs"
@@ -42,11 +43,11 @@ steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_
   echo "${!name:?set $name}"
 }
 
-train() {  # train METHOD: one lane's training; BPP samples from zero noise, ICRT takes 16 whole demonstrations a step
+train() {  # train METHOD: one lane's training; BPP samples from BPP_NOISE, ICRT takes 16 whole demonstrations a step
   local method=$1 total
   total=$(steps "$method")
   local flags=(--save-every $((total / 8)))
-  [ "$method" = bpp ] && flags+=(--model.diffusion.noise-scale 0)
+  [ "$method" = bpp ] && flags+=(--model.diffusion.noise-scale "$BPP_NOISE")
   [ "$method" = icrt ] && flags=(--save-every $((total / 9)) --batch-size 16)
   $BPP train --method "$method" "${common[@]}" --out "$RUNS/$method-s$SEED" --steps "$total" "${flags[@]}" \
     > "$OUT/logs/train-$method-s$SEED.log" 2>&1
