@@ -19,7 +19,7 @@
 #   METHODS=goal_image GOAL_IMAGE_STEPS=28000 bash bench/draw_equal_time.sh 1
 # OBS picks the observation (`board` unless set); a `board-image` step costs more (BENCHMARKS.md), so fewer fill the
 # same time:
-#   OBS=board-image BPP_STEPS=20000 ICRT_STEPS=9000 BPP_NOISE=1 RUNS=runs/long-image OUT=outputs/long-image \
+#   OBS=board-image BPP_STEPS=17600 ICRT_STEPS=10350 BPP_NOISE=1 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0
 #
 # Compare two seeds or more afterwards, drawing by drawing:
