@@ -1,5 +1,5 @@
 """The evaluation protocol and its prompt controls (another task's prompt, the prompt's chunks shuffled, its first
-half)."""
+half, no prompt)."""
 
 import json
 
@@ -13,6 +13,7 @@ import bpp.evaluation.evaluate as evaluation
 from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.core.contract import TaskSet
 from bpp.data.contexts import CONTROL_CHUNK, prompt_steps, task_context
+from bpp.errors import UserError
 from bpp.evaluation.evaluate import Protocol, evaluate
 from bpp.policies.agent import PolicyAgent
 from bpp.policies.bpp.model import BPPModel
@@ -74,6 +75,7 @@ def test_the_edit_controls_keep_whole_chunks_or_the_first_half():
     orders = {tuple(prompt_steps(200, "shuffled", seed)[::CONTROL_CHUNK]) for seed in range(6)}
     assert len(orders) == 6 and tuple(range(0, 200, CONTROL_CHUNK)) not in orders
     np.testing.assert_array_equal(prompt_steps(200, "shuffled", 3), prompt_steps(200, "shuffled", 3))
+    assert prompt_steps(37, "none", 5).shape == (0,)
     with pytest.raises(ValueError, match="unknown prompt edit"):
         prompt_steps(10, "reversed", 0)
 
@@ -99,6 +101,51 @@ def test_an_edited_prompt_is_made_of_the_demonstration_steps_it_names(debug_stor
         assert not np.array_equal(first_half["image"], whole["image"])
     else:
         assert edited == whole  # an instruction is not a demonstration: nothing to edit
+
+
+@pytest.mark.parametrize("method", ["bpp", "icrt"])
+def test_with_no_prompt_a_policy_acts_the_same_whatever_demonstration_it_was_given(debug_store, method):
+    torch.manual_seed(0)
+    model = get_method(method).model_cls(config(method), debug_store.stats).eval()
+    agent = PolicyAgent(model)
+    targets, angles, seeds = [0, 0, 4], [0.2, 0.2, -0.3], [1, 1, 2]
+
+    def scores(prompts, edit=None):
+        plan = [
+            {"target_episode": t, "prompt_episode": p, "board_angle": a, "seed": s, "prompt_edit": edit}
+            for t, p, a, s in zip(targets, prompts, angles, seeds, strict=True)
+        ]
+        results, _ = prompting.run_prompted(agent, BENCHMARK, debug_store, plan, 15, [False] * len(plan))
+        return [r.score for r in results]
+
+    none = scores([9, 30, 4], "none")
+    assert none[0] == none[1]  # two demonstrations, neither attended to: one rollout
+    own, other = scores([9, 30, 4]), scores([9, 30, 4], "first-half")
+    assert own[0] != own[1] and own[:2] != none[:2] and other[:2] != none[:2]
+    spec = model.data_spec()
+    blank = task_context(debug_store, 9, spec, BENCHMARK.frames, steps=prompt_steps(50, "none", 0))
+    assert blank["valid"].tolist() == [False] and len(blank["action"]) == 1
+    assert model.validate_context(blank)["valid"].tolist() == [[False]]
+    with pytest.raises(ValueError, match="may only mark all of its 1 steps False"):
+        model.validate_context({**blank, "valid": np.ones(1, dtype=bool)})
+
+
+def test_no_prompt_gives_an_instruction_policy_no_instruction_and_a_goal_image_policy_an_error(debug_store):
+    language = get_method("language").model_cls(config("language"), debug_store.stats).data_spec()
+    assert task_context(debug_store, 3, language, BENCHMARK.frames, steps=prompt_steps(9, "none", 0)) == {"text": ""}
+    goal = get_method("goal_image").model_cls(config("goal_image"), debug_store.stats).data_spec()
+    with pytest.raises(ValueError, match="cannot run without its goal"):
+        task_context(debug_store, 3, goal, BENCHMARK.frames, steps=prompt_steps(9, "none", 0))
+
+
+def test_evaluate_refuses_no_prompt_for_a_goal_image_policy_before_any_rollout(debug_store, tmp_path):
+    run = tmp_path / "run"
+    cfg = TrainConfig(data=debug_store.path, out=run, method="goal_image", steps=1, batch_size=4, workers=0)
+    train(cfg, config("goal_image"), progress=False)
+    protocol = Protocol(rollouts=1, max_steps=5, prompts="none")
+    with pytest.raises(UserError, match="--prompts none does not apply"):
+        evaluate(run, TaskSet(debug_store, "debug"), [0], tmp_path / "eval", protocol, videos=0, progress=False)
+    assert not (tmp_path / "eval").exists()
 
 
 @pytest.mark.parametrize("control", ["shuffled", "first-half"])

@@ -233,7 +233,7 @@ class Eval:
       bpp eval runs/bpp-cpu --files mine.json logo.svg        (your own tasks, in the benchmark's file format)
       bpp eval runs/seed0 runs/seed1 runs/seed2               (mean ± std over checkpoints)
       bpp eval runs/bpp-cpu --prompts other-task              (control: prompted with another task's demo;
-                                                               also shuffled, first-half)
+                                                               also shuffled, first-half, none)
     """
 
     checkpoints: tyro.conf.Positional[tuple[Path, ...]]
@@ -254,7 +254,8 @@ class Eval:
     prompts: PromptChoice = "own"
     """own: the paper's protocol. Controls, each scored against the rollout's own task (a policy that follows its
     prompt must score worse): other-task, prompted with another task's demonstration; shuffled, with its own
-    demonstration's 10-step chunks in a random order; first-half, with the first half of its own demonstration."""
+    demonstration's 10-step chunks in a random order; first-half, with the first half of its own demonstration;
+    none, with no prompt (not for a goal-image method, which needs its goal)."""
     n_action_steps: int = 0
     """Actions executed per inference (0: the checkpoint's Ta; fewer replans more often)."""
     inference_steps: int = 0

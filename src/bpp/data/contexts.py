@@ -3,7 +3,8 @@ and for evaluation (:func:`task_context`), and batched (:func:`batch_context`, :
 
 A raw context is what :meth:`PolicyAgent.reset` takes and what ``model.validate_context`` checks:
 
-* ``demo``: ``{"obs": {key: (L, ...)}, "action": (L, A)}``, the whole demonstration (the behavior prompt);
+* ``demo``: ``{"obs": {key: (L, ...)}, "action": (L, A)}``, the whole demonstration (the behavior prompt); with
+  ``"valid": (L,)`` all False, no prompt at all (the policy attends to none of its steps; a control);
 * ``goal_image``: ``{"image": (H, W, 3) uint8}``, its final observation from one camera;
 * ``instruction``: ``{"text": str}``, the task's instruction.
 """
@@ -25,7 +26,7 @@ episode's observations from camera `key`; with ``last_only``, just the final obs
 :class:`bpp.core.contract.Benchmark`)."""
 
 
-PROMPT_EDITS = ("shuffled", "first-half")
+PROMPT_EDITS = ("shuffled", "first-half", "none")
 """Evaluation's prompt controls that edit a rollout's own demonstration (see :func:`prompt_steps`)."""
 CONTROL_CHUNK = 10
 """Steps per chunk that the shuffled control keeps together: the paper's prompt chunk (one second at 10 Hz)."""
@@ -34,9 +35,11 @@ CONTROL_CHUNK = 10
 def prompt_steps(length: int, edit: str | None, seed: int) -> np.ndarray | None:
     """The steps of a `length`-step demonstration that an `edit` control prompts with, in order (None: all of them,
     unedited). shuffled: its whole chunks of :data:`CONTROL_CHUNK` steps in an order drawn from `seed`, a shorter
-    last chunk last; first-half: steps 0 .. ceil(length / 2) - 1."""
+    last chunk last; first-half: steps 0 .. ceil(length / 2) - 1; none: no step (no prompt)."""
     if edit is None:
         return None
+    if edit == "none":
+        return np.zeros(0, dtype=np.int64)
     if edit == "first-half":
         return np.arange(-(-length // 2))
     if edit == "shuffled":
@@ -64,11 +67,14 @@ def task_context(
     says so (``"obs_stride": k``; training's batches, for a method whose ``spec.context_obs_stride`` is k).
     `steps` (episode-relative indices, in the order wanted) edits the demonstration first, as evaluation's prompt
     controls do (:func:`prompt_steps`): a demonstration context is made of those steps, a goal image is the frame
-    of the latest of them; an instruction is unaffected.
+    of the latest of them; an instruction is unaffected. No steps at all is no prompt: a demonstration all of whose
+    steps are marked invalid, an empty instruction; a goal-image method cannot go without its goal.
     """
     kind = spec.context
     if kind == "instruction":
         task = int(store.column("task_index")[episode])
+        if steps is not None and not len(steps):
+            return {"text": ""}
         return {"text": str(store.tasks[task].get("instruction") or "")}
     needs = spec.image_keys if kind == "demo" else (spec.context_image_key,)
     if needs and frames is None:
@@ -94,10 +100,16 @@ def task_context(
 
 
 def _edited_context(store: EpisodeStore, episode: int, spec: DataSpec, frames, steps: np.ndarray) -> dict:
-    """:func:`task_context` of demonstration `episode` made of its steps `steps` (a goal image: the latest one's)."""
+    """:func:`task_context` of demonstration `episode` made of its steps `steps` (a goal image: the latest one's;
+    no steps: no prompt, its first step marked invalid)."""
     sl = store.episode_slice(episode)
-    if not len(steps) or steps.min() < 0 or steps.max() >= sl.stop - sl.start:
-        raise ValueError(f"prompt steps must be a non-empty selection of the episode's {sl.stop - sl.start} steps")
+    if not len(steps):
+        if spec.context == "goal_image":
+            raise UserError("a goal-image policy cannot run without its goal: the no-prompt control does not apply")
+        context = _edited_context(store, episode, spec, frames, np.zeros(1, dtype=np.int64))
+        return {**context, "valid": np.zeros(1, dtype=bool)}
+    if steps.min() < 0 or steps.max() >= sl.stop - sl.start:
+        raise ValueError(f"prompt steps must be a selection of the episode's {sl.stop - sl.start} steps")
     if spec.context == "goal_image":
         latest = [int(steps.max())]  # a goal has no order: shuffled chunks keep the demonstration's goal
         return {"image": frames(store, episode, spec.context_image_key, spec.context_image_size, steps=latest)[0]}
@@ -108,7 +120,8 @@ def _edited_context(store: EpisodeStore, episode: int, spec: DataSpec, frames, s
 
 
 def batch_context(kind: str, context: Mapping) -> dict:
-    """A raw context -> the same with batch dimension 1 (a demonstration gains ``valid`` (1, L), all True)."""
+    """A raw context -> the same with batch dimension 1 (a demonstration gains ``valid`` (1, L): its own, if it
+    has one, else all True)."""
     if kind == "instruction":
         return {"text": [context["text"]]}
     if kind == "goal_image":
@@ -117,7 +130,7 @@ def batch_context(kind: str, context: Mapping) -> dict:
     batched = {
         "obs": {k: np.asarray(v)[None] for k, v in context["obs"].items()},
         "action": actions[None],
-        "valid": np.ones((1, len(actions)), dtype=bool),
+        "valid": np.asarray(context.get("valid", np.ones(len(actions), dtype=bool)), dtype=bool)[None],
     }
     if context.get("obs_stride", 1) > 1:
         batched["obs_stride"] = np.array([context["obs_stride"]])

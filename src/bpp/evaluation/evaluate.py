@@ -39,6 +39,7 @@ from bpp.evaluation import report
 from bpp.evaluation.protocol import Protocol, TaskResult, results_json, rollout_rows, summarize
 from bpp.executor import Executor, as_executor, local_path
 from bpp.policies.agent import PolicyAgent
+from bpp.policies.registry import get_method
 from bpp.utils import (
     atomic_path,
     file_stem,
@@ -333,6 +334,8 @@ def evaluate(
     benchmark = get_benchmark(ckpt.benchmark)
     store = task_set.store
     protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
+    if protocol.prompts == "none" and get_method(ckpt.method).model_cls.context_kind == "goal_image":
+        raise UserError(f"{ckpt.path}: a goal-image policy cannot run without its goal; --prompts none does not apply")
     out = Path(out)
     fingerprint = {"checkpoint_sha256": ckpt.weights_sha256, "tasks_sha256": store.fingerprint(), "bpp": __version__}
     previous = load_results(out)

@@ -16,7 +16,7 @@ from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.utils import check_fields
 
-PromptChoice = Literal["own", "other-task", "shuffled", "first-half"]
+PromptChoice = Literal["own", "other-task", "shuffled", "first-half", "none"]
 PROMPT_CHOICES: tuple[str, ...] = get_args(PromptChoice)
 
 
@@ -34,9 +34,10 @@ class Protocol:
     other-task: rollout r of task t (of n) is prompted with demonstration r mod (its demos) of task
     (t + 1 + r mod (n - 1)) mod n, never t itself; shuffled: with its own demonstration whose whole chunks of
     :data:`~bpp.data.contexts.CONTROL_CHUNK` steps are put in a random order (a shorter last chunk stays last);
-    first-half: with the first half of its own demonstration's steps. A method whose context is not a
-    demonstration (an instruction) gets its usual context under shuffled and first-half; a goal image is the frame
-    of the edited demonstration's latest step (under shuffled, its usual goal)."""
+    first-half: with the first half of its own demonstration's steps; none: with no prompt (a demonstration whose
+    steps the policy attends to none of). A method whose context is not a demonstration (an instruction) gets its
+    usual context under shuffled and first-half, an empty one under none; a goal image is the frame of the edited
+    demonstration's latest step (under shuffled, its usual goal), and a goal-image method has no run without one."""
     n_action_steps: int = 0
     """Actions executed per inference (0: the checkpoint's Ta)."""
     inference_steps: int = 0

@@ -54,6 +54,9 @@ def validate_demo_context(
     low-dimensional keys at their statistics' width, finite), actions (L, A) finite, and L between one chunk
     (`chunk_len`) and `max_steps` (`limit_note` may say why that limit). Returns the prompt with batch dimension 1
     and ``valid`` (1, L) all True; raises :class:`PromptError` naming the input and what was expected.
+
+    A prompt may instead carry ``"valid": (L,)`` all False: no prompt (its steps, at least one, are padding that
+    the model attends to none of; the no-prompt control of :func:`bpp.data.contexts.prompt_steps`).
     """
     if not isinstance(prompt, Mapping) or "obs" not in prompt or "action" not in prompt:
         raise PromptError("a prompt must be a dict with 'obs' (a dict of per-step arrays) and 'action'")
@@ -71,7 +74,8 @@ def validate_demo_context(
         error=PromptError,
     )
     steps = len(actions)
-    if steps < chunk_len:
+    blank = _blank_prompt(prompt, steps)
+    if steps < (1 if blank else chunk_len):
         raise PromptError(f"prompt has {steps} steps; at least one chunk of {chunk_len} steps is needed")
     if steps > max_steps:
         raise PromptError(f"prompt has {steps} steps; this model accepts at most {max_steps}{limit_note}")
@@ -92,4 +96,17 @@ def validate_demo_context(
         if len(value) != steps:
             raise PromptError(f"prompt obs {key!r} has {len(value)} steps, actions have {steps}")
         obs[key] = value[None]
-    return {"obs": obs, "action": actions[None], "valid": np.ones((1, steps), dtype=bool)}
+    return {"obs": obs, "action": actions[None], "valid": np.full((1, steps), not blank)}
+
+
+def _blank_prompt(prompt: Mapping, steps: int) -> bool:
+    """Whether `prompt` is marked as no prompt (``"valid"`` all False); raises for any other ``"valid"``."""
+    if "valid" not in prompt:
+        return False
+    valid = np.asarray(prompt["valid"])
+    if valid.dtype != bool or valid.shape != (steps,) or valid.any():
+        raise PromptError(
+            f"a prompt's 'valid' may only mark all of its {steps} steps False (no prompt), got "
+            f"{valid.dtype} {valid.shape} with {int(np.count_nonzero(valid))} True"
+        )
+    return True
