@@ -96,6 +96,7 @@ NOT_MEASURED: dict[tuple[str, str], str] = {
     ("docs/installation.md", "2.1 GB"): "the download size of the libero extra: a property of a third-party package",
     ("docs/drawanything.md", "15 px"): "the cursor's radius: the geometry of the authors' DrawAnything-Sim",
     ("docs/drawanything.md", "724.1 px"): "the 512-px canvas's diagonal, the score of empty ink by definition",
+    ("docs/drawanything.md", "10-30 px"): "the scripted demonstrator's speed range per step: a setting",
     ("src/bpp/benchmarks/lerobot/commands.py", "32 px"): "the smallest frame the AV1 encoder takes: a limit",
     ("src/bpp/benchmarks/draw/studio/state.py", "0.1 px"): "the resolution polylines are rounded to: a setting",
     ("docs/libero-gen/combination.md", "15 of 20"): "how many of the appendix's 20 counts another reading of the "
