@@ -21,6 +21,9 @@
 # same time:
 #   OBS=board-image BPP_STEPS=17600 ICRT_STEPS=10350 BPP_NOISE=1 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0
+# and Goal-Image's two seeds side by side (its `board-image` step reads no prompt's frames: more steps fill the time):
+#   OBS=board-image METHODS=goal_image GOAL_IMAGE_STEPS=26400 RUNS=runs/long-image OUT=outputs/long-image \
+#     bash bench/draw_equal_time.sh 0 &
 #
 # Compare two seeds or more afterwards, drawing by drawing:
 #   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
