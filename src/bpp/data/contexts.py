@@ -50,6 +50,13 @@ def prompt_steps(length: int, edit: str | None, seed: int) -> np.ndarray | None:
     raise ValueError(f"unknown prompt edit {edit!r}; known: {', '.join(PROMPT_EDITS)}")
 
 
+def check_edit_applies(kind: str, edit: str | None) -> None:
+    """Raise if prompt control `edit` cannot apply to a method whose context is of `kind`: a goal-image method
+    cannot go without its goal."""
+    if edit == "none" and kind == "goal_image":
+        raise UserError("a goal-image policy cannot run without its goal: --prompts none does not apply")
+
+
 def task_context(
     store: EpisodeStore,
     episode: int,
@@ -104,8 +111,7 @@ def _edited_context(store: EpisodeStore, episode: int, spec: DataSpec, frames, s
     no steps: no prompt, its first step marked invalid)."""
     sl = store.episode_slice(episode)
     if not len(steps):
-        if spec.context == "goal_image":
-            raise UserError("a goal-image policy cannot run without its goal: the no-prompt control does not apply")
+        check_edit_applies(spec.context, "none")
         context = _edited_context(store, episode, spec, frames, np.zeros(1, dtype=np.int64))
         return {**context, "valid": np.zeros(1, dtype=bool)}
     if steps.min() < 0 or steps.max() >= sl.stop - sl.start:

@@ -33,6 +33,7 @@ from bpp.checkpoint import Checkpoint
 from bpp.core.contract import Benchmark, TaskSet
 from bpp.core.prompting import run_prompted
 from bpp.core.registry import get_benchmark
+from bpp.data.contexts import check_edit_applies
 from bpp.data.store import EpisodeStore
 from bpp.errors import UserError
 from bpp.evaluation import report
@@ -334,8 +335,7 @@ def evaluate(
     benchmark = get_benchmark(ckpt.benchmark)
     store = task_set.store
     protocol = replace(protocol, max_steps=protocol.max_steps or benchmark.max_steps)
-    if protocol.prompts == "none" and get_method(ckpt.method).model_cls.context_kind == "goal_image":
-        raise UserError(f"{ckpt.path}: a goal-image policy cannot run without its goal; --prompts none does not apply")
+    check_edit_applies(get_method(ckpt.method).model_cls.context_kind, protocol.prompts)  # before any rollout
     out = Path(out)
     fingerprint = {"checkpoint_sha256": ckpt.weights_sha256, "tasks_sha256": store.fingerprint(), "bpp": __version__}
     previous = load_results(out)
