@@ -25,6 +25,8 @@
 #   OBS=board-image METHODS=goal_image GOAL_IMAGE_STEPS=26400 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0 &
 #
+# Stopped part way, the same command continues each lane from its last checkpoint.
+#
 # Compare two seeds or more afterwards, drawing by drawing:
 #   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
 #       OUT/human/bpp-s0-32000/results.json,OUT/human/bpp-s1-32000/results.json
@@ -46,14 +48,16 @@ steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_
   echo "${!name:?set $name}"
 }
 
-train() {  # train METHOD: one lane's training; BPP samples from BPP_NOISE, ICRT takes 16 whole demonstrations a step
-  local method=$1 total
+train() {  # train METHOD: one lane's training; BPP samples from BPP_NOISE, ICRT takes 16 whole demonstrations a step.
+  # A lane stopped part way (killed, or its machine shut down) continues from its last checkpoint when the same
+  # command runs again; its log keeps both parts.
+  local method=$1 total run="$RUNS/$1-s$SEED" log="$OUT/logs/train-$1-s$SEED.log"
   total=$(steps "$method")
   local flags=(--save-every $((total / 8)))
   [ "$method" = bpp ] && flags+=(--model.diffusion.noise-scale "$BPP_NOISE")
   [ "$method" = icrt ] && flags=(--save-every $((total / 9)) --batch-size 16)
-  $BPP train --method "$method" "${common[@]}" --out "$RUNS/$method-s$SEED" --steps "$total" "${flags[@]}" \
-    > "$OUT/logs/train-$method-s$SEED.log" 2>&1
+  if [ -f "$run/checkpoints/last" ]; then flags+=(--resume); else : > "$log"; fi
+  $BPP train --method "$method" "${common[@]}" --out "$run" --steps "$total" "${flags[@]}" >> "$log" 2>&1
 }
 
 lanes=()
