@@ -25,7 +25,8 @@
 #   OBS=board-image METHODS=goal_image GOAL_IMAGE_STEPS=26400 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0 &
 #
-# Stopped part way, the same command continues each lane from its last checkpoint.
+# Stopped part way, the same command continues each lane from its last checkpoint and reuses the evaluations
+# already made.
 #
 # Compare two seeds or more afterwards, drawing by drawing:
 #   python bench/paired.py OUT/human/icrt-s0-18000/results.json,OUT/human/icrt-s1-18000/results.json \
@@ -75,11 +76,10 @@ lane() {  # lane METHOD END: validation, the chosen step, then the unseen and tr
   chosen=$($PYTHON -c "import json, sys; curve = next(iter(json.load(open(sys.argv[1])).values()));
 print(min(curve, key=lambda point: point['val'])['step'])" "$val/results.json")
   echo "$method, seed $SEED: validation chose step $chosen of $end"
-  for step in $end $chosen; do
-    [ -f "$OUT/human/$method-s$SEED-$step/results.json" ] ||
-      $BPP eval "$run/checkpoints/step_$(printf %08d "$step")" --tasks human --num-tasks "$HUMAN" \
-        --rollouts "$ROLLOUTS" --workers 1 --videos 0 --out "$OUT/human/$method-s$SEED-$step" \
-        > "$OUT/logs/human-$method-s$SEED-$step.log" 2>&1
+  for step in $(printf '%s\n' "$end" "$chosen" | sort -u); do  # bpp eval reuses results it already made
+    $BPP eval "$run/checkpoints/step_$(printf %08d "$step")" --tasks human --num-tasks "$HUMAN" \
+      --rollouts "$ROLLOUTS" --workers 1 --videos 0 --out "$OUT/human/$method-s$SEED-$step" \
+      > "$OUT/logs/human-$method-s$SEED-$step.log" 2>&1
   done
   $BPP eval "$run/checkpoints/step_$(printf %08d "$end")" --tasks train --num-tasks 20 --rollouts "$ROLLOUTS" \
     --workers 1 --videos 0 --out "$OUT/train/$method-s$SEED-$end" > "$OUT/logs/train-eval-$method-s$SEED.log" 2>&1
