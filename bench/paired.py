@@ -5,7 +5,8 @@
 
 Each side is one ``bpp eval`` results.json, or several separated by commas (e.g. one per seed: each task's score is
 then its mean over them). Prints both means, B minus A with its standard error over the tasks both scored, B / A, and
-on how many tasks B is better (the metric's direction read from the results).
+on how many tasks B is better (the metric's direction read from the results). When both sides list as many files (one
+per seed, in the same order), it also prints each seed's paired difference and their mean ± std over seeds.
 """
 
 from __future__ import annotations
@@ -19,14 +20,24 @@ import numpy as np
 from common import paired
 
 
-def task_scores(paths: list[Path]) -> tuple[dict[str, float], dict]:
-    """Each task's score (its mean over rollouts) averaged over the evaluations `paths` (``bpp eval``'s results.json,
-    e.g. one per seed, all of the same tasks), and their metric."""
+def read_scores(paths: list[Path]) -> tuple[list[dict[str, float]], dict]:
+    """Each evaluation's task scores (a task's mean over rollouts) from ``bpp eval``'s results.json files `paths` (e.g.
+    one per seed, all of the same tasks), and their metric."""
     results = [json.loads(Path(path).read_text()) for path in paths]
     tasks = [{t["task_id"]: t["score_mean"] for t in r["tasks"]} for r in results]
     if any(t.keys() != tasks[0].keys() for t in tasks):
         raise ValueError(f"{', '.join(map(str, paths))}: the evaluations scored different tasks")
-    return {task: float(np.mean([t[task] for t in tasks])) for task in tasks[0]}, results[0]["metric"]
+    return tasks, results[0]["metric"]
+
+
+def averaged(evaluations: list[dict[str, float]]) -> dict[str, float]:
+    """Each task's score averaged over the evaluations (e.g. its seeds)."""
+    return {task: float(np.mean([scores[task] for scores in evaluations])) for task in evaluations[0]}
+
+
+def without(scores: dict[str, float], tasks: list[str]) -> dict[str, float]:
+    """`scores` less the task ids `tasks`."""
+    return {task: score for task, score in scores.items() if task not in tasks}
 
 
 def main() -> None:
@@ -36,11 +47,13 @@ def main() -> None:
     parser.add_argument("--without", nargs="+", default=[], metavar="TASK_ID", help="task ids to leave out")
     args = parser.parse_args()
     try:
-        (a, metric), (b, _) = (task_scores([Path(p) for p in side.split(",")]) for side in (args.a, args.b))
-        for task in args.without:
-            a.pop(task, None)
-            b.pop(task, None)
-        result = paired(a, b, metric["lower_is_better"])
+        (seeds_a, metric), (seeds_b, _) = (read_scores([Path(p) for p in side.split(",")]) for side in (args.a, args.b))
+        lower = metric["lower_is_better"]
+        result = paired(without(averaged(seeds_a), args.without), without(averaged(seeds_b), args.without), lower)
+        by_seed = []
+        if len(seeds_a) == len(seeds_b) > 1:
+            pairs = zip(seeds_a, seeds_b, strict=True)
+            by_seed = [paired(without(a, args.without), without(b, args.without), lower) for a, b in pairs]
     except (OSError, ValueError, KeyError) as error:  # a missing or unreadable file, tasks that do not match
         parser.error(f"{type(error).__name__}: {error}")
     unit = f" {metric['unit']}" if metric.get("unit") else ""
@@ -49,6 +62,12 @@ def main() -> None:
         f"{metric['name']} over {result.tasks} tasks: A {result.mean_a:.2f}, B {result.mean_b:.2f}{unit}; "
         f"B minus A {result}{unit} (± s.e.m.), B / A {ratio}; B better on {result.b_better} of {result.tasks}"
     )
+    if by_seed:
+        diffs = np.array([seed.diff for seed in by_seed])
+        print(
+            f"by seed, B minus A: {', '.join(f'{seed} (B better on {seed.b_better})' for seed in by_seed)}; "
+            f"over seeds {diffs.mean():+.2f} ± {diffs.std(ddof=1):.2f}{unit} (± std)"
+        )
 
 
 if __name__ == "__main__":

@@ -32,6 +32,19 @@ def test_seeds_are_averaged_per_task_before_pairing(tmp_path):
     # B per task: 7, 23, 27; differences -3, +3, -3: mean -1, s.e.m. sqrt((4 + 16 + 4) / 2 / 3) = 2
     assert "over 3 tasks: A 20.00, B 19.00 px; B minus A -1.00 ± 2.00 px" in done.stdout
     assert "B / A 0.950; B better on 2 of 3" in done.stdout
+    assert "by seed" not in done.stdout  # one evaluation against two: no seed to pair with
+
+
+def test_as_many_seeds_a_side_are_also_paired_seed_by_seed(tmp_path):
+    a0 = _results(tmp_path / "a0.json", {"x": 10.0, "y": 20.0})
+    a1 = _results(tmp_path / "a1.json", {"x": 12.0, "y": 20.0})
+    b0 = _results(tmp_path / "b0.json", {"x": 9.0, "y": 19.0})
+    b1 = _results(tmp_path / "b1.json", {"x": 15.0, "y": 23.0})
+    done = _run(f"{a0},{a1}", f"{b0},{b1}", "--without", "y")
+    assert done.returncode == 0, done.stderr
+    # seed 0: x 10 -> 9, -1; seed 1: x 12 -> 15, +3; over seeds +1 ± std(-1, 3) = 2.83
+    assert "by seed, B minus A: -1.00 ± 0.00 (B better on 1), +3.00 ± 0.00 (B better on 0)" in done.stdout
+    assert "over seeds +1.00 ± 2.83 px (± std)" in done.stdout
 
 
 def test_without_leaves_tasks_out(tmp_path):
