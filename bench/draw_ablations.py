@@ -38,7 +38,7 @@ from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
 from bpp.checkpoint import Checkpoint
-from bpp.data.store import EpisodeStore, stored_with
+from bpp.data.store import EpisodeStore, stored_or_made
 from bpp.drawing.procedural import ProceduralConfig
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
@@ -158,12 +158,13 @@ def arms() -> list[Arm]:
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
     """The store at `path` if it holds exactly `cfg`'s data, else generated anew."""
-    store = stored_with(path, cfg)
-    if store is not None:
-        return store
-    if path.exists():
-        print(f"[ablations] {path} holds other data than this arm's; generating it again")
-    return generate(cfg, path, overwrite=True)
+
+    def make(path: Path) -> EpisodeStore:
+        if path.exists():
+            print(f"[ablations] {path} holds other data than this arm's; generating it again")
+        return generate(cfg, path, overwrite=True)
+
+    return stored_or_made(path, make, cfg)
 
 
 def val_config(parts: str) -> DrawDataConfig:

@@ -22,7 +22,6 @@ so a run whose checkpoint was deleted to free the disk still counts.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 from pathlib import Path
 
@@ -32,8 +31,7 @@ from bpp.benchmarks.draw.benchmark import BENCHMARK
 from bpp.benchmarks.draw.dataset import PRESETS as DATA_PRESETS
 from bpp.benchmarks.draw.dataset import DrawDataConfig, generate
 from bpp.checkpoint import Checkpoint
-from bpp.data.integrity import StoreError
-from bpp.data.store import EpisodeStore
+from bpp.data.store import EpisodeStore, stored_or_made
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import bar_chart, markdown_table
 from bpp.policies.registry import get_method
@@ -42,9 +40,8 @@ from common import NAMES, add_budget_arguments, budgets, paired, train_run, trai
 
 
 def store_for(path: Path, cfg: DrawDataConfig) -> EpisodeStore:
-    with contextlib.suppress(StoreError):
-        return EpisodeStore(path)
-    return generate(cfg, path, overwrite=True)
+    """The store at `path` (whatever it holds), else `cfg`'s data generated there."""
+    return stored_or_made(path, lambda path: generate(cfg, path, overwrite=True))
 
 
 def _sd(x: np.ndarray) -> float:

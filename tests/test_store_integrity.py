@@ -7,6 +7,8 @@ import multiprocessing as mp
 import os
 import re
 import shutil
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ from bpp.cli import main
 from bpp.data.destination import destination_lock
 from bpp.data.integrity import CHUNK_KEY, VERSION, StoreError, header_digest
 from bpp.data.merge import merge_stores
-from bpp.data.store import EpisodeStore, EpisodeWriter
+from bpp.data.store import EpisodeStore, EpisodeWriter, stored_or_made
 
 
 def _fill(writer: EpisodeWriter, episodes: int = 3, offset: float = 0.0) -> None:
@@ -58,6 +60,40 @@ def test_a_second_writer_of_the_same_path_is_refused_and_the_first_store_kept(tm
         _write(path, overwrite=True)  # work that prepares a store holds the same lock
     assert sorted(p.name for p in tmp_path.iterdir()) == ["s.zarr"]
     assert EpisodeStore(path).num_episodes == 1
+
+
+def test_stored_or_made_makes_a_missing_store_once_then_reuses_it(tmp_path):
+    path, made = tmp_path / "s.zarr", []
+
+    def make(path):
+        made.append(path)
+        return _write(path, episodes=2, overwrite=True)
+
+    assert stored_or_made(path, make).num_episodes == 2
+    assert stored_or_made(path, make).num_episodes == 2
+    assert made == [path]
+
+
+def test_stored_or_made_waits_for_another_writer_and_takes_its_store(tmp_path, capsys):
+    path, tried = tmp_path / "s.zarr", []
+    other = EpisodeWriter(path, benchmark="test", chunk_steps=4)  # another writer of the same path, still writing
+
+    def finish_the_other():
+        time.sleep(0.3)
+        _fill(other, episodes=2)
+        other.close()
+
+    def make(path):
+        tried.append(path)
+        return _write(path, episodes=1, overwrite=True)
+
+    thread = threading.Thread(target=finish_the_other)
+    thread.start()
+    store = stored_or_made(path, make, poll_s=0.02)
+    thread.join()
+    assert store.num_episodes == 2  # the other writer's store, not one of its own
+    assert len(tried) >= 2  # refused while the other wrote, and asked again
+    assert capsys.readouterr().out.count("is being written by another process; waiting for it") == 1
 
 
 def _hold_a_writer(path, started, finish):

@@ -16,7 +16,7 @@ import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
-from bpp.data.integrity import StoreError, is_store
+from bpp.data.integrity import StoreBusy, StoreError, is_store
 from bpp.utils import process_alive
 
 try:
@@ -73,7 +73,7 @@ class DestinationLock:
                 holder = handle.read().strip()[:100]
                 handle.close()
                 if err.errno in (errno.EAGAIN, errno.EACCES, errno.EWOULDBLOCK):
-                    raise StoreError(
+                    raise StoreBusy(
                         f"{path} is being written by another writer ({holder or 'another process'}); wait for it to "
                         "finish, or choose another path"
                     ) from None
@@ -101,7 +101,7 @@ class DestinationLock:
 
 @contextlib.contextmanager
 def destination_lock(path: str | Path) -> Iterator[None]:
-    """Hold, for the block, the lock a writer of `path` holds (a StoreError at once if another writer holds it): for
+    """Hold, for the block, the lock a writer of `path` holds (a StoreBusy at once if another writer holds it): for
     work that fills `path` over longer than one writer lives, e.g. a journal of finished tasks that a killed
     generation resumes from."""
     path = Path(path)

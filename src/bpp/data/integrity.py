@@ -48,6 +48,10 @@ class StoreError(UserError):
     """A store is missing, incomplete, of another format/version, or used wrongly."""
 
 
+class StoreBusy(StoreError):
+    """Another process is writing the store's destination now."""
+
+
 class StoreKeyError(StoreError, KeyError):
     """A per-step key or episode column the store does not have (a KeyError too, for callers that look one up)."""
 

@@ -36,8 +36,9 @@ import hashlib
 import json
 import os
 import shutil
+import time
 import uuid
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -49,6 +50,7 @@ from bpp.data.integrity import (
     FORMAT,
     VERSION,
     EpisodeIndexError,
+    StoreBusy,
     StoreError,
     StoreKeyError,
     array_settings,
@@ -633,3 +635,29 @@ def stored_with(path: str | Path, cfg: Any) -> EpisodeStore | None:
     generated = "merged_from" not in store.attrs
     same = generated and json.loads(json.dumps(store.config)) == json.loads(json.dumps(to_dict(cfg)))
     return store if same else None
+
+
+def stored_or_made(
+    path: str | Path, make: Callable[[Path], EpisodeStore], cfg: Any = None, poll_s: float = 1.0
+) -> EpisodeStore:
+    """The finished store at `path` (with `cfg`, only one generated from exactly that config: :func:`stored_with`),
+    else the one `make(path)` writes there. While another process writes `path` (two runs that need the same missing
+    data start at once), this waits for it and takes its store instead of failing."""
+    path, waiting = Path(path), False
+    while True:
+        if cfg is not None:
+            store = stored_with(path, cfg)
+        else:
+            try:
+                store = EpisodeStore(path)
+            except (StoreError, ValueError):
+                store = None
+        if store is not None:
+            return store
+        try:
+            return make(path)
+        except StoreBusy:
+            if not waiting:
+                print(f"[store] {path} is being written by another process; waiting for it", flush=True)
+                waiting = True
+            time.sleep(poll_s)

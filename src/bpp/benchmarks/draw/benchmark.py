@@ -3,6 +3,7 @@ task sets, rollouts, Chamfer metric and pictures."""
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -15,9 +16,8 @@ from bpp.benchmarks.draw.physics import CONTROL_HZ
 from bpp.benchmarks.draw.rollouts import run_rollouts
 from bpp.benchmarks.draw.viz import group_strokes, render_strokes
 from bpp.core.contract import Metric, RolloutResult, TaskSet
-from bpp.data.integrity import StoreError
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore
+from bpp.data.store import EpisodeStore, stored_or_made
 from bpp.drawing.geometry import MAX_BOARD_ANGLE
 from bpp.errors import UserError
 
@@ -134,12 +134,8 @@ class DrawAnything:
     def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         if name != "human":
             raise UserError(f"DrawAnything has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
-        path = Path(data_dir) / "human.zarr"
-        try:
-            store = EpisodeStore(path)
-        except StoreError:
-            store = dataset.generate(dataset.PRESETS["human"], path, workers, overwrite=True)
-        return TaskSet(store, "unseen human-made drawings")
+        make = functools.partial(dataset.generate, dataset.PRESETS["human"], workers=workers, overwrite=True)
+        return TaskSet(stored_or_made(Path(data_dir) / "human.zarr", make), "unseen human-made drawings")
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         cfg = dataset.DrawDataConfig(source="files", drawings=tuple(Path(p) for p in files))

@@ -24,7 +24,7 @@ from bpp.benchmarks.draw3d.scene import CONTROL_HZ
 from bpp.core.contract import Metric, RolloutResult, TaskSet
 from bpp.data.frames import stored_frames
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore, stored_with
+from bpp.data.store import EpisodeStore, stored_or_made
 from bpp.drawing.geometry import unit_to_canvas
 from bpp.drawing.marked_canvas import canvas_to_drawing
 from bpp.drawing.metric import ink_mask
@@ -121,9 +121,7 @@ class DrawAnythingReal:
         return self._generated(cfg, Path(data_dir) / f"files-{key}.zarr", "your drawings", workers)
 
     def _generated(self, cfg: Draw3DConfig, path: Path, label: str, workers: int) -> TaskSet:
-        store = stored_with(path, cfg) if path.exists() else None
-        if store is None:
-            store = self.generate(cfg, path, workers=workers, overwrite=path.exists())
+        store = stored_or_made(path, lambda path: self.generate(cfg, path, workers=workers, overwrite=True), cfg)
         return TaskSet(store, label)
 
     def rollout_conditions(self, rng: np.random.Generator) -> dict:

@@ -19,7 +19,7 @@ from bpp.benchmarks.libero.rollouts import run_rollouts, task_problem
 from bpp.benchmarks.libero.sim import CAMERAS, make_env, render_states, reset_scene
 from bpp.core.contract import Metric, RolloutResult, TaskSet
 from bpp.data.spec import ObservationPreset
-from bpp.data.store import EpisodeStore, stored_with
+from bpp.data.store import EpisodeStore, stored_or_made
 from bpp.errors import UserError
 from bpp.media import resize_frames
 
@@ -149,11 +149,12 @@ class LiberoGen:
             raise UserError(f"LIBERO-Gen has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
         cfg = dataset.PRESETS[name]
         path = Path(data_dir) / f"task-set-{name}.zarr"
-        store = stored_with(path, cfg)
-        if store is None:
+
+        def make(path: Path) -> EpisodeStore:
             print(f"[eval] generating the task set {name!r} into {path} (once; minutes)")
-            store = dataset.generate(cfg, path, workers, overwrite=True)
-        return TaskSet(store, self._task_sets[name][0])
+            return dataset.generate(cfg, path, workers, overwrite=True)
+
+        return TaskSet(stored_or_made(path, make, cfg), self._task_sets[name][0])
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
         raise UserError("LIBERO-Gen takes no task files yet; evaluate on a named task set (held-out) or a store")
