@@ -3,7 +3,6 @@ task sets, rollouts, Chamfer metric and pictures."""
 
 from __future__ import annotations
 
-import functools
 import hashlib
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -134,7 +133,10 @@ class DrawAnything:
     def task_set(self, name: str, data_dir: Path, workers: int = 0) -> TaskSet:
         if name != "human":
             raise UserError(f"DrawAnything has no task set {name!r}; named sets: {', '.join(self.task_sets)}")
-        make = functools.partial(dataset.generate, dataset.PRESETS["human"], workers=workers, overwrite=True)
+
+        def make(path: Path) -> EpisodeStore:
+            return dataset.generate(dataset.PRESETS["human"], path, workers, overwrite=True)
+
         return TaskSet(stored_or_made(Path(data_dir) / "human.zarr", make), "unseen human-made drawings")
 
     def task_set_from_files(self, files: Sequence[Path], data_dir: Path, workers: int = 0) -> TaskSet:
