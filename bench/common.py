@@ -275,6 +275,11 @@ def step_flops(model, batch: dict, amp: bool) -> int:
     return counter.get_total_flops()
 
 
+def task_means(results: dict) -> dict[str, float]:
+    """Task id -> its mean score, from ``bpp eval``'s results (what ``evaluate`` returns and results.json holds)."""
+    return {t["task_id"]: t["score_mean"] for t in results["tasks"]}
+
+
 def sem(values) -> float:
     """The standard error of the mean of `values` (0 for fewer than two)."""
     values = np.asarray(values, dtype=float)

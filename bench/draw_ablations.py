@@ -44,7 +44,7 @@ from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
 from bpp.evaluation.report import markdown_table
 from bpp.policies.registry import get_method
 from bpp.utils import write_json_atomic
-from common import paired, sem, train_run
+from common import paired, sem, task_means, train_run
 
 PARTS = {"1-3": ProceduralConfig(min_parts=1, max_parts=3), "4-6": ProceduralConfig(min_parts=4, max_parts=6)}
 
@@ -175,7 +175,7 @@ def per_drawing(path: Path) -> dict[str, float] | None:
     """Task id -> score_mean of an evaluation's results.json (None if it has not run)."""
     if not path.is_file():
         return None
-    return {t["task_id"]: t["score_mean"] for t in json.loads(path.read_text())["tasks"]}
+    return task_means(json.loads(path.read_text()))
 
 
 def run_arm(arm: Arm, seed: int, args) -> None:

@@ -12,13 +12,12 @@ reuses its results.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from bpp.benchmarks.draw.env import DrawEnv
 from bpp.checkpoint import Checkpoint
 from bpp.evaluation.evaluate import Protocol, evaluate, resolve_tasks
-from common import paired
+from common import paired, task_means
 
 VIEW = "board_image"
 
@@ -40,12 +39,6 @@ def freeze_the_view() -> None:
     DrawEnv._observation, DrawEnv.reset = first_view, new_rollout
 
 
-def task_scores(out: Path) -> tuple[dict[str, float], float]:
-    """Task id -> score of an evaluation's results.json, and its median rollout."""
-    results = json.loads((out / "results.json").read_text())
-    return {t["task_id"]: t["score_mean"] for t in results["tasks"]}, results["summary"]["score_median_rollout"]
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("checkpoint", type=Path, help="a checkpoint trained with --obs board-image")
@@ -59,14 +52,14 @@ def main() -> None:
         parser.error(f"{args.checkpoint} was not trained on the board's view ({VIEW}); train it with --obs board-image")
     _, task_set, tasks = resolve_tasks("human", checkpoint, data_dir=args.data_dir, num_tasks=args.num_tasks)
     protocol = Protocol(rollouts=args.rollouts)
-    evaluate(checkpoint, task_set, tasks, args.out / "view", protocol, workers=1, videos=0)
+    view = evaluate(checkpoint, task_set, tasks, args.out / "view", protocol, workers=1, videos=0)
     freeze_the_view()
-    evaluate(checkpoint, task_set, tasks, args.out / "frozen", protocol, workers=1, videos=0, reuse=False)
-    (view, view_median), (frozen, frozen_median) = task_scores(args.out / "view"), task_scores(args.out / "frozen")
-    result = paired(view, frozen)
+    frozen = evaluate(checkpoint, task_set, tasks, args.out / "frozen", protocol, workers=1, videos=0, reuse=False)
+    result = paired(task_means(view), task_means(frozen))
+    medians = [results["summary"]["score_median_rollout"] for results in (view, frozen)]
     print(
-        f"{args.checkpoint}: the view as rendered {result.mean_a:.2f} px (median rollout {view_median:.2f}), frozen "
-        f"{result.mean_b:.2f} ({frozen_median:.2f}); frozen minus rendered {result} px, worse on "
+        f"{args.checkpoint}: the view as rendered {result.mean_a:.2f} px (median rollout {medians[0]:.2f}), frozen "
+        f"{result.mean_b:.2f} ({medians[1]:.2f}); frozen minus rendered {result} px, worse on "
         f"{result.tasks - result.b_better} of {result.tasks}"
     )
 

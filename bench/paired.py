@@ -17,14 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common import paired
+from common import paired, task_means
 
 
 def read_scores(paths: list[Path]) -> tuple[list[dict[str, float]], dict]:
     """Each evaluation's task scores (a task's mean over rollouts) from ``bpp eval``'s results.json files `paths` (e.g.
     one per seed, all of the same tasks), and their metric."""
     results = [json.loads(Path(path).read_text()) for path in paths]
-    tasks = [{t["task_id"]: t["score_mean"] for t in r["tasks"]} for r in results]
+    tasks = [task_means(r) for r in results]
     if any(t.keys() != tasks[0].keys() for t in tasks):
         raise ValueError(f"{', '.join(map(str, paths))}: the evaluations scored different tasks")
     return tasks, results[0]["metric"]
