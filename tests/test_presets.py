@@ -18,7 +18,14 @@ from bpp.policies.registry import METHODS, get_method
 from bpp.utils import from_dict, to_dict, to_torch
 from helpers import DRAW_FRAMES
 
-SETTINGS = [("debug", "canvas"), ("cpu", "canvas"), ("cpu", "canvas-ink"), ("cpu", "board"), ("cpu", "image64")]
+SETTINGS = [
+    ("debug", "canvas"),
+    ("cpu", "canvas"),
+    ("cpu", "canvas-ink"),
+    ("cpu", "board"),
+    ("cpu", "board-view"),
+    ("cpu", "image64"),
+]
 CASES = [(m, size, obs) for m in METHODS for size, obs in SETTINGS]
 SAVED_CONFIGS = Path(__file__).parent / "data" / "method_configs.json"
 """Every method's model config as runs and checkpoints save it (JSON): each size preset with one observation preset."""
@@ -48,6 +55,13 @@ def test_canvas_ink_is_canvas_with_the_ink_on_it():
     canvas, ink = BENCHMARK.observations["canvas"], BENCHMARK.observations["canvas-ink"]
     assert ink.lowdim_keys == canvas.lowdim_keys and ink.action_key == canvas.action_key == "action"
     assert ink.proprio_keys == (*canvas.proprio_keys, "ink_length")
+
+
+def test_board_view_is_board_image_with_the_ink_only_in_its_view():
+    image, view = BENCHMARK.observations["board-image"], BENCHMARK.observations["board-view"]
+    assert view.image_keys == image.image_keys == ("board_image",) and view.image_size == image.image_size
+    assert view.action_key == image.action_key == "action_on_board"
+    assert image.proprio_keys == (*view.proprio_keys, "ink_length")
 
 
 def test_saved_configs_keep_their_fields():

@@ -57,6 +57,17 @@ BOARD_IMAGE = ObservationPreset(
         "visual setting, not that setting (no board rotation to see, board-frame actions)"
     ),
 )
+BOARD_VIEW = ObservationPreset(
+    image_keys=BOARD_IMAGE.image_keys,
+    proprio_keys=("cursor_on_board", "pen_down"),
+    image_size=BOARD_IMAGE.image_size,
+    action_key="action_on_board",
+    description=(
+        "board-image without the ink drawn so far in the state: the paper's observation (the cursor and the pen as "
+        "proprioception, what has been drawn only in the view) at CPU cost; a CPU stand-in for the paper's visual "
+        "setting, not that setting"
+    ),
+)
 IMAGE64 = ObservationPreset(
     image_keys=("image",),
     proprio_keys=("agent_pos", "pen_down"),
@@ -91,6 +102,7 @@ class DrawAnything:
         "image64": IMAGE64,
         "paper": PAPER,
         "board-image": BOARD_IMAGE,  # after the camera presets: exports list the canvas camera first
+        "board-view": BOARD_VIEW,
     }
     metric = Metric(
         "Chamfer distance",
