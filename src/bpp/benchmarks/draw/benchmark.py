@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -57,11 +58,9 @@ BOARD_IMAGE = ObservationPreset(
         "visual setting, not that setting (no board rotation to see, board-frame actions)"
     ),
 )
-BOARD_VIEW = ObservationPreset(
-    image_keys=BOARD_IMAGE.image_keys,
+BOARD_VIEW = replace(
+    BOARD_IMAGE,
     proprio_keys=("cursor_on_board", "pen_down"),
-    image_size=BOARD_IMAGE.image_size,
-    action_key="action_on_board",
     description=(
         "board-image without the ink drawn so far in the state: the paper's observation (the cursor and the pen as "
         "proprioception, what has been drawn only in the view) at CPU cost; a CPU stand-in for the paper's visual "
