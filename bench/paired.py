@@ -6,7 +6,9 @@
 Each side is one ``bpp eval`` results.json, or several separated by commas (e.g. one per seed: each task's score is
 then its mean over them). Prints both means, B minus A with its standard error over the tasks both scored, B / A, and
 on how many tasks B is better (the metric's direction read from the results). When both sides list as many files (one
-per seed, in the same order), it also prints each seed's paired difference and their mean ± std over seeds.
+per seed, in the same order), it also prints each seed's paired difference and their mean ± std over seeds. When a side
+lists several, it also prints a 95% interval for B minus A that counts both sources of spread: each draw resamples
+each side's seeds and the tasks (the same tasks for both sides, so the pairing is kept), with replacement.
 """
 
 from __future__ import annotations
@@ -40,11 +42,26 @@ def without(scores: dict[str, float], tasks: list[str]) -> dict[str, float]:
     return {task: score for task, score in scores.items() if task not in tasks}
 
 
+def resampled(
+    seeds_a: list[dict[str, float]], seeds_b: list[dict[str, float]], tasks: list[str], draws: int, seed: int = 0
+) -> np.ndarray:
+    """B minus A's mean score in each of `draws` resamplings of both sides' evaluations (seeds) and of `tasks`."""
+    a, b = (np.array([[scores[task] for task in tasks] for scores in side]) for side in (seeds_a, seeds_b))
+    rng = np.random.default_rng(seed)
+    out = np.empty(draws)
+    for draw in range(draws):
+        columns = rng.integers(0, len(tasks), len(tasks))
+        rows_a, rows_b = rng.integers(0, len(a), len(a)), rng.integers(0, len(b), len(b))
+        out[draw] = b[rows_b][:, columns].mean() - a[rows_a][:, columns].mean()
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("a", help="results.json of A (comma-separated: averaged task by task)")
     parser.add_argument("b", help="results.json of B (comma-separated: averaged task by task)")
     parser.add_argument("--without", nargs="+", default=[], metavar="TASK_ID", help="task ids to leave out")
+    parser.add_argument("--draws", type=int, default=10_000, help="resamplings of seeds and tasks for the interval")
     args = parser.parse_args()
     try:
         (seeds_a, metric), (seeds_b, _) = (read_scores([Path(p) for p in side.split(",")]) for side in (args.a, args.b))
@@ -54,6 +71,10 @@ def main() -> None:
         if len(seeds_a) == len(seeds_b) > 1:
             pairs = zip(seeds_a, seeds_b, strict=True)
             by_seed = [paired(without(a, args.without), without(b, args.without), lower) for a, b in pairs]
+        draws = []
+        if max(len(seeds_a), len(seeds_b)) > 1:
+            tasks = sorted(without(seeds_a[0], args.without).keys() & seeds_b[0].keys())
+            draws = resampled(seeds_a, seeds_b, tasks, args.draws)
     except (OSError, ValueError, KeyError) as error:  # a missing or unreadable file, tasks that do not match
         parser.error(f"{type(error).__name__}: {error}")
     unit = f" {metric['unit']}" if metric.get("unit") else ""
@@ -67,6 +88,13 @@ def main() -> None:
         print(
             f"by seed, B minus A: {', '.join(f'{seed} (B better on {seed.b_better})' for seed in by_seed)}; "
             f"over seeds {diffs.mean():+.2f} ± {diffs.std(ddof=1):.2f}{unit} (± std)"
+        )
+    if len(draws):
+        low, high = np.percentile(draws, [2.5, 97.5])
+        better = np.mean(draws < 0 if lower else draws > 0)
+        print(
+            f"resampling seeds and tasks ({len(draws)} draws): B minus A 95% interval {low:+.2f} to {high:+.2f}{unit}; "
+            f"B better in {better:.1%} of draws"
         )
 
 

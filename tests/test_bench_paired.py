@@ -70,3 +70,24 @@ def test_seeds_of_different_tasks_are_refused(tmp_path):
     done = _run(a, f"{b0},{b1}")
     assert done.returncode != 0
     assert "scored different tasks" in done.stderr
+
+
+def test_the_interval_over_seeds_and_tasks_is_the_point_when_seeds_agree(tmp_path):
+    a0 = _results(tmp_path / "a0.json", {"x": 10.0, "y": 20.0})
+    a1 = _results(tmp_path / "a1.json", {"x": 10.0, "y": 20.0})
+    b0 = _results(tmp_path / "b0.json", {"x": 8.0, "y": 18.0})
+    b1 = _results(tmp_path / "b1.json", {"x": 8.0, "y": 18.0})
+    done = _run(f"{a0},{a1}", f"{b0},{b1}", "--draws", "200")
+    assert done.returncode == 0, done.stderr
+    assert "(200 draws): B minus A 95% interval -2.00 to -2.00 px; B better in 100.0% of draws" in done.stdout
+
+
+def test_the_interval_spans_what_the_seeds_disagree_on(tmp_path):
+    # A's two seeds agree; B's differ by 10 px: a draw takes B's seed 0 twice (-5), once each (0) or seed 1 twice (+5)
+    a = ",".join(_results(tmp_path / f"a{s}.json", {"x": 10.0}) for s in range(2))
+    b = ",".join(_results(tmp_path / f"b{s}.json", {"x": score}) for s, score in enumerate((5.0, 15.0)))
+    done = _run(a, b)
+    assert done.returncode == 0, done.stderr
+    assert "B minus A 95% interval -5.00 to +5.00 px" in done.stdout
+    better = float(done.stdout.split("B better in ")[1].split("%")[0])
+    assert 23.0 < better < 27.0  # a quarter of the draws take seed 0 twice
