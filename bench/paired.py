@@ -71,7 +71,7 @@ def main() -> None:
         if len(seeds_a) == len(seeds_b) > 1:
             pairs = zip(seeds_a, seeds_b, strict=True)
             by_seed = [paired(without(a, args.without), without(b, args.without), lower) for a, b in pairs]
-        draws = []
+        draws = np.empty(0)  # an interval only where a side has several seeds
         if max(len(seeds_a), len(seeds_b)) > 1:
             tasks = sorted(without(seeds_a[0], args.without).keys() & seeds_b[0].keys())
             draws = resampled(seeds_a, seeds_b, tasks, args.draws)
@@ -89,7 +89,7 @@ def main() -> None:
             f"by seed, B minus A: {', '.join(f'{seed} (B better on {seed.b_better})' for seed in by_seed)}; "
             f"over seeds {diffs.mean():+.2f} ± {diffs.std(ddof=1):.2f}{unit} (± std)"
         )
-    if len(draws):
+    if draws.size:
         low, high = np.percentile(draws, [2.5, 97.5])
         better = np.mean(draws < 0 if lower else draws > 0)
         print(
