@@ -19,6 +19,11 @@ def _results(path: Path, scores: dict[str, float], metric: dict = CHAMFER) -> st
     return str(path)
 
 
+def _seeds(tmp_path: Path, side: str, *scores: dict[str, float]) -> str:
+    """One results.json per seed of `side`, named side0.json, side1.json, ...: the comma-separated argument."""
+    return ",".join(_results(tmp_path / f"{side}{seed}.json", each) for seed, each in enumerate(scores))
+
+
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, cwd=ROOT)
 
@@ -36,11 +41,9 @@ def test_seeds_are_averaged_per_task_before_pairing(tmp_path):
 
 
 def test_as_many_seeds_a_side_are_also_paired_seed_by_seed(tmp_path):
-    a0 = _results(tmp_path / "a0.json", {"x": 10.0, "y": 20.0})
-    a1 = _results(tmp_path / "a1.json", {"x": 12.0, "y": 20.0})
-    b0 = _results(tmp_path / "b0.json", {"x": 9.0, "y": 19.0})
-    b1 = _results(tmp_path / "b1.json", {"x": 15.0, "y": 23.0})
-    done = _run(f"{a0},{a1}", f"{b0},{b1}", "--without", "y")
+    a = _seeds(tmp_path, "a", {"x": 10.0, "y": 20.0}, {"x": 12.0, "y": 20.0})
+    b = _seeds(tmp_path, "b", {"x": 9.0, "y": 19.0}, {"x": 15.0, "y": 23.0})
+    done = _run(a, b, "--without", "y")
     assert done.returncode == 0, done.stderr
     # seed 0: x 10 -> 9, -1; seed 1: x 12 -> 15, +3; over seeds +1 ± std(-1, 3) = 2.83
     assert "by seed, B minus A: -1.00 ± 0.00 (B better on 1), +3.00 ± 0.00 (B better on 0)" in done.stdout
@@ -73,19 +76,17 @@ def test_seeds_of_different_tasks_are_refused(tmp_path):
 
 
 def test_the_interval_over_seeds_and_tasks_is_the_point_when_seeds_agree(tmp_path):
-    a0 = _results(tmp_path / "a0.json", {"x": 10.0, "y": 20.0})
-    a1 = _results(tmp_path / "a1.json", {"x": 10.0, "y": 20.0})
-    b0 = _results(tmp_path / "b0.json", {"x": 8.0, "y": 18.0})
-    b1 = _results(tmp_path / "b1.json", {"x": 8.0, "y": 18.0})
-    done = _run(f"{a0},{a1}", f"{b0},{b1}", "--draws", "200")
+    a = _seeds(tmp_path, "a", {"x": 10.0, "y": 20.0}, {"x": 10.0, "y": 20.0})
+    b = _seeds(tmp_path, "b", {"x": 8.0, "y": 18.0}, {"x": 8.0, "y": 18.0})
+    done = _run(a, b, "--draws", "200")
     assert done.returncode == 0, done.stderr
     assert "(200 draws): B minus A 95% interval -2.00 to -2.00 px; B better in 100.0% of draws" in done.stdout
 
 
 def test_the_interval_spans_what_the_seeds_disagree_on(tmp_path):
     # A's two seeds agree; B's differ by 10 px: a draw takes B's seed 0 twice (-5), once each (0) or seed 1 twice (+5)
-    a = ",".join(_results(tmp_path / f"a{s}.json", {"x": 10.0}) for s in range(2))
-    b = ",".join(_results(tmp_path / f"b{s}.json", {"x": score}) for s, score in enumerate((5.0, 15.0)))
+    a = _seeds(tmp_path, "a", {"x": 10.0}, {"x": 10.0})
+    b = _seeds(tmp_path, "b", {"x": 5.0}, {"x": 15.0})
     done = _run(a, b)
     assert done.returncode == 0, done.stderr
     assert "B minus A 95% interval -5.00 to +5.00 px" in done.stdout
