@@ -19,13 +19,20 @@ def _results(path: Path, scores: dict[str, float], metric: dict = CHAMFER) -> st
     return str(path)
 
 
-def _seeds(tmp_path: Path, side: str, *scores: dict[str, float]) -> str:
-    """One results.json per seed of `side`, named side0.json, side1.json, ...: the comma-separated argument."""
-    return ",".join(_results(tmp_path / f"{side}{seed}.json", each) for seed, each in enumerate(scores))
-
-
 def _run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, cwd=ROOT)
+
+
+def _run_seeds(tmp_path: Path, a: list[dict[str, float]], b: list[dict[str, float]], *args: str) -> str:
+    """The script on one results.json per seed a side (a0.json, a1.json, ... and b0.json, ...); its output, once it
+    has succeeded."""
+    sides = (
+        ",".join(_results(tmp_path / f"{side}{seed}.json", each) for seed, each in enumerate(scores))
+        for side, scores in (("a", a), ("b", b))
+    )
+    done = _run(*sides, *args)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
 
 
 def test_seeds_are_averaged_per_task_before_pairing(tmp_path):
@@ -41,13 +48,11 @@ def test_seeds_are_averaged_per_task_before_pairing(tmp_path):
 
 
 def test_as_many_seeds_a_side_are_also_paired_seed_by_seed(tmp_path):
-    a = _seeds(tmp_path, "a", {"x": 10.0, "y": 20.0}, {"x": 12.0, "y": 20.0})
-    b = _seeds(tmp_path, "b", {"x": 9.0, "y": 19.0}, {"x": 15.0, "y": 23.0})
-    done = _run(a, b, "--without", "y")
-    assert done.returncode == 0, done.stderr
+    a = [{"x": 10.0, "y": 20.0}, {"x": 12.0, "y": 20.0}]
+    out = _run_seeds(tmp_path, a, [{"x": 9.0, "y": 19.0}, {"x": 15.0, "y": 23.0}], "--without", "y")
     # seed 0: x 10 -> 9, -1; seed 1: x 12 -> 15, +3; over seeds +1 ± std(-1, 3) = 2.83
-    assert "by seed, B minus A: -1.00 ± 0.00 (B better on 1), +3.00 ± 0.00 (B better on 0)" in done.stdout
-    assert "over seeds +1.00 ± 2.83 px (± std)" in done.stdout
+    assert "by seed, B minus A: -1.00 ± 0.00 (B better on 1), +3.00 ± 0.00 (B better on 0)" in out
+    assert "over seeds +1.00 ± 2.83 px (± std)" in out
 
 
 def test_without_leaves_tasks_out(tmp_path):
@@ -76,19 +81,14 @@ def test_seeds_of_different_tasks_are_refused(tmp_path):
 
 
 def test_the_interval_over_seeds_and_tasks_is_the_point_when_seeds_agree(tmp_path):
-    a = _seeds(tmp_path, "a", {"x": 10.0, "y": 20.0}, {"x": 10.0, "y": 20.0})
-    b = _seeds(tmp_path, "b", {"x": 8.0, "y": 18.0}, {"x": 8.0, "y": 18.0})
-    done = _run(a, b, "--draws", "200")
-    assert done.returncode == 0, done.stderr
-    assert "(200 draws): B minus A 95% interval -2.00 to -2.00 px; B better in 100.0% of draws" in done.stdout
+    a, b = [{"x": 10.0, "y": 20.0}] * 2, [{"x": 8.0, "y": 18.0}] * 2
+    out = _run_seeds(tmp_path, a, b, "--draws", "200")
+    assert "(200 draws): B minus A 95% interval -2.00 to -2.00 px; B better in 100.0% of draws" in out
 
 
 def test_the_interval_spans_what_the_seeds_disagree_on(tmp_path):
     # A's two seeds agree; B's differ by 10 px: a draw takes B's seed 0 twice (-5), once each (0) or seed 1 twice (+5)
-    a = _seeds(tmp_path, "a", {"x": 10.0}, {"x": 10.0})
-    b = _seeds(tmp_path, "b", {"x": 5.0}, {"x": 15.0})
-    done = _run(a, b)
-    assert done.returncode == 0, done.stderr
-    assert "B minus A 95% interval -5.00 to +5.00 px" in done.stdout
-    better = float(done.stdout.split("B better in ")[1].split("%")[0])
+    out = _run_seeds(tmp_path, [{"x": 10.0}] * 2, [{"x": 5.0}, {"x": 15.0}])
+    assert "B minus A 95% interval -5.00 to +5.00 px" in out
+    better = float(out.split("B better in ")[1].split("%")[0])
     assert 23.0 < better < 27.0  # a quarter of the draws take seed 0 twice
