@@ -102,6 +102,23 @@ def test_the_paper_encoder_has_resnet_stem_and_the_cpu_one_keeps_its_own():
         ObsConfig(image_stem="vit")
 
 
+def test_the_image_encoder_pools_over_the_whole_map_or_a_grid_of_regions():
+    torch.manual_seed(0)
+    images = torch.randint(0, 255, (3, 3, 32, 32), dtype=torch.uint8)
+    whole, grid = ResNetGN(8, (8, 16), (1, 1)), ResNetGN(8, (8, 16), (1, 1), pool_grid=2)
+    with torch.no_grad():
+        x = whole.layers(whole.stem((images.float() / 255 - 0.5) / 0.25))  # (3, 16, 8, 8)
+        assert torch.allclose(whole(images), whole.proj(x.mean(dim=(2, 3))), atol=1e-6)  # the saved encoders' pool
+        x = grid.layers(grid.stem((images.float() / 255 - 0.5) / 0.25))
+        # (3, 16, 4): each channel's mean in each quadrant, row by row
+        quadrants = torch.stack([x[:, :, :4, :4], x[:, :, :4, 4:], x[:, :, 4:, :4], x[:, :, 4:, 4:]], dim=-1)
+        quadrants = quadrants.mean(dim=(2, 3))
+        assert grid.proj.in_features == 16 * 4
+        assert torch.allclose(grid(images), grid.proj(quadrants.flatten(1)), atol=1e-6)
+    with pytest.raises(ValueError, match="image_pool_grid"):
+        ObsConfig(image_pool_grid=0)
+
+
 @pytest.mark.slow
 def test_image_encoder_trains_on_frames_of_any_batch_size_with_several_threads():
     """Frames arrive channels-last; PyTorch's multi-threaded CPU backward of a strided 1x1 convolution on such input

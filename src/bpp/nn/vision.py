@@ -42,16 +42,22 @@ class ResNetGN(nn.Module):
     """(B, 3, H, W) uint8-range or [0, 1] float images -> (B, out_dim) features.
 
     ``widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem="resnet"`` is ResNet-18 with GroupNorm (the
-    paper-sized encoder); the CPU presets use narrower, shallower versions. Features are globally average-pooled and
-    projected.
+    paper-sized encoder); the CPU presets use narrower, shallower versions. The last feature map is average-pooled
+    into a ``pool_grid`` x ``pool_grid`` grid, flattened and projected: 1 is ResNet's global pool, which keeps what
+    the image holds but not where; a larger grid keeps where, one cell per region (a grid finer than the last map
+    repeats its values).
 
     The stem: ``"resnet"`` is ResNet's (a 7x7 stride-2 convolution, then a 3x3 stride-2 max-pool: the first stage
     runs at a quarter of the image size); ``"conv5"`` one 5x5 stride-2 convolution, which keeps twice the resolution
     for small images (the CPU presets' 64x64 cameras) and costs 4x the first stages' compute at 224x224.
     """
 
-    def __init__(self, out_dim: int, widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem: str = "conv5"):
+    def __init__(
+        self, out_dim: int, widths=(64, 128, 256, 512), blocks=(2, 2, 2, 2), stem: str = "conv5", pool_grid: int = 1
+    ):
         super().__init__()
+        if pool_grid < 1:
+            raise ValueError(f"image pool grid must be >= 1, got {pool_grid}")
         if stem == "resnet":
             first = [nn.Conv2d(3, widths[0], 7, 2, 3, bias=False), _group_norm(widths[0]), nn.ReLU(inplace=True)]
             self.stem = nn.Sequential(*first, nn.MaxPool2d(3, 2, 1))
@@ -67,7 +73,8 @@ class ResNetGN(nn.Module):
                 layers.append(BasicBlock(c, w, 2 if (j == 0 and i > 0) else 1))
                 c = w
         self.layers = nn.Sequential(*layers)
-        self.proj = nn.Linear(c, out_dim)
+        self.pool = nn.AdaptiveAvgPool2d(pool_grid)
+        self.proj = nn.Linear(c * pool_grid * pool_grid, out_dim)
         self.register_buffer("mean", torch.tensor([0.5, 0.5, 0.5]).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor([0.25, 0.25, 0.25]).view(1, 3, 1, 1), persistent=False)
 
@@ -79,4 +86,4 @@ class ResNetGN(nn.Module):
         x = images.float() / 255.0 if images.dtype == torch.uint8 else images.float()
         x = (x - self.mean) / self.std
         x = self.layers(self.stem(x))
-        return self.proj(x.mean(dim=(2, 3)))
+        return self.proj(self.pool(x).flatten(1))

@@ -59,6 +59,9 @@ class ObsConfig:
     image_stem: str = "conv5"
     """resnet: ResNet's 7x7 stride-2 convolution and max-pool (the paper's ResNet-18); conv5: one 5x5 stride-2
     convolution, twice the resolution after the stem, for small images (see :class:`bpp.nn.vision.ResNetGN`)."""
+    image_pool_grid: int = 1
+    """1: the encoder averages its last feature map over the image (what is in view, not where); g > 1: over a g x g
+    grid, flattened, so that the features keep where things are."""
     lowdim_fourier_octaves: int = 0
     """0: low-dimensional entries are their normalised values; k > 0: Fourier features over k octaves and an MLP
     to ``lowdim_features`` (a nonlinear embedding, so that attention can match nearby states; see bpp.nn.lowdim)."""
@@ -73,6 +76,7 @@ class ObsConfig:
             ("image_widths", len(widths) >= 1 and all(group_normable(w) for w in widths), IMAGE_WIDTHS_RULE),
             ("image_blocks", len(blocks) == len(widths) and all(b >= 1 for b in blocks), "one count >= 1 per width"),
             ("image_stem", self.image_stem in ("resnet", "conv5"), "'resnet' or 'conv5'"),
+            ("image_pool_grid", 1 <= self.image_pool_grid <= 16, "in [1, 16]"),
             ("lowdim_fourier_octaves", 0 <= self.lowdim_fourier_octaves <= 16, "in [0, 16]"),
             ("lowdim_features", self.lowdim_features >= 1, ">= 1"),
         )

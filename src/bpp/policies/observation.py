@@ -34,7 +34,7 @@ class ObsEncoder(nn.Module):
         self.normalizer = normalizer
         self.cameras = nn.ModuleDict(
             {
-                k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks, cfg.image_stem)
+                k: ResNetGN(cfg.image_features, cfg.image_widths, cfg.image_blocks, cfg.image_stem, cfg.image_pool_grid)
                 for k in cfg.image_keys
             }
         )
