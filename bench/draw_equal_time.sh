@@ -24,6 +24,9 @@
 # and Goal-Image's two seeds side by side (its `board-image` step reads no prompt's frames: more steps fill the time):
 #   OBS=board-image METHODS=goal_image GOAL_IMAGE_STEPS=26400 RUNS=runs/long-image OUT=outputs/long-image \
 #     bash bench/draw_equal_time.sh 0 &
+# TRAIN_FLAGS adds training flags to every lane, e.g. the image encoder's pool over a 2x2 grid of the view:
+#   OBS=board-view BPP_STEPS=12000 ICRT_STEPS=5000 BPP_NOISE=1 TRAIN_FLAGS="--model.obs.image-pool-grid 2" \
+#     RUNS=runs/grid OUT=outputs/grid bash bench/draw_equal_time.sh 0
 #
 # Stopped part way, the same command continues each lane from its last checkpoint and reuses the evaluations
 # already made.
@@ -43,6 +46,8 @@ mkdir -p "$OUT/logs"
 METHODS=${METHODS:-bpp icrt} OBS=${OBS:-board}
 common=(--data "$DATA" --preset cpu --obs "$OBS" --tasks-per-batch 8 --threads 1 --workers 0 --keep-checkpoints 50
   --seed "$SEED")
+read -ra extra <<< "${TRAIN_FLAGS:-}"
+common+=("${extra[@]}")
 
 steps() {  # steps METHOD: the method's step count (BPP_STEPS, ICRT_STEPS, GOAL_IMAGE_STEPS, ...)
   local name="${1^^}_STEPS"
